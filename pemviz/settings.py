@@ -4,7 +4,9 @@ Each field's symbol, words, allowed range, unit, help, command-line flag and own
 :class:`Setting` in :data:`SETTINGS`: the config's checks (:mod:`pemviz.config`), the command line
 (:mod:`pemviz.commands`), the panel's form (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read
 it here. The allowed values of the choices (:data:`METRICS`, ...) and the numeric limits
-(:data:`MAX_SEED`, :data:`MAX_STAGES`, ...) live beside it: each name has one import path, this module.
+(:data:`MAX_SEED`, ...) live beside it; the cross-entropy sampler's rows are the fields of its settings
+(:class:`pemviz.methods.adaptive.CrossEntropySettings`, each made by :func:`pemviz.methods.setting`), with its
+choices and limits beside them.
 """
 
 from __future__ import annotations
@@ -15,8 +17,9 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from pemviz.methods import BUILTIN_METHODS, CROSS_ENTROPY_METHOD, SPLITTING_METHOD, STATE_METHOD, registered_names
-from pemviz.methods.adaptive import PROPOSAL_INPUTS, STATE_INPUTS
+from pemviz.methods import BUILTIN_METHODS, CROSS_ENTROPY_METHOD, ROW, SPLITTING_METHOD, STATE_METHOD, registered_names
+from pemviz.methods import setting as setting  # a method's settings field and its row: here for the plugins' import
+from pemviz.methods.adaptive import CrossEntropySettings
 
 
 DEFAULT_MAX_SIMS = 1_000_000
@@ -67,27 +70,8 @@ machine (every usable core, or ``workers``), ``serial`` in this process, ``ray``
 cluster; the same seed gives the same rollouts and estimate, bit for
 bit (:mod:`pemviz.engine.executors`)."""
 
-WEIGHT_MODES = ("frozen", "recomputed")
-FINAL_MODES = ("pooled", "fresh", "last-stage")
-FIT_WEIGHTS = ("mixture", "sampler")
-"""How the CE fits weigh the failures of every stage since the failure level (:class:`~pemviz.config.ExperimentConfig`
-``fit_weights``)."""
-POOL_WEIGHTS = ("quadratic", "linear", "rollouts")
-"""How ``final_estimate = "pooled"`` weighs its stages (:class:`~pemviz.config.ExperimentConfig` ``pool_weights``)."""
 UNIFORMS = ("array-rqmc", "iid")
 """How a batch's rollouts draw their detections (:class:`~pemviz.config.ExperimentConfig` ``uniforms``)."""
-ELITE_TIES = ("all", "random")
-FITS = ("adam", "lbfgs")
-"""How the proposal is fitted each stage (:func:`pemviz.estimators.ce_fit.ce_update`): ``adam``, a fixed number of
-full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous
-stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
-Alg. 7.5)."""
-FIT_PRECISIONS = ("exact", "float32", "float64")
-"""The arithmetic of the proposal's Adam fits (:func:`pemviz.core.sampling.fit_proposal`): ``exact`` (the default,
-:func:`pemviz.core.exact_fit.fit_exact`) gives the same proposal on every CPU; ``float32`` and ``float64`` run torch's
-kernels, whose last bits depend on the CPU's vector unit and BLAS kernel (the paper's fits are float64). The network
-samples in exact arithmetic whatever this is (:meth:`pemviz.core.sampling.Proposal.detect_logit`); the parameters and
-every importance weight stay float64."""
 AMS_SCORES = ("robustness", "lookahead", "committor")
 """What ranks the AMS particles (:class:`~pemviz.config.ExperimentConfig` ``ams_score``,
 :mod:`pemviz.estimators.ams`): the formula's classic robustness, the robustness of the nominal continuation from
@@ -99,14 +83,6 @@ STATE_MODELS = ("network", "glm")
 
 MAX_SEED = 2**64 - 1
 """Largest seed: torch's generator takes a 64-bit unsigned seed."""
-MAX_STAGES = 1_000
-"""Largest K: the paper uses 10; past a few dozen stages the proposal has long converged."""
-MAX_SMOOTHING_AT_FAILURE = 2.0
-"""Largest alpha once the failure level is reached: 2 is the variance-minimisation program; beyond it the weights'
-tail decides the fit."""
-MAX_EPOCHS = 100_000
-"""Largest Adam epochs per stage (paper 500, authors' code 1000; 10^5 epochs take ~10 min a stage)."""
-
 RUN = "run"
 """The owner of a setting that the run itself reads, whatever its method (the engine, the problem, the seed)."""
 
@@ -286,27 +262,32 @@ class Setting:
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
 
 
-def _settings(*settings: Setting) -> dict[str, Setting]:
-    return {s.name: s for s in settings}
+def _rows(cls: type, owner: str) -> dict[str, Setting]:
+    """The :class:`Setting` of each field of ``cls`` made by :func:`setting`, by name, in the fields' order."""
+    fields = [f for f in dataclasses.fields(cls) if ROW in f.metadata]
+    return {f.name: Setting(f.name, owner=owner, **f.metadata[ROW]) for f in fields}
+
+
+def _settings(*settings: Setting | str) -> dict[str, Setting]:
+    """The table: the run's and the other methods' rows, and the cross-entropy sampler's, each named where the runs
+    have always recorded it (result documents, rollout files, ``runs.jsonl``: the keys keep their order), taken from
+    its field of :class:`~pemviz.methods.adaptive.CrossEntropySettings`; a field not named here (a setting added
+    there) follows every other row."""
+    own = _rows(CrossEntropySettings, CROSS_ENTROPY_METHOD)
+    table = {s.name: s for s in (own.pop(row) if isinstance(row, str) else row for row in settings)}
+    return {**table, **own}
 
 
 SETTINGS: dict[str, Setting] = _settings(
     Setting("method", "the method", "the estimator", kind="method", choices=BUILTIN_METHODS, owner=RUN,
             flags=("--method",)),
-    Setting("n_stages", "the number of cross-entropy stages K",
-            "stages of N rollouts, the proposal refitted after each", kind="int", symbol="K", lo=1, hi=MAX_STAGES,
-            flags=("--k", "--stages")),
+    "n_stages",
     Setting("n_per_stage", "the rollouts per stage N",
             "rollouts of each stage; of mc, naive50 and mixed50 all their rollouts; of ams its particles",
             kind="int", symbol="N", lo=2, owner=RUN, flags=("--n",)),
-    Setting("n_final", "the rollouts of the final estimate N_e",
-            "fresh rollouts from the final proposal for the estimate", kind="int", symbol="N_e", lo=1,
-            flags=("--n-final",)),
-    Setting("quantile_level", "the quantile level sigma",
-            "the stage threshold is the (1 - sigma) quantile of robustness", symbol="sigma", lo=0.5, hi=1.0,
-            hi_open=True, flags=("--sigma",)),
-    Setting("smoothing", "the smoothing alpha", "the power on the importance weights in the CE loss", symbol="alpha",
-            lo=0.0, hi=1.0, lo_open=True, flags=("--alpha",)),
+    "n_final",
+    "quantile_level",
+    "smoothing",
     Setting("metric", "the robustness metric", "the semantics that ranks the rollouts and sets the stage thresholds "
             "(a failure is always a negative classic robustness)", kind="choice", choices=METRICS, short="metric",
             owner=RUN, flags=("--metric",),
@@ -316,27 +297,13 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("seed", "the seed", "seeds the rollouts, the fits, tie-breaking and the proposal's initial weights; the "
             "same seed gives the same run", kind="int", lo=0, hi=MAX_SEED, hi_words="2^64 - 1", owner=RUN,
             flags=("--seed",)),
-    Setting("ce_epochs", "the Adam epochs per stage", "the most Adam epochs of a cross-entropy stage's fit", kind="int",
-            short="CE epochs", lo=1, hi=MAX_EPOCHS, flags=("--ce-epochs",)),
-    Setting("pretrain_rollouts", "the pretraining rollouts", "PEM-driven rollouts the first proposal is fitted to",
-            kind="int", short="pretrain rollouts", lo=1),
-    Setting("pretrain_epochs", "the pretraining epochs", "Adam epochs of the first proposal's fit", kind="int",
-            short="pretrain epochs", lo=1, hi=MAX_EPOCHS, flags=("--pretrain-epochs",)),
-    Setting("learning_rate", "the learning rate", "Adam's step size for the proposal", lo=0.0, lo_open=True),
-    Setting("weights", "the importance weights of the fit", "how the CE loss holds the importance weights",
-            kind="choice", choices=WEIGHT_MODES,
-            choice_help=(("frozen", "constants of each fit (the paper's eq. 10-11)"),
-                         ("recomputed", "recomputed from the proposal, with their gradient (the authors' code)"))),
-    Setting("final_estimate", "the final estimate", "which rollouts the estimate weighs", kind="choice",
-            choices=FINAL_MODES,
-            choice_help=(("pooled", "the final rollouts and every stage fitted to failures, each weighted by the "
-                                    "proposal that drew it"),
-                         ("fresh", "the final rollouts alone (the paper)"),
-                         ("last-stage", "the last stage's batch (the authors' code)"))),
-    Setting("pool_weights", "the weights of the pooled stages", "how the pooled estimate counts its stages",
-            kind="choice", choices=POOL_WEIGHTS,
-            choice_help=(("quadratic", "the j-th pooled stage in proportion to j^2 n_j"),
-                         ("linear", "in proportion to j n_j"), ("rollouts", "every rollout alike"))),
+    "ce_epochs",
+    "pretrain_rollouts",
+    "pretrain_epochs",
+    "learning_rate",
+    "weights",
+    "final_estimate",
+    "pool_weights",
     Setting("uniforms", "the uniforms of a batch", "how the rollouts of a batch draw their detections; every estimate "
             "keeps its expectation", kind="choice", choices=UNIFORMS, owner=RUN,
             choice_help=(("array-rqmc", "the rollouts of a block stepped as one array on a randomly shifted lattice"),
@@ -392,60 +359,27 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("max_time_s", "the most wall-clock time", "with --rel-error or --require: no more rollouts once the run "
             "has taken this long; where the run stops then depends on the machine (None: no time cap)", unit="s",
             lo=0.0, lo_open=True, optional=True, owner=RUN, short="max time", flags=("--max-time",)),
-    Setting("proposal_inputs", "the proposal's inputs h(s)", "what the proposal sees", kind="choice",
-            choices=PROPOSAL_INPUTS,
-            choice_help=(("gap", "the gap to the lead car (the paper)"),
-                         (STATE_INPUTS, "every observation column of the problem"))),
-    Setting("proposal_window", "the proposal window",
-            "the proposal replaces the PEM only where the detector can matter", kind="bool"),
-    Setting("skip_decided", "the skip of decided steps", "with the window, the proposal also gives way to the PEM "
-            "where the outcome is already decided", kind="bool"),
+    "proposal_inputs",
+    "proposal_window",
+    "skip_decided",
     Setting("weights_until_failure", "the weights until failure", "importance weights stop at the step where the "
             "failure happens", kind="bool", owner=RUN),
-    Setting("smoothing_at_failure", "the smoothing alpha at the failure level", "alpha once the stage threshold has "
-            "reached the failure level (None: the smoothing alpha)", short="alpha at failure", lo=0.0,
-            hi=MAX_SMOOTHING_AT_FAILURE, lo_open=True, optional=True),
-    Setting("final_smoothing", "the smoothing alpha of the last fit", "alpha of the last stage's fit, whose proposal "
-            "draws the final rollouts (None: as the stages before it)", short="final alpha", lo=0.0,
-            hi=MAX_SMOOTHING_AT_FAILURE, lo_open=True, optional=True),
-    Setting("elite_ties", "the elite ties", "which rollouts tied at the stage threshold are elites", kind="choice",
-            choices=ELITE_TIES,
-            choice_help=(("all", "every rollout at or below the threshold (the paper)"),
-                         ("random", "ties drawn at random up to ceil((1 - sigma) N) elites"))),
-    Setting("pretrain_cap", "the pretraining detection cap", "inside the window the pretraining rollouts detect with "
-            "at most this probability (None: the PEM's)", lo=0.0, hi=1.0, lo_open=True, hi_open=True, optional=True),
-    Setting("defensive", "the defensive share eps", "the CE stages draw from (1 - eps) q + eps x 50 % at every step",
-            lo=0.0, hi=1.0, hi_open=True),
-    Setting("target_share", "the target's share", "once the failure level is reached, the share of a stage's rollouts "
-            "drawn from the target p", lo=0.0, hi=1.0),
-    Setting("plain_share", "the plain proposal's share", "the share of a stage's rollouts drawn from the proposal "
-            "without the per-step mixture", lo=0.0, hi=1.0),
-    Setting("fit_all_failures", "the fit to all failures", "each fit uses the failures of every stage since the "
-            "failure level", kind="bool"),
-    Setting("fit_weights", "the weights of the failures in a fit", "how the fits weigh the failures of every stage",
-            kind="choice", choices=FIT_WEIGHTS,
-            choice_help=(("mixture", "by the mixture of the samplers since the failure level"),
-                         ("sampler", "by the sampler that drew each"))),
-    Setting("fit", "the fitting method", "how the proposal is fitted each stage", kind="choice", choices=FITS,
-            choice_help=(("adam", "full-batch Adam, a number of epochs"),
-                         ("lbfgs", "L-BFGS from the previous proposal until converged"))),
-    Setting("fit_precision", "the fit's precision", "the arithmetic of the proposal's Adam fits (the parameters and "
-            "every weight stay float64)", kind="choice", choices=FIT_PRECISIONS,
-            choice_help=(("exact", "the same proposal on every CPU; the default"),
-                         ("float32", "torch's float32 kernels: the last bits depend on the CPU"),
-                         ("float64", "torch's float64 kernels, as the paper's fits"))),
-    Setting("fit_max_steps", "the L-BFGS iterations", "the most L-BFGS iterations of one fit", kind="int", lo=1),
-    Setting("fit_rows", "the rows of a fit", "the most steps one fit sees, beyond them a weighted subsample with the "
-            "same expected loss (None: every step)", kind="int", lo=1, optional=True),
-    Setting("fit_tolerance", "the fit tolerance", "a CE stage's Adam fit stops once its loss fell by less than this "
-            "over the last 50 epochs (None: every epoch)", unit="nats per step", lo=0.0, lo_open=True, optional=True),
-    Setting("plain_fallback", "the plain Monte Carlo fallback", "where the weights back no interval, plain Monte Carlo "
-            "after the stages, at most this many times their simulations, to the precision target or a 20 % interval "
-            "(0: none)",
-            kind="int", lo=0, flags=("--plain-fallback",)),
-    Setting("retry_factor", "the retry's factor on N", "where the weights back no interval, the stages once more "
-            "before plain Monte Carlo, with N this many times as large, from a stream of their own (0 or 1: no retry; "
-            "none without the plain Monte Carlo fallback)", kind="int", lo=0, flags=("--retry-factor",)),
+    "smoothing_at_failure",
+    "final_smoothing",
+    "elite_ties",
+    "pretrain_cap",
+    "defensive",
+    "target_share",
+    "plain_share",
+    "fit_all_failures",
+    "fit_weights",
+    "fit",
+    "fit_precision",
+    "fit_max_steps",
+    "fit_rows",
+    "fit_tolerance",
+    "plain_fallback",
+    "retry_factor",
     Setting("ams_killed", "the particles killed per iteration k", "particles killed and resampled per AMS iteration "
             "at least (and every tie at the level); k < N", kind="int", symbol="k", lo=1, owner=SPLITTING_METHOD,
             flags=("--ams-killed",)),
@@ -483,18 +417,6 @@ class ConfigError(ValueError):
         self.field = field
 
 
-ROW = "pemviz.setting"
-"""The key of a method's setting's row in its dataclass field's metadata (:func:`setting`)."""
-
-
-def setting(default: Any, words: str, help: str, **row: Any) -> Any:
-    """A field of a method's settings dataclass (:attr:`pemviz.methods.Method.settings`) and its row of the settings
-    table: ``default``, then what a :class:`Setting` says of it (``words``, ``help`` and any of ``kind``, ``symbol``,
-    ``unit``, ``lo``, ``hi``, ``lo_open``, ``hi_open``, ``optional``, ``choices``, ``choice_help``, ``flags``); the
-    field's name is the setting's (and the key a run records it by), the method's name its owner."""
-    return dataclasses.field(default=default, metadata={ROW: {"words": words, "help": help, **row}})
-
-
 def rows_of(cls: type, owner: str) -> dict[str, Setting]:
     """The :class:`Setting` of each field of ``cls`` (a method's settings dataclass: :func:`setting`), by name, in the
     fields' order, owned by ``owner``.
@@ -502,13 +424,11 @@ def rows_of(cls: type, owner: str) -> dict[str, Setting]:
     Raises:
         TypeError: a field without a row (not made by :func:`setting`), or a name the settings table already has.
     """
-    rows: dict[str, Setting] = {}
     for f in dataclasses.fields(cls):
         if ROW not in f.metadata or f.name in SETTINGS:
             why = "is the name of a setting of pemviz" if f.name in SETTINGS else "has no row (pemviz.settings.setting)"
             raise TypeError(f"{cls.__name__}.{f.name} {why}")
-        rows[f.name] = Setting(f.name, owner=owner, **f.metadata[ROW])
-    return rows
+    return _rows(cls, owner)
 
 
 def check_settings(settings: object, owner: str = "") -> None:

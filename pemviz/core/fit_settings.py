@@ -44,7 +44,7 @@ class FitOptions:
         epochs: Adam epochs, or the most L-BFGS iterations (``fit``).
         lr: the step size.
         check: called every :data:`CHECK_EVERY` epochs; may raise to abandon the fit (cancel).
-        fit: one of :data:`pemviz.settings.FITS`.
+        fit: one of :data:`pemviz.methods.adaptive.FITS`.
         max_rows: None (``adam``: every step, summed over distinct inputs, the paper's fit) or the most steps the fit
             sees: beyond that a weighted systematic subsample whose weighted log-likelihood has the same expectation
             (:func:`pemviz.estimators.ce_fit.weighted_steps`); the loss is then divided by the total weight.

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from pemviz.settings import FITS
+from pemviz.methods.adaptive import FITS
 from pemviz.core import exact, torch_use
 from pemviz.core.exact_fit import fit_exact
 from pemviz.core.fit_settings import CHECK_EVERY, EXACT, PLATEAU_EPOCHS, Objective
@@ -454,7 +454,7 @@ def fit_proposal(
             estimate is computed in float64 from the density sampled from (:meth:`Proposal.detect_logit`), so the
             precision of the fit only moves the proposal, never the estimate's unbiasedness. A function objective
             (the authors' recomputed weights) and ``lbfgs`` always fit in torch's float64.
-        optimizer: one of :data:`pemviz.settings.FITS`.
+        optimizer: one of :data:`pemviz.methods.adaptive.FITS`.
         tolerance: ``adam``: early stopping once the loss fell by less than this over the last
             :data:`pemviz.core.fit_settings.PLATEAU_EPOCHS` epochs (None: every epoch); ``lbfgs``: its tolerance on a
             change of the loss (default

@@ -24,6 +24,7 @@ holds as a group: :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adapti
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -166,6 +167,20 @@ class Method:
             "pemviz.core.plan:RunPlan"
         )  # by its path: the core (its stage kinds) sits above the registry
         return run_plan.of([(1, "final", int(config.n_per_stage))])
+
+
+ROW = "pemviz.setting"
+"""The key of a method's setting's row in its dataclass field's metadata (:func:`setting`)."""
+
+
+def setting(default: Any, words: str, help: str, **row: Any) -> Any:
+    """A field of a method's settings dataclass (:attr:`Method.settings`, or a built-in method's group such as
+    :class:`pemviz.methods.adaptive.CrossEntropySettings`) and its row of the settings table
+    (:class:`pemviz.settings.Setting`): ``default``, then what the row says of it (``words``, ``help`` and any of
+    ``kind``, ``symbol``, ``short``, ``unit``, ``lo``, ``hi``, ``lo_open``, ``hi_open``, ``optional``, ``choices``,
+    ``choice_help``, ``flags``); the field's name is the setting's (and the key a run records it by), the method's name
+    its owner."""
+    return dataclasses.field(default=default, metadata={ROW: {"words": words, "help": help, **row}})
 
 
 COST_MODELS = ("plain", "proposal", "look-ahead", "splitting")

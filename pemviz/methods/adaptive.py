@@ -1,18 +1,49 @@
 """The cross-entropy sampler's settings (``method = "adaptive"``): :class:`CrossEntropySettings`, the
-:attr:`pemviz.config.ExperimentConfig.adaptive` of a run. Each field's symbol, range, unit, help and flag is its row of
-:data:`pemviz.settings.SETTINGS` (owner ``adaptive``); :class:`pemviz.estimators.cross_entropy.CrossEntropy` reads
-them. Light to import: no estimator is loaded."""
+:attr:`pemviz.config.ExperimentConfig.adaptive` of a run, with their choices and limits. Each field, made by
+:func:`pemviz.methods.setting`, carries its row of :data:`pemviz.settings.SETTINGS` (symbol, range, unit, help, flag;
+owner ``adaptive``): a setting added here is the config's, checked, a flag (where it names one) and recorded after the
+keys runs record today; :class:`pemviz.estimators.cross_entropy.CrossEntropy` reads them. Light to import: no estimator
+is loaded."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
 
+from pemviz.methods import setting
+
 STATE_INPUTS = "state"
 """The proposal's inputs h(s) of every observation column (:attr:`CrossEntropySettings.proposal_inputs`)."""
 PROPOSAL_INPUTS = ("gap", STATE_INPUTS)
 """h(s) of the proposal: ``gap`` (paper: gap / 12 m) or ``state`` (every observation column of the problem,
 e.g. gap, ego speed and lead speed of the braking scenario; distance and stopped flag of the toy)."""
+
+WEIGHT_MODES = ("frozen", "recomputed")
+FINAL_MODES = ("pooled", "fresh", "last-stage")
+FIT_WEIGHTS = ("mixture", "sampler")
+"""How the CE fits weigh the failures of every stage since the failure level
+(:attr:`CrossEntropySettings.fit_weights`)."""
+POOL_WEIGHTS = ("quadratic", "linear", "rollouts")
+"""How ``final_estimate = "pooled"`` weighs its stages (:attr:`CrossEntropySettings.pool_weights`)."""
+ELITE_TIES = ("all", "random")
+FITS = ("adam", "lbfgs")
+"""How the proposal is fitted each stage (:func:`pemviz.estimators.ce_fit.ce_update`): ``adam``, a fixed number of
+full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous
+stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
+Alg. 7.5)."""
+FIT_PRECISIONS = ("exact", "float32", "float64")
+"""The arithmetic of the proposal's Adam fits (:func:`pemviz.core.sampling.fit_proposal`): ``exact`` (the default,
+:func:`pemviz.core.exact_fit.fit_exact`) gives the same proposal on every CPU; ``float32`` and ``float64`` run torch's
+kernels, whose last bits depend on the CPU's vector unit and BLAS kernel (the paper's fits are float64). The network
+samples in exact arithmetic whatever this is (:meth:`pemviz.core.sampling.Proposal.detect_logit`); the parameters and
+every importance weight stay float64."""
+MAX_STAGES = 1_000
+"""Largest K: the paper uses 10; past a few dozen stages the proposal has long converged."""
+MAX_SMOOTHING_AT_FAILURE = 2.0
+"""Largest alpha once the failure level is reached: 2 is the variance-minimisation program; beyond it the weights'
+tail decides the fit."""
+MAX_EPOCHS = 100_000
+"""Largest Adam epochs per stage (paper 500, authors' code 1000; 10^5 epochs take ~10 min a stage)."""
 
 PLAIN_FALLBACK_MOST = 1_000_000
 """The most plain rollouts the fallback draws after any run, whatever its size (``plain_fallback`` times the stages'
@@ -146,36 +177,275 @@ class CrossEntropySettings:
         target or requirement.
     """
 
-    n_stages: int = 10
-    n_final: int = 1000
-    quantile_level: float = 0.95
-    smoothing: float = 0.1
-    ce_epochs: int = 150
-    pretrain_rollouts: int = 100
-    pretrain_epochs: int = 500
-    learning_rate: float = 1e-2
-    weights: str = "frozen"
-    final_estimate: str = "pooled"
-    pool_weights: str = "quadratic"
-    proposal_inputs: str = "state"
-    proposal_window: bool = True
-    skip_decided: bool = True
-    smoothing_at_failure: float | None = 1.2
-    final_smoothing: float | None = 1.0
-    elite_ties: str = "random"
-    pretrain_cap: float | None = 0.9
-    defensive: float = 0.2
-    target_share: float = 0.1
-    plain_share: float = 0.45
-    fit_all_failures: bool = True
-    fit_weights: str = "mixture"
-    fit: str = "adam"
-    fit_precision: str = "exact"
-    fit_max_steps: int = 200
-    fit_rows: int | None = 5_000
-    fit_tolerance: float | None = 1e-3
-    plain_fallback: int = 500
-    retry_factor: int = 4
+    n_stages: int = setting(
+        10,
+        "the number of cross-entropy stages K",
+        "stages of N rollouts, the proposal refitted after each",
+        kind="int",
+        symbol="K",
+        lo=1,
+        hi=MAX_STAGES,
+        flags=("--k", "--stages"),
+    )
+    n_final: int = setting(
+        1000,
+        "the rollouts of the final estimate N_e",
+        "fresh rollouts from the final proposal for the estimate",
+        kind="int",
+        symbol="N_e",
+        lo=1,
+        flags=("--n-final",),
+    )
+    quantile_level: float = setting(
+        0.95,
+        "the quantile level sigma",
+        "the stage threshold is the (1 - sigma) quantile of robustness",
+        symbol="sigma",
+        lo=0.5,
+        hi=1.0,
+        hi_open=True,
+        flags=("--sigma",),
+    )
+    smoothing: float = setting(
+        0.1,
+        "the smoothing alpha",
+        "the power on the importance weights in the CE loss",
+        symbol="alpha",
+        lo=0.0,
+        hi=1.0,
+        lo_open=True,
+        flags=("--alpha",),
+    )
+    ce_epochs: int = setting(
+        150,
+        "the Adam epochs per stage",
+        "the most Adam epochs of a cross-entropy stage's fit",
+        kind="int",
+        short="CE epochs",
+        lo=1,
+        hi=MAX_EPOCHS,
+        flags=("--ce-epochs",),
+    )
+    pretrain_rollouts: int = setting(
+        100,
+        "the pretraining rollouts",
+        "PEM-driven rollouts the first proposal is fitted to",
+        kind="int",
+        short="pretrain rollouts",
+        lo=1,
+    )
+    pretrain_epochs: int = setting(
+        500,
+        "the pretraining epochs",
+        "Adam epochs of the first proposal's fit",
+        kind="int",
+        short="pretrain epochs",
+        lo=1,
+        hi=MAX_EPOCHS,
+        flags=("--pretrain-epochs",),
+    )
+    learning_rate: float = setting(0.01, "the learning rate", "Adam's step size for the proposal", lo=0.0, lo_open=True)
+    weights: str = setting(
+        "frozen",
+        "the importance weights of the fit",
+        "how the CE loss holds the importance weights",
+        kind="choice",
+        choices=WEIGHT_MODES,
+        choice_help=(
+            ("frozen", "constants of each fit (the paper's eq. 10-11)"),
+            ("recomputed", "recomputed from the proposal, with their gradient (the authors' code)"),
+        ),
+    )
+    final_estimate: str = setting(
+        "pooled",
+        "the final estimate",
+        "which rollouts the estimate weighs",
+        kind="choice",
+        choices=FINAL_MODES,
+        choice_help=(
+            (
+                "pooled",
+                "the final rollouts and every stage fitted to failures, each weighted by the proposal that drew it",
+            ),
+            ("fresh", "the final rollouts alone (the paper)"),
+            ("last-stage", "the last stage's batch (the authors' code)"),
+        ),
+    )
+    pool_weights: str = setting(
+        "quadratic",
+        "the weights of the pooled stages",
+        "how the pooled estimate counts its stages",
+        kind="choice",
+        choices=POOL_WEIGHTS,
+        choice_help=(
+            ("quadratic", "the j-th pooled stage in proportion to j^2 n_j"),
+            ("linear", "in proportion to j n_j"),
+            ("rollouts", "every rollout alike"),
+        ),
+    )
+    proposal_inputs: str = setting(
+        STATE_INPUTS,
+        "the proposal's inputs h(s)",
+        "what the proposal sees",
+        kind="choice",
+        choices=PROPOSAL_INPUTS,
+        choice_help=(
+            ("gap", "the gap to the lead car (the paper)"),
+            (STATE_INPUTS, "every observation column of the problem"),
+        ),
+    )
+    proposal_window: bool = setting(
+        True, "the proposal window", "the proposal replaces the PEM only where the detector can matter", kind="bool"
+    )
+    skip_decided: bool = setting(
+        True,
+        "the skip of decided steps",
+        "with the window, the proposal also gives way to the PEM where the outcome is already decided",
+        kind="bool",
+    )
+    smoothing_at_failure: float | None = setting(
+        1.2,
+        "the smoothing alpha at the failure level",
+        "alpha once the stage threshold has reached the failure level (None: the smoothing alpha)",
+        short="alpha at failure",
+        lo=0.0,
+        hi=MAX_SMOOTHING_AT_FAILURE,
+        lo_open=True,
+        optional=True,
+    )
+    final_smoothing: float | None = setting(
+        1.0,
+        "the smoothing alpha of the last fit",
+        "alpha of the last stage's fit, whose proposal draws the final rollouts (None: as the stages before it)",
+        short="final alpha",
+        lo=0.0,
+        hi=MAX_SMOOTHING_AT_FAILURE,
+        lo_open=True,
+        optional=True,
+    )
+    elite_ties: str = setting(
+        "random",
+        "the elite ties",
+        "which rollouts tied at the stage threshold are elites",
+        kind="choice",
+        choices=ELITE_TIES,
+        choice_help=(
+            ("all", "every rollout at or below the threshold (the paper)"),
+            ("random", "ties drawn at random up to ceil((1 - sigma) N) elites"),
+        ),
+    )
+    pretrain_cap: float | None = setting(
+        0.9,
+        "the pretraining detection cap",
+        "inside the window the pretraining rollouts detect with at most this probability (None: the PEM's)",
+        lo=0.0,
+        hi=1.0,
+        lo_open=True,
+        hi_open=True,
+        optional=True,
+    )
+    defensive: float = setting(
+        0.2,
+        "the defensive share eps",
+        "the CE stages draw from (1 - eps) q + eps x 50 % at every step",
+        lo=0.0,
+        hi=1.0,
+        hi_open=True,
+    )
+    target_share: float = setting(
+        0.1,
+        "the target's share",
+        "once the failure level is reached, the share of a stage's rollouts drawn from the target p",
+        lo=0.0,
+        hi=1.0,
+    )
+    plain_share: float = setting(
+        0.45,
+        "the plain proposal's share",
+        "the share of a stage's rollouts drawn from the proposal without the per-step mixture",
+        lo=0.0,
+        hi=1.0,
+    )
+    fit_all_failures: bool = setting(
+        True,
+        "the fit to all failures",
+        "each fit uses the failures of every stage since the failure level",
+        kind="bool",
+    )
+    fit_weights: str = setting(
+        "mixture",
+        "the weights of the failures in a fit",
+        "how the fits weigh the failures of every stage",
+        kind="choice",
+        choices=FIT_WEIGHTS,
+        choice_help=(
+            ("mixture", "by the mixture of the samplers since the failure level"),
+            ("sampler", "by the sampler that drew each"),
+        ),
+    )
+    fit: str = setting(
+        "adam",
+        "the fitting method",
+        "how the proposal is fitted each stage",
+        kind="choice",
+        choices=FITS,
+        choice_help=(
+            ("adam", "full-batch Adam, a number of epochs"),
+            ("lbfgs", "L-BFGS from the previous proposal until converged"),
+        ),
+    )
+    fit_precision: str = setting(
+        "exact",
+        "the fit's precision",
+        "the arithmetic of the proposal's Adam fits (the parameters and every weight stay float64)",
+        kind="choice",
+        choices=FIT_PRECISIONS,
+        choice_help=(
+            ("exact", "the same proposal on every CPU; the default"),
+            ("float32", "torch's float32 kernels: the last bits depend on the CPU"),
+            ("float64", "torch's float64 kernels, as the paper's fits"),
+        ),
+    )
+    fit_max_steps: int = setting(
+        200, "the L-BFGS iterations", "the most L-BFGS iterations of one fit", kind="int", lo=1
+    )
+    fit_rows: int | None = setting(
+        5_000,
+        "the rows of a fit",
+        "the most steps one fit sees, beyond them a weighted subsample with the same expected loss (None: every "
+        "step)",
+        kind="int",
+        lo=1,
+        optional=True,
+    )
+    fit_tolerance: float | None = setting(
+        0.001,
+        "the fit tolerance",
+        "a CE stage's Adam fit stops once its loss fell by less than this over the last 50 epochs (None: every "
+        "epoch)",
+        unit="nats per step",
+        lo=0.0,
+        lo_open=True,
+        optional=True,
+    )
+    plain_fallback: int = setting(
+        500,
+        "the plain Monte Carlo fallback",
+        "where the weights back no interval, plain Monte Carlo after the stages, at most this many times their "
+        "simulations, to the precision target or a 20 % interval (0: none)",
+        kind="int",
+        lo=0,
+        flags=("--plain-fallback",),
+    )
+    retry_factor: int = setting(
+        4,
+        "the retry's factor on N",
+        "where the weights back no interval, the stages once more before plain Monte Carlo, with N this many times "
+        "as large, from a stream of their own (0 or 1: no retry; none without the plain Monte Carlo fallback)",
+        kind="int",
+        lo=0,
+        flags=("--retry-factor",),
+    )
 
     @property
     def reads_state(self) -> bool:

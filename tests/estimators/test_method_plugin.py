@@ -306,3 +306,40 @@ def test_a_methods_own_setting_out_of_range_is_one_line(tmp_path):
     proc = _pemviz("run", "--method", "defensive-mc", "--coin-radius", "-1", "--no-record", cwd=tmp_path)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
     assert "coin_radius_m = -1.0 is invalid: the coin's radius must be none or a number > 0" in proc.stderr
+
+
+def test_a_setting_added_to_the_default_method_in_its_one_file(tmp_path):
+    """The guide's diff, applied to a copy of the package (pemviz/methods/adaptive.py alone), gives the cross-entropy
+    sampler a setting with its flag, its check and its recorded key after the keys runs record today."""
+    import re
+    import shutil
+
+    text = (HERE.parents[1] / "docs" / "own-simulator.md").read_text().split("### A setting of the default method")[1]
+    diff = re.search(r"```diff\n(.*?)```", text, re.S).group(1)
+    files = {line[6:] for line in diff.splitlines() if line.startswith(("--- ", "+++ "))}
+    assert files == {"pemviz/methods/adaptive.py"}  # one file
+    shutil.copytree(HERE.parents[1] / "pemviz", tmp_path / "pemviz", ignore=shutil.ignore_patterns("__pycache__"))
+    subprocess.run(["git", "apply", "-"], input=diff, cwd=tmp_path, check=True, text=True, timeout=60)
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    script = (
+        "import json; from pemviz.config import ConfigError, ExperimentConfig\n"
+        "try:\n    ExperimentConfig.of(elite_min=0)\nexcept ConfigError as exc:\n    print(exc)\n"
+        "print(ExperimentConfig.of(elite_min=3).adaptive.elite_min)\n"
+        "print(json.dumps(list(ExperimentConfig().flat().items())))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=True
+    ).stdout.splitlines()
+    assert out[0] == "elite_min = 0 is invalid: the fewest elites of a stage must be a whole number >= 1"
+    assert out[1] == "3"
+    before = json.loads(json.dumps(list(ExperimentConfig().flat().items())))
+    assert json.loads(out[2]) == [*before, ["elite_min", 1]]  # every key a run records today, same order and values
+    cli = [sys.executable, "-m", "pemviz.cli", "run"]
+    helped = subprocess.run([*cli, "--help"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    words = " ".join(helped.stdout.split())  # argparse wraps the help
+    assert "--elite-min ELITE_MIN fewest elites of a stage, a whole number >= 1: a stage ranks at least" in words
+    refused = subprocess.run(
+        [*cli, "--elite-min", "0", "--no-record"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert "--elite-min" in refused.stderr and "a whole number >= 1" in refused.stderr, refused.stderr
