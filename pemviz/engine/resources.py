@@ -136,8 +136,8 @@ def pool_workers(config: ExperimentConfig, n: int, seconds: float) -> int:
 
 LOAD_WINDOW_S = 0.25
 """The shortest window over which :func:`load_slowdown` averages the other tasks' runnable time: where the reading
-that opens it (:func:`tasks_now`) is taken earlier (:class:`pemviz.sinks.StageClock` takes it when it is made, before
-the run's problem is built), the run waits for no more than what is left of it."""
+that opens it (:func:`open_load_window`) is taken earlier (``pemviz run`` takes it before the run's problem is built),
+the run waits for no more than what is left of it."""
 LOAD_WINDOW_MAX_S = 30.0
 """The longest: a reading older than this is not the load the run starts in, and a new window opens."""
 
@@ -182,6 +182,21 @@ class Competition:
     groups: tuple[tuple[float, float], ...] = ()
     inside: float = 0.0
     inside_tasks: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadWindow:
+    """Where :func:`load_slowdown` opens the window it reads the load over (:func:`open_load_window`).
+
+    Attributes:
+        at: when (``time.perf_counter`` seconds).
+        tasks: the other tasks' times then (:func:`tasks_now`; None where they cannot be read).
+        speed: :func:`cpu_speed` of half :data:`PROBE_PIECES` then (the other half is run when the window closes).
+    """
+
+    at: float
+    tasks: TaskTimes | None
+    speed: float
 
 
 def _autogroup(pid: str) -> tuple[str, int] | None:
@@ -267,8 +282,8 @@ def crowding(c: Competition, cpus: int, threads: int = 1) -> float:
     (G + 1)(threads + inside) / C (G the other sessions, weighed; inside this session's other tasks): a session's tasks
     split its share, they do not add to the others'. At least 1. On 2 cores beside two other sessions a CPU-bound
     loop's wall over its CPU seconds was 1.45-1.51 alone (this: 1.5), 2.97-3.12 beside one more loop of its session
-    (3.0), 4.37-4.49 beside two (4.5), where adding the tasks said 2.0 and 2.5 (``benchmarks/load_share.py``,
-    2026-11-29)."""
+    (3.0), 4.37-4.49 beside two (4.5), where adding the tasks said 2.0 and 2.5 (the loop of
+    ``benchmarks/load_share.py``, 2026-11-29)."""
     weight = [1.0] + [w for w, n in c.groups if n > 0.0]
     need = [threads + c.inside_tasks] + [n for _, n in c.groups if n > 0.0]
     free, active = float(cpus), set(range(len(need)))
@@ -312,26 +327,34 @@ def cpu_speed(pieces: int = PROBE_PIECES) -> float:
     return (time.process_time() - start) / (PROBE_REFERENCE_CPU_S * max(1, int(pieces)) / PROBE_PIECES)
 
 
-def load_slowdown(threads: int = 1, since: TaskTimes | None = None) -> float:
+def open_load_window() -> LoadWindow:
+    """Open the window :func:`load_slowdown` reads the load over: the other tasks' times now and half the CPU-speed
+    probe (about 12 ms of CPU on an idle machine)."""
+    at = time.perf_counter()
+    return LoadWindow(at, tasks_now(), cpu_speed(PROBE_PIECES // 2))
+
+
+def load_slowdown(threads: int = 1, since: LoadWindow | None = None) -> float:
     """How many times longer than the cost model says a run of ``threads`` busy threads will take now, from the
-    machine's load: ``crowding x S``. The crowding is the wall over the CPU seconds the scheduler's sharing gives the
-    run (:func:`crowding` of the other tasks' runnable time from ``since``, a :func:`tasks_now` reading at most
-    :data:`LOAD_WINDOW_MAX_S` old, else from now, over at least :data:`LOAD_WINDOW_S`): a time average, where a count
-    of the tasks runnable at a few instants priced the same cut-in run at 5.2-9.8 times the model's while it took
-    6.3-7.8 times. The 1-minute load average is not blended in: it counts tasks, not the sessions the scheduler shares
-    the CPUs among, and lags by a minute. S is the CPU seconds its arithmetic takes now over the model's
-    (:func:`cpu_speed`, run inside the window). Where the tasks' times cannot be read, ``max(1, (L + threads) / C) x
-    S`` with L the 1-minute load average; 1 where neither can. On an idle machine 1; beside two other busy sessions on
-    two CPUs a one-thread run gets two thirds of a CPU, 1.5 (times S)."""
+    machine's load: ``crowding x S``, over a window opened at ``since`` (:func:`open_load_window`, at most
+    :data:`LOAD_WINDOW_MAX_S` old; else now) and at least :data:`LOAD_WINDOW_S` long. The crowding is the wall over the
+    CPU seconds the scheduler's sharing gives the run (:func:`crowding` of the other tasks' runnable time over the
+    window): a time average, where a count of the tasks runnable at five instants in 20 ms priced the same cut-in run
+    at 5.2-9.8 times the model's while it took 6.3-7.8 times. The 1-minute load average is not blended in: it counts
+    tasks, not the sessions the scheduler shares the CPUs among, and lags by a minute. S is the CPU seconds the run's
+    arithmetic takes now over the model's: :func:`cpu_speed`, half of it when the window opens and half when it
+    closes, the mean (it drifts by 10-40 % within seconds on a loaded machine). Where the tasks' times cannot be read,
+    ``max(1, (L + threads) / C) x S`` with L the 1-minute load average; 1 where neither can. On an idle machine 1;
+    beside two other busy sessions on two CPUs a one-thread run gets two thirds of a CPU, 1.5 (times S)."""
     fresh = since is not None and time.perf_counter() - since.at <= LOAD_WINDOW_MAX_S
-    first = since if fresh else tasks_now()
-    speed = cpu_speed()
+    opening = since if since is not None and fresh else open_load_window()
+    speed = (opening.speed + cpu_speed(PROBE_PIECES - PROBE_PIECES // 2)) / 2
     cpus = usable_cpus()
-    if first is not None:
-        time.sleep(max(0.0, LOAD_WINDOW_S - (time.perf_counter() - first.at)))
+    if opening.tasks is not None:
+        time.sleep(max(0.0, LOAD_WINDOW_S - (time.perf_counter() - opening.at)))
         last = tasks_now()
         if last is not None:
-            return max(1.0, crowding(competition(first, last), cpus, threads) * speed)
+            return max(1.0, crowding(competition(opening.tasks, last), cpus, threads) * speed)
     try:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):

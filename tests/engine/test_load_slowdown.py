@@ -88,41 +88,39 @@ def test_the_competition_is_each_thread_s_runnable_share_of_the_window_summed_pe
 
 def test_the_slowdown_is_the_crowding_times_the_cpu_speed_over_the_window(monkeypatch):
     s = 1_000_000_000
-    readings = iter(
-        [
-            _times(100.0, {"31": ("/autogroup-2", 0, 0, 0), "41": ("/autogroup-3", 0, 0, 0)}),
-            _times(100.25, {"31": ("/autogroup-2", 0, 0, s // 4), "41": ("/autogroup-3", 0, 0, s // 4)}),
-        ]
-    )
+    two = {"31": ("/autogroup-2", 0, 0, 0), "41": ("/autogroup-3", 0, 0, 0)}
+    busy = {k: (*v[:3], s // 4) for k, v in two.items()}  # both runnable throughout the 0.25 s
+    readings = iter([_times(100.0, two), _times(100.25, busy)])
+    speeds = iter([2.0, 4.0])  # the probe's two halves: S their mean, 3
     slept: list[float] = []
     monkeypatch.setattr(resources, "tasks_now", lambda: next(readings))
     monkeypatch.setattr(resources, "usable_cpus", lambda: 2)
-    monkeypatch.setattr(resources, "cpu_speed", lambda: 3.0)
+    monkeypatch.setattr(resources, "cpu_speed", lambda pieces=0: next(speeds))
     monkeypatch.setattr(resources.time, "perf_counter", lambda: 100.1)
     monkeypatch.setattr(resources.time, "sleep", slept.append)
     # two other busy sessions on two CPUs: (2 + 1) / 2 = 1.5, times 3 the CPU seconds
     assert resources.load_slowdown() == pytest.approx(4.5)
-    assert slept == [pytest.approx(resources.LOAD_WINDOW_S - 0.1)]  # what was left of the window
-    # a reading taken earlier opens the window: no wait where it is already longer
-    early = _times(99.0, {"31": ("/autogroup-2", 0, 0, 0)})
+    assert slept == [pytest.approx(resources.LOAD_WINDOW_S)]  # the window opened at 100.1 (perf_counter, patched)
+    # a window opened earlier: no wait where it is already longer; its half of the probe counts
+    early = resources.LoadWindow(99.0, _times(99.0, {"31": ("/autogroup-2", 0, 0, 0)}), 1.0)
     readings = iter([_times(100.1, {"31": ("/autogroup-2", 0, 0, 0)})])
+    speeds = iter([5.0])
     slept.clear()
-    monkeypatch.setattr(resources, "tasks_now", lambda: next(readings))
-    assert resources.load_slowdown(since=early) == pytest.approx(3.0)  # asleep throughout: the run alone, x 3
+    assert resources.load_slowdown(since=early) == pytest.approx(3.0)  # asleep throughout: the run alone, x (1 + 5) / 2
     assert slept == [0.0]
     # one older than LOAD_WINDOW_MAX_S is not used: a new window opens
-    stale = _times(100.1 - resources.LOAD_WINDOW_MAX_S - 1.0, {"31": ("/autogroup-2", 0, 0, 0)})
-    two = {"31": ("/autogroup-2", 0, 0, 0), "41": ("/autogroup-3", 0, 0, 0)}
+    stale = resources.LoadWindow(100.1 - resources.LOAD_WINDOW_MAX_S - 1.0, early.tasks, 100.0)
     readings = iter([_times(99.9, two), _times(100.1, {k: (*v[:3], s) for k, v in two.items()})])
+    speeds = iter([3.0, 3.0])
     assert resources.load_slowdown(since=stale) == pytest.approx(4.5)  # both busy in the new window: 1.5 x 3
-    assert next(readings, None) is None  # both readings were taken
+    assert next(readings, None) is None and next(speeds, None) is None  # both readings and probes were taken
 
 
 def test_the_slowdown_falls_back_to_the_load_average(monkeypatch):
     monkeypatch.setattr(resources, "tasks_now", lambda: None)
     monkeypatch.setattr(resources.os, "getloadavg", lambda: (5.0, 1.0, 1.0))
     monkeypatch.setattr(resources, "usable_cpus", lambda: 2)
-    monkeypatch.setattr(resources, "cpu_speed", lambda: 1.0)
+    monkeypatch.setattr(resources, "cpu_speed", lambda pieces=0: 1.0)
     assert resources.load_slowdown() == pytest.approx(3.0)  # (5 + 1) / 2, the 1-minute average where nothing better
 
 
