@@ -383,7 +383,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     save_path, result_files = outputs.recording, outputs.result_files
     from pemviz.sinks.most_likely import MostLikelyFailure
     from pemviz.engine.cost import N_STEPS
-    from pemviz.engine.resources import torch_threads
+    from pemviz.engine.resources import open_load_window, torch_threads
     from pemviz.engine.experiment import Experiment, stream_above
     from pemviz.estimators import check_runnable
     from pemviz.scenarios.registry import problem_for  # any registered scenario: the built-in ones and plugins
@@ -391,6 +391,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     from pemviz.sinks.population import FailureGroups, grouping_document
 
     serial = cfg.execution.executor != "ray"  # streams large stages (engine.experiment.streams_locally)
+    opened = open_load_window()  # the load is read from here to the run's start: over the problem's build
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     check_run_memory(cfg, problem.n_steps or N_STEPS, stream_above=stream_above(cfg) if serial else None)
     try:
@@ -401,6 +402,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     wanted = target != "no-record" or any(path is not None for path in result_files)  # files that show the groups
     groups = FailureGroups(problem.drawing, problem, keys=wanted)  # the failures' severity (console), groups
     console = ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()
+    console.clock.load_since = opened
     # prints the failures' severity, which groups (heard first) reads at the final estimate
     console.failures = groups
     listeners: list[Listener] = [groups, console]

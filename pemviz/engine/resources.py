@@ -5,6 +5,7 @@ the number instead of failing hours in."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import time
@@ -133,10 +134,12 @@ def pool_workers(config: ExperimentConfig, n: int, seconds: float) -> int:
     return run.workers if run.workers is not None else usable_cpus()
 
 
-LOAD_SAMPLES = 5
-"""How many times :func:`runnable_now` reads the runnable tasks (:func:`competing_now`, :data:`LOAD_GAP_S` apart)."""
-LOAD_GAP_S = 0.005
-"""Seconds between two of those readings."""
+LOAD_WINDOW_S = 0.25
+"""The shortest window over which :func:`load_slowdown` averages the other tasks' runnable time: where the reading
+that opens it (:func:`open_load_window`) is taken earlier (``pemviz run`` takes it before the run's problem is built),
+the run waits for no more than what is left of it."""
+LOAD_WINDOW_MAX_S = 30.0
+"""The longest: a reading older than this is not the load the run starts in, and a new window opens."""
 
 
 NICE_WEIGHT = 1.25
@@ -144,9 +147,62 @@ NICE_WEIGHT = 1.25
 n as 1024 / 1.25^n (``sched_prio_to_weight``, kernel/sched/core.c)."""
 
 
+@dataclasses.dataclass(frozen=True)
+class TaskTimes:
+    """One reading of every other task's time on a CPU or waiting for one (:func:`tasks_now`).
+
+    Attributes:
+        at: when it was read (``time.perf_counter`` seconds).
+        tasks: thread id -> (its process's autogroup, that group's nice, its process's nice, nanoseconds it has run
+            or waited on a run queue since it started: ``/proc/<pid>/task/<tid>/schedstat`` fields 1 + 2); every
+            thread but this process's. The group is ``""`` where it cannot be read (a kernel thread: the root group).
+        group: this process's autogroup (None without autogroups: then every task counts as in this group).
+        group_nice: that group's nice.
+        nice: this process's nice.
+    """
+
+    at: float
+    tasks: dict[str, tuple[str, int, int, int]]
+    group: str | None
+    group_nice: int
+    nice: int
+
+
+@dataclasses.dataclass(frozen=True)
+class Competition:
+    """What the other tasks claimed of the CPUs over a window (:func:`competition`), as Linux's autogroups share them.
+
+    Attributes:
+        groups: each other autogroup (session) that had a runnable task: (its weight against this one's,
+            :data:`NICE_WEIGHT` ^ (this group's nice - its), its runnable tasks: the mean over the window, >= 0).
+        inside: this session's other runnable tasks, each weighed :data:`NICE_WEIGHT` ^ (this task's nice - its).
+        inside_tasks: the same tasks, counted (what they can use: one CPU each).
+    """
+
+    groups: tuple[tuple[float, float], ...] = ()
+    inside: float = 0.0
+    inside_tasks: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadWindow:
+    """Where :func:`load_slowdown` opens the window it reads the load over (:func:`open_load_window`).
+
+    Attributes:
+        at: when (``time.perf_counter`` seconds).
+        tasks: the other tasks' times then (:func:`tasks_now`; None where they cannot be read).
+        speed: :func:`cpu_speed` of half :data:`PROBE_PIECES` then (the other half is run when the window closes).
+    """
+
+    at: float
+    tasks: TaskTimes | None
+    speed: float
+
+
 def _autogroup(pid: str) -> tuple[str, int] | None:
     """The autogroup of process ``pid`` (``self``: this one) and its nice value, from ``/proc/<pid>/autogroup``
-    (``/autogroup-408 nice 0``); None where it cannot be read (autogroups off, not Linux, the process gone)."""
+    (``/autogroup-408 nice 0``); None where it cannot be read (autogroups off, a kernel thread, not Linux, the process
+    gone)."""
     try:
         with open(f"/proc/{pid}/autogroup", encoding="ascii") as f:
             name, _, nice = f.read().split()[:3]
@@ -155,55 +211,91 @@ def _autogroup(pid: str) -> tuple[str, int] | None:
         return None
 
 
-def competing_now() -> float | None:
-    """What the other tasks running or waiting for a CPU now claim of the CPUs, in this task's shares: one reading of
-    ``/proc/<pid>/stat`` (state R, field 19 the nice value) of every other process. With Linux's autogroups (each
-    session one group, ``/proc/sys/kernel/sched_autogroup_enabled``) the scheduler shares the CPUs alike among the
-    groups with a runnable task, each weighed by its group's nice, and within a group among its tasks by their nice:
-    another group counts :data:`NICE_WEIGHT` ^ (this group's nice - its), however many tasks it runs; a task of this
-    group :data:`NICE_WEIGHT` ^ (this task's nice - its). Without autogroups every task counts as in this group.
-    None where ``/proc`` cannot be read."""
-    own, me, mine = os.getpriority(os.PRIO_PROCESS, 0), os.getpid(), _autogroup("self")
+def tasks_now() -> TaskTimes | None:
+    """Every other thread's nanoseconds on a CPU or waiting for one so far, with its session's autogroup and its
+    process's nice (fields 1 and 2 of ``/proc/<pid>/task/<tid>/schedstat``, field 19 of ``/proc/<pid>/stat``): two
+    readings give each thread's runnable share of the time between them (:func:`competition`). None where ``/proc``
+    or this process's own ``schedstat`` cannot be read (not Linux, a kernel without schedstats). About 5-20 ms of CPU
+    for a few hundred threads."""
+    me, mine = os.getpid(), _autogroup("self")
     try:
         names = os.listdir("/proc")
-    except OSError:
+        with open(f"/proc/{me}/schedstat", encoding="ascii") as f:
+            int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
         return None
-    groups: dict[str, float] = {}
-    inside = 0.0
-    for name in names:
-        if not name.isdigit() or int(name) == me:
+    tasks: dict[str, tuple[str, int, int, int]] = {}
+    for pid in names:
+        if not pid.isdigit() or int(pid) == me:
             continue
         try:
-            with open(f"/proc/{name}/stat", encoding="ascii", errors="replace") as f:
-                fields = f.read().rsplit(")", 1)[1].split()  # from field 3 (the state) on: the name may hold spaces
-            if fields[0] != "R":
-                continue
-            nice = int(fields[16])
+            with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as f:
+                nice = int(f.read().rsplit(")", 1)[1].split()[16])  # from field 3 on: the name may hold spaces
+            tids = os.listdir(f"/proc/{pid}/task")
         except (OSError, IndexError, ValueError):
             continue
-        group = _autogroup(name) if mine is not None else None
-        if group is None or mine is None or group[0] == mine[0]:
-            inside += NICE_WEIGHT ** (own - nice)
+        group = _autogroup(pid) if mine is not None else None
+        name, group_nice = group if group is not None else ("", 0)
+        for tid in tids:
+            try:
+                with open(f"/proc/{pid}/task/{tid}/schedstat", encoding="ascii") as f:
+                    ran, waited = f.read().split()[:2]
+                tasks[tid] = (name, group_nice, nice, int(ran) + int(waited))
+            except (OSError, ValueError):
+                continue
+    own, own_nice = mine if mine is not None else (None, 0)
+    return TaskTimes(time.perf_counter(), tasks, own, own_nice, os.getpriority(os.PRIO_PROCESS, 0))
+
+
+def competition(before: TaskTimes, after: TaskTimes) -> Competition:
+    """The other tasks' claim on the CPUs between two readings (:func:`tasks_now`): each thread's runnable share of the
+    time between them (its nanoseconds run or waiting, at most all of them; a thread present in both), summed per
+    autogroup; a thread of this process's group by its nice against this process's, another group by its group's nice
+    against this one's (Linux's autogroups: the scheduler shares the CPUs among the sessions with a runnable task
+    first, each weighed by its group's nice, then among a session's tasks by their nice). The root group (kernel
+    threads) is one group. Without autogroups (``after.group`` None) every thread counts as in this group. Unlike the
+    load averages it does not lag, and unlike a count of the tasks runnable at one instant it does not depend on the
+    instant: a session whose task runs half the time counts half."""
+    span_ns = max(1.0, (after.at - before.at) * 1e9)
+    groups: dict[str, list[float]] = {}
+    inside = inside_tasks = 0.0
+    for tid, (name, group_nice, nice, ns) in after.tasks.items():
+        then = before.tasks.get(tid)
+        if then is None or then[:3] != (name, group_nice, nice):
+            continue
+        share = min(1.0, max(0.0, (ns - then[3]) / span_ns))
+        if share <= 0.0:
+            continue
+        if after.group is None or name == after.group:
+            inside += share * NICE_WEIGHT ** (after.nice - nice)
+            inside_tasks += share
         else:
-            groups[group[0]] = NICE_WEIGHT ** (mine[1] - group[1])
-    return sum(groups.values()) + inside
+            groups.setdefault(name, [NICE_WEIGHT ** (after.group_nice - group_nice), 0.0])[1] += share
+    return Competition(tuple((w, n) for w, n in groups.values()), inside, inside_tasks)
 
 
-def runnable_now(samples: int = LOAD_SAMPLES, gap_s: float = LOAD_GAP_S) -> float | None:
-    """The other tasks' claim on the CPUs now, in this task's shares (:func:`competing_now`): the mean of ``samples``
-    readings ``gap_s`` apart; None where they cannot be read (not Linux). Unlike the load averages it does not lag: a
-    machine busy a minute ago and idle now reads 0. On 2 cores shared by a few sessions (load average 9-12) it gave the
-    share of a CPU a run under ``nice -n 5`` then had (its wall over its CPU seconds, mostly 2.4-2.9) within 20 % in 25
-    of 29 readings, where counting every runnable task by its nice said 2.4-19 (2026-11-29)."""
-    readings = []
-    for i in range(samples):
-        now = competing_now()
-        if now is None:
-            return None
-        readings.append(now)
-        if i + 1 < samples:
-            time.sleep(gap_s)
-    return sum(readings) / len(readings)
+def crowding(c: Competition, cpus: int, threads: int = 1) -> float:
+    """How many times its CPU seconds a run of ``threads`` busy threads takes in wall time beside the competition
+    ``c`` on ``cpus`` CPUs, as Linux's autogroups share them: the CPUs go to the sessions with a runnable task by their
+    weight, none more than its runnable tasks can use (one CPU each; what it cannot use goes to the others), and a
+    session's CPUs to its tasks by their nice. With every session able to use its share this is
+    (G + 1)(threads + inside) / C (G the other sessions, weighed; inside this session's other tasks): a session's tasks
+    split its share, they do not add to the others'. At least 1. On 2 cores beside two other sessions a CPU-bound
+    loop's wall over its CPU seconds was 1.45-1.51 alone (this: 1.5), 2.97-3.12 beside one more loop of its session
+    (3.0), 4.37-4.49 beside two (4.5), where adding the tasks said 2.0 and 2.5 (the loop of
+    ``benchmarks/load_share.py``, 2026-11-29)."""
+    weight = [1.0] + [w for w, n in c.groups if n > 0.0]
+    need = [threads + c.inside_tasks] + [n for _, n in c.groups if n > 0.0]
+    free, active = float(cpus), set(range(len(need)))
+    while True:  # water-filling: a group that cannot use its share takes what it can, the rest is shared again
+        per = free / sum(weight[i] for i in active)
+        full = {i for i in active if need[i] <= weight[i] * per}
+        if not full or 0 in full:
+            break
+        active -= full
+        free -= sum(need[i] for i in full)
+    got = need[0] if 0 in full else per
+    return max(1.0, (threads + c.inside) / max(got, 1e-12))
 
 
 PROBE_PIECES = 400
@@ -235,20 +327,39 @@ def cpu_speed(pieces: int = PROBE_PIECES) -> float:
     return (time.process_time() - start) / (PROBE_REFERENCE_CPU_S * max(1, int(pieces)) / PROBE_PIECES)
 
 
-def load_slowdown(threads: int = 1) -> float:
+def open_load_window() -> LoadWindow:
+    """Open the window :func:`load_slowdown` reads the load over: the other tasks' times now and half the CPU-speed
+    probe (about 12 ms of CPU on an idle machine)."""
+    at = time.perf_counter()
+    return LoadWindow(at, tasks_now(), cpu_speed(PROBE_PIECES // 2))
+
+
+def load_slowdown(threads: int = 1, since: LoadWindow | None = None) -> float:
     """How many times longer than the cost model says a run of ``threads`` busy threads will take now, from the
-    machine's load: ``max(1, (L + threads) / C x S)``, L the other tasks' claim on the CPUs now
-    (:func:`runnable_now`; the 1-minute load average where that cannot be read), shared by the scheduler among the C
-    usable CPUs (:func:`usable_cpus`), and S the CPU seconds its arithmetic takes now over the model's
-    (:func:`cpu_speed`). On an idle machine 1; with two other sessions busy on two CPUs a one-thread run gets two
-    thirds of a CPU, 1.5 (times S). 1 where neither L nor the load average can be read."""
-    load = runnable_now()
-    if load is None:
-        try:
-            load = os.getloadavg()[0]
-        except (AttributeError, OSError):
-            return 1.0
-    return max(1.0, (float(load) + threads) / usable_cpus() * cpu_speed())
+    machine's load: ``crowding x S``, over a window opened at ``since`` (:func:`open_load_window`, at most
+    :data:`LOAD_WINDOW_MAX_S` old; else now) and at least :data:`LOAD_WINDOW_S` long. The crowding is the wall over the
+    CPU seconds the scheduler's sharing gives the run (:func:`crowding` of the other tasks' runnable time over the
+    window): a time average, where a count of the tasks runnable at five instants in 20 ms priced the same cut-in run
+    at 5.2-9.8 times the model's while it took 6.3-7.8 times. The 1-minute load average is not blended in: it counts
+    tasks, not the sessions the scheduler shares the CPUs among, and lags by a minute. S is the CPU seconds the run's
+    arithmetic takes now over the model's: :func:`cpu_speed`, half of it when the window opens and half when it
+    closes, the mean (it drifts by 10-40 % within seconds on a loaded machine). Where the tasks' times cannot be read,
+    ``max(1, (L + threads) / C) x S`` with L the 1-minute load average; 1 where neither can. On an idle machine 1;
+    beside two other busy sessions on two CPUs a one-thread run gets two thirds of a CPU, 1.5 (times S)."""
+    fresh = since is not None and time.perf_counter() - since.at <= LOAD_WINDOW_MAX_S
+    opening = since if since is not None and fresh else open_load_window()
+    speed = (opening.speed + cpu_speed(PROBE_PIECES - PROBE_PIECES // 2)) / 2
+    cpus = usable_cpus()
+    if opening.tasks is not None:
+        time.sleep(max(0.0, LOAD_WINDOW_S - (time.perf_counter() - opening.at)))
+        last = tasks_now()
+        if last is not None:
+            return max(1.0, crowding(competition(opening.tasks, last), cpus, threads) * speed)
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return 1.0
+    return max(1.0, max(1.0, (float(load) + threads) / cpus) * speed)
 
 
 def cap_jobs(jobs: int, say=None) -> int:

@@ -18,6 +18,7 @@ from pemviz.core.plan import RunPlan
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
+    from pemviz.engine.resources import LoadWindow
 
 MAX_SCALE = 20.0
 """The most a :class:`StageClock` scales a prediction by (either way): a first stage slowed by a one-off start
@@ -119,6 +120,13 @@ class StageClock(Sink):
         self.load = 1.0
         """The machine's load at the run's start as a slowdown (:func:`pemviz.engine.resources.load_slowdown`): the
         scale of every prediction before the run has measured its own speed."""
+        self.load_since: LoadWindow | None = None
+        """Where the window the load is read over opens (:func:`pemviz.engine.resources.open_load_window`): when the
+        clock is made, or earlier where its maker sets it (``pemviz run``: before the run's problem is built)."""
+        if slowdown is None:
+            from pemviz.engine.resources import open_load_window
+
+            self.load_since = open_load_window()
         self.t0 = self.stage_t0 = now()
         self.sampled_t: float | None = None
         self.plan: RunPlan | None = None
@@ -141,7 +149,7 @@ class StageClock(Sink):
         if self._slowdown is None:
             from pemviz.engine.resources import load_slowdown
 
-            self.load = load_slowdown()
+            self.load = load_slowdown(since=self.load_since)
         else:
             self.load = float(self._slowdown())
         self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS

@@ -1,31 +1,127 @@
-"""Time predictions on a loaded machine: the slowdown read from the runnable tasks now (not the lagging load average),
-hand-computed, and the console's first prediction and the panel's cost line scaled by it before anything is
-measured."""
+"""Time predictions on a loaded machine: the CPU share a run gets from the other tasks' runnable time (Linux's
+autogroups: a session's tasks split its share), hand-computed, and the console's first prediction and the panel's cost
+line scaled by it before anything is measured."""
 
 from __future__ import annotations
+
+import io
 
 import pytest
 
 from pemviz.engine import resources
+from pemviz.engine.resources import Competition, TaskTimes, competition, crowding
+
+NICE5 = 1.25**-5  # a session at autogroup nice 5 against this one at 0: 1024 / 1.25^5 of 1024 (sched_prio_to_weight)
 
 
 @pytest.mark.parametrize(
-    "others, cpus, threads, expected",
+    "c, cpus, threads, expected",
     [
-        (0.0, 2, 1, 1.0),  # idle: the run has a CPU of its own
-        (1.0, 2, 1, 1.0),  # one busy process on two CPUs: still one free
-        (2.0, 2, 1, 1.5),  # two busy processes: three tasks share two CPUs, the run gets 2/3 of one
-        (6.0, 4, 2, 2.0),  # six others and a two-thread run on four CPUs: 8 / 4
+        (Competition(), 2, 1, 1.0),  # idle: the run has a CPU of its own
+        (Competition(((1.0, 1.0),)), 2, 1, 1.0),  # one other busy session on two CPUs: still one free
+        (Competition(((1.0, 1.0), (1.0, 2.0))), 2, 1, 1.5),  # two sessions, one busy on 2 tasks: (2 + 1)(1 + 0) / 2
+        # the session's own other tasks split its share: (G + 1)(1 + inside) / C = 3 x 2 / 2, not (2 + 1 + 1) / 2 = 2
+        (Competition(((1.0, 1.0), (1.0, 2.0)), inside=1.0, inside_tasks=1.0), 2, 1, 3.0),
+        (Competition(((1.0, 1.0), (1.0, 2.0)), inside=2.0, inside_tasks=2.0), 2, 1, 4.5),  # 3 x 3 / 2, not 2.5
+        (Competition((), inside=6.0, inside_tasks=6.0), 4, 2, 2.0),  # no other session: 8 tasks on 4 CPUs
+        # a session at nice 5 weighs 0.328: the run gets 1 / 1.328 of the one CPU
+        (Competition(((NICE5, 3.0),)), 1, 1, 1.0 + NICE5),
+        # an inside task at nice 5 against this one's 0 takes 0.328 of the session's one CPU: 1.328 / 1
+        (Competition(((1.0, 1.0),), inside=NICE5, inside_tasks=1.0), 2, 1, 1.0 + NICE5),
+        # a session that can use one CPU leaves the other three of four to this one's 1 + 3 tasks: 4 / 3, where
+        # (G + 1)(1 + inside) / C says 2
+        (Competition(((1.0, 1.0),), inside=3.0, inside_tasks=3.0), 4, 1, 4.0 / 3.0),
+        # a session busy half the time on one CPU takes its half: the run gets the other half
+        (Competition(((1.0, 0.5),)), 1, 1, 2.0),
+        # one with a hundredth of a task's time leaves 0.99 of the CPU
+        (Competition(((1.0, 0.01),)), 1, 1, 1.0 / 0.99),
     ],
 )
-def test_the_slowdown_is_the_tasks_per_cpu_when_they_outnumber_the_cpus(monkeypatch, others, cpus, threads, expected):
-    monkeypatch.setattr(resources, "runnable_now", lambda: others)
-    monkeypatch.setattr(resources, "usable_cpus", lambda: cpus)
-    monkeypatch.setattr(resources, "cpu_speed", lambda: 1.0)
-    assert resources.load_slowdown(threads) == pytest.approx(expected)
-    # and times the CPU seconds the arithmetic takes now over the model's: three times as many, three times as long
-    monkeypatch.setattr(resources, "cpu_speed", lambda: 3.0)
-    assert resources.load_slowdown(threads) == pytest.approx(max(1.0, 3.0 * (others + threads) / cpus))
+def test_the_crowding_is_the_session_s_share_split_among_its_tasks(c, cpus, threads, expected):
+    assert crowding(c, cpus, threads) == pytest.approx(expected, rel=1e-12)
+
+
+def _times(at, tasks, group="/autogroup-1", group_nice=0, nice=0):
+    return TaskTimes(at, tasks, group, group_nice, nice)
+
+
+def test_the_competition_is_each_thread_s_runnable_share_of_the_window_summed_per_session():
+    s = 1_000_000_000
+    before = _times(
+        10.0,
+        {
+            "21": ("/autogroup-1", 0, 0, 5 * s),  # this session, nice 0: runnable the whole 0.5 s
+            "22": ("/autogroup-1", 0, 5, 0),  # this session, nice 5: a fifth of the window
+            "31": ("/autogroup-2", 0, 0, 7 * s),  # another session, two threads: 0.5 + 0.25 of a task
+            "32": ("/autogroup-2", 0, 0, 0),
+            "41": ("/autogroup-3", 5, 0, 0),  # a session at nice 5, more than the window (clipped to all of it)
+            "51": ("", 0, 0, 0),  # a kernel thread: the root group
+            "61": ("/autogroup-4", 0, 0, 3 * s),  # asleep throughout: no claim
+            "71": ("/autogroup-5", 0, 0, 0),  # gone by the second reading
+            "81": ("/autogroup-6", 0, 0, 0),  # its tid reused by a process of another session: not compared
+        },
+    )
+    after = _times(
+        10.5,
+        {
+            "21": ("/autogroup-1", 0, 0, 5 * s + s // 2),
+            "22": ("/autogroup-1", 0, 5, s // 10),
+            "31": ("/autogroup-2", 0, 0, 7 * s + s // 4),
+            "32": ("/autogroup-2", 0, 0, s // 8),
+            "41": ("/autogroup-3", 5, 0, s),
+            "51": ("", 0, 0, s // 100),
+            "61": ("/autogroup-4", 0, 0, 3 * s),
+            "81": ("/autogroup-7", 0, 0, s),
+            "91": ("/autogroup-8", 0, 0, s),  # new since the first reading: not compared
+        },
+    )
+    c = competition(before, after)
+    assert c.inside_tasks == pytest.approx(1.0 + 0.2)
+    assert c.inside == pytest.approx(1.0 + 0.2 * NICE5)
+    got = [x for pair in sorted(c.groups) for x in pair]
+    assert got == pytest.approx([NICE5, 1.0, 1.0, 0.02, 1.0, 0.75])
+    # without autogroups every thread is in this one's group, by its nice
+    c = competition(_times(10.0, before.tasks, group=None), _times(10.5, after.tasks, group=None))
+    assert c.groups == ()
+    assert c.inside_tasks == pytest.approx(1.0 + 0.2 + 0.75 + 1.0 + 0.02)
+
+
+def test_the_slowdown_is_the_crowding_times_the_cpu_speed_over_the_window(monkeypatch):
+    s = 1_000_000_000
+    two = {"31": ("/autogroup-2", 0, 0, 0), "41": ("/autogroup-3", 0, 0, 0)}
+    busy = {k: (*v[:3], s // 4) for k, v in two.items()}  # both runnable throughout the 0.25 s
+    readings = iter([_times(100.0, two), _times(100.25, busy)])
+    speeds = iter([2.0, 4.0])  # the probe's two halves: S their mean, 3
+    slept: list[float] = []
+    monkeypatch.setattr(resources, "tasks_now", lambda: next(readings))
+    monkeypatch.setattr(resources, "usable_cpus", lambda: 2)
+    monkeypatch.setattr(resources, "cpu_speed", lambda pieces=0: next(speeds))
+    monkeypatch.setattr(resources.time, "perf_counter", lambda: 100.1)
+    monkeypatch.setattr(resources.time, "sleep", slept.append)
+    # two other busy sessions on two CPUs: (2 + 1) / 2 = 1.5, times 3 the CPU seconds
+    assert resources.load_slowdown() == pytest.approx(4.5)
+    assert slept == [pytest.approx(resources.LOAD_WINDOW_S)]  # the window opened at 100.1 (perf_counter, patched)
+    # a window opened earlier: no wait where it is already longer; its half of the probe counts
+    early = resources.LoadWindow(99.0, _times(99.0, {"31": ("/autogroup-2", 0, 0, 0)}), 1.0)
+    readings = iter([_times(100.1, {"31": ("/autogroup-2", 0, 0, 0)})])
+    speeds = iter([5.0])
+    slept.clear()
+    assert resources.load_slowdown(since=early) == pytest.approx(3.0)  # asleep throughout: the run alone, x (1 + 5) / 2
+    assert slept == [0.0]
+    # one older than LOAD_WINDOW_MAX_S is not used: a new window opens
+    stale = resources.LoadWindow(100.1 - resources.LOAD_WINDOW_MAX_S - 1.0, early.tasks, 100.0)
+    readings = iter([_times(99.9, two), _times(100.1, {k: (*v[:3], s) for k, v in two.items()})])
+    speeds = iter([3.0, 3.0])
+    assert resources.load_slowdown(since=stale) == pytest.approx(4.5)  # both busy in the new window: 1.5 x 3
+    assert next(readings, None) is None and next(speeds, None) is None  # both readings and probes were taken
+
+
+def test_the_slowdown_falls_back_to_the_load_average(monkeypatch):
+    monkeypatch.setattr(resources, "tasks_now", lambda: None)
+    monkeypatch.setattr(resources.os, "getloadavg", lambda: (5.0, 1.0, 1.0))
+    monkeypatch.setattr(resources, "usable_cpus", lambda: 2)
+    monkeypatch.setattr(resources, "cpu_speed", lambda pieces=0: 1.0)
+    assert resources.load_slowdown() == pytest.approx(3.0)  # (5 + 1) / 2, the 1-minute average where nothing better
 
 
 def test_the_cpu_speed_is_the_probe_s_cpu_seconds_over_its_reference(monkeypatch):
@@ -36,16 +132,6 @@ def test_the_cpu_speed_is_the_probe_s_cpu_seconds_over_its_reference(monkeypatch
     assert resources.cpu_speed(resources.PROBE_PIECES // 2) == pytest.approx(1.0, rel=1e-12)
 
 
-def test_the_runnable_count_leaves_the_reader_out_and_falls_back_to_the_load_average(monkeypatch, tmp_path):
-    now = resources.runnable_now(samples=3, gap_s=0.0)
-    assert now is None or now >= 0.0  # this process, reading, is not counted
-    monkeypatch.setattr(resources, "runnable_now", lambda: None)
-    monkeypatch.setattr(resources.os, "getloadavg", lambda: (5.0, 1.0, 1.0))
-    monkeypatch.setattr(resources, "usable_cpus", lambda: 2)
-    monkeypatch.setattr(resources, "cpu_speed", lambda: 1.0)
-    assert resources.load_slowdown() == pytest.approx(3.0)  # (5 + 1) / 2, the 1-minute average where nothing better
-
-
 def test_the_panels_cost_line_scales_by_the_load():
     from pemviz.app.form import run_cost
     from pemviz.config import ExperimentConfig
@@ -54,37 +140,43 @@ def test_the_panels_cost_line_scales_by_the_load():
     assert run_cost(cfg, slowdown=1.5).seconds == pytest.approx(1.5 * run_cost(cfg, slowdown=1.0).seconds)
 
 
-def test_other_tasks_count_by_their_niceness_and_their_session_s_group(monkeypatch):
-    import io
-
-    stats = {  # pid -> /proc/<pid>/stat: state (field 3) and nice (field 19), a name with a space and a parenthesis
-        "11": "11 (busy one) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 20 0 1 0 5 0 0",
-        "12": "12 (nice) 10) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 30 10 1 0 5 0 0",
-        "13": "13 (idle) S 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 20 0 1 0 5 0 0",
-        "14": "14 (other) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 20 0 1 0 5 0 0",
-        "15": "15 (other too) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 30 10 1 0 5 0 0",
+def test_the_tasks_times_are_read_per_thread_with_the_session_and_the_nice(monkeypatch):
+    files = {  # a name with a space and a parenthesis; nice is field 19 of stat
+        "/proc/99/schedstat": "5 6 7",
+        "/proc/11/stat": "11 (busy one) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 20 0 1 0 5 0 0",
+        "/proc/12/stat": "12 (nice) 10) R 1 1 1 0 -1 0 0 0 0 0 0 0 0 0 30 10 1 0 5 0 0",
+        "/proc/11/task/11/schedstat": "100 20 3",
+        "/proc/11/task/13/schedstat": "40 2 3",
+        "/proc/12/task/12/schedstat": "7 0 1",
+        "/proc/self/autogroup": "/autogroup-1 nice 0",
+        "/proc/11/autogroup": "/autogroup-2 nice 3",
     }
-    groups = {"self": "/autogroup-1 nice 0", "11": "/autogroup-1 nice 0", "12": "/autogroup-1 nice 0"}
-    groups |= {"13": "/autogroup-2 nice 0", "14": "/autogroup-2 nice 0", "15": "/autogroup-3 nice 0"}
+    dirs = {"/proc": ["self", "11", "12", "99", "stat"], "/proc/11/task": ["11", "13"], "/proc/12/task": ["12"]}
 
     def read(path, **kw):
-        _, _, pid, name = path.split("/")
-        if name == "autogroup":
-            if pid not in groups:
-                raise OSError(path)
-            return io.StringIO(groups[pid])
-        return io.StringIO(stats[pid])
+        if path not in files:
+            raise OSError(path)
+        return io.StringIO(files[path])
 
-    monkeypatch.setattr(resources.os, "listdir", lambda path: ["self", "11", "12", "13", "14", "15", "99"])
+    def listdir(path):
+        if path not in dirs:
+            raise OSError(path)
+        return dirs[path]
+
+    monkeypatch.setattr(resources.os, "listdir", listdir)
     monkeypatch.setattr(resources.os, "getpid", lambda: 99)
-    monkeypatch.setattr(resources.os, "getpriority", lambda which, who: 10)  # this run under nice -n 10
+    monkeypatch.setattr(resources.os, "getpriority", lambda which, who: 5)
     monkeypatch.setattr(resources, "open", read, raising=False)
-    # the kernel's weights (sched_prio_to_weight): nice 0 1024, nice 10 110. In this run's group, the nice-0 task
-    # counts 1024 / 110 and the nice-10 one 1; each other group with a runnable task 1 whatever its tasks' nice (the
-    # sleeping task of group 2 does not count, nor twice its two tasks)
-    assert resources.competing_now() == pytest.approx(1024 / 110 + 1.0 + 2.0, rel=1e-3)
-    monkeypatch.setattr(resources.os, "getpriority", lambda which, who: 0)
-    assert resources.competing_now() == pytest.approx(1.0 + 110 / 1024 + 2.0, rel=1e-3)
-    groups.clear()  # no autogroups: every task by its nice against this one's
-    assert resources.competing_now() == pytest.approx(1.0 + 110 / 1024 + 1.0 + 110 / 1024, rel=1e-3)
-    assert resources.runnable_now(samples=3, gap_s=0.0) == pytest.approx(2.0 + 2 * 110 / 1024, rel=1e-3)
+    t = resources.tasks_now()
+    assert t is not None and (t.group, t.group_nice, t.nice) == ("/autogroup-1", 0, 5)
+    # the kernel thread (no autogroup) in the root group, ""; this process (99) not read
+    assert t.tasks == {"11": ("/autogroup-2", 3, 0, 120), "13": ("/autogroup-2", 3, 0, 42), "12": ("", 0, 10, 7)}
+    del files["/proc/99/schedstat"]  # no schedstats: nothing to read the load from
+    assert resources.tasks_now() is None
+
+
+def test_a_real_reading_leaves_this_process_out():
+    import os
+
+    t = resources.tasks_now()
+    assert t is None or str(os.getpid()) not in t.tasks
