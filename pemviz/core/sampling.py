@@ -319,7 +319,7 @@ class Proposal:
 DISTINCT_FROM = 256
 """Rows from which :meth:`Proposal.detect_logit` evaluates the network once per distinct row of inputs (by their bits:
 a row's logit is a function of its own bits alone), where at most 3/4 of them are distinct: rollouts that drew the same
-detections so far share their state (about half the rows of a braking stage)."""
+detections so far share their state (e.g. about half the rows of a braking stage)."""
 
 
 _MIX = np.uint64(0x9E3779B97F4A7C15)

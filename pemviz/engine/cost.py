@@ -122,11 +122,12 @@ COST = CostConstants(
     "tilt_rollouts and tilt_solve_s from per-rollout CPU seconds against a scene's plain rollouts in the same "
     "process (2026-11-29, benchmarks/calibrate_cost.py --tilt: a tilted rollout 2.5-3.0 plain ones, its weights "
     "0.3-0.4 of them; a fresh process's solve 2.4-2.6 model seconds); proposal_step_s, proposal_rollout_step_s, "
-    "pretrain_stop_share and torch_import_s from CPU seconds per part of braking's and the crossing's default runs "
+    "pretrain_stop_share and torch_import_s from CPU seconds per part of the reference scene's and a two-pedestrian "
+    "scene's default runs "
     "against the model's in one process, on 2 loaded cores (2026-11-29, benchmarks/calibrate_cost.py --parts: "
-    "braking's proposal steps 1.8-2.1 times, its pretraining fit 0.4-0.6 times, the rest's 1.0); streamed_share from "
-    "the CPU seconds of the crossing's plain rollouts, 40,000 streamed against 10,000 held whole (0.64-0.82, 4 "
-    "readings)",
+    "the reference scene's proposal steps 1.8-2.1 times, its pretraining fit 0.4-0.6 times, the rest's 1.0); "
+    "streamed_share from the CPU seconds of the two-pedestrian scene's plain rollouts, 40,000 streamed against "
+    "10,000 held whole (0.64-0.82, 4 readings)",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 

@@ -26,6 +26,7 @@ import atexit
 import collections
 import hashlib
 import signal
+import sys
 import time
 from typing import Any, Iterator
 
@@ -95,8 +96,10 @@ def _task(
     return cloudpickle.dumps(out)
 
 
-def _ignore_interrupts() -> None:
-    """A worker's start: Ctrl-C is the run's to handle (it shuts the pool down)."""
+def _worker_start(path: tuple[str, ...]) -> None:
+    """A worker's start: the parent's import path (a scenario or method of one's own imported from a folder the
+    parent put on ``sys.path`` is found), and Ctrl-C is the run's to handle (it shuts the pool down)."""
+    sys.path[:] = list(path)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
@@ -143,8 +146,12 @@ class LocalExecutor:
 
         if self._pool is None:
             atexit.register(self.close)
-        self._pool = get_reusable_executor(
-            max_workers=self.workers, timeout=IDLE_S, initializer=_ignore_interrupts, env=dict(ONE_THREAD_ENV)
+        self._pool = get_reusable_executor(  # a changed import path starts new workers (loky compares the arguments)
+            max_workers=self.workers,
+            timeout=IDLE_S,
+            initializer=_worker_start,
+            initargs=(tuple(sys.path),),
+            env=dict(ONE_THREAD_ENV),
         )
         self.started = True
         return self._pool

@@ -222,3 +222,21 @@ def test_ctrl_c_and_sigterm_end_the_run_and_its_workers(how):
     assert f"interrupted ({'Ctrl-C' if how == 'SIGINT' else 'SIGTERM'}); 0 stage(s) finished" in err
     assert "Traceback" not in err and "leaked" not in err
     assert [pid for pid in workers if Path(f"/proc/{pid}").exists()] == []
+
+
+def test_workers_find_a_module_of_ones_own_put_on_the_import_path_after_the_pool_started(tmp_path, monkeypatch):
+    """A long-lived process (the panel) imports a scenario of one's own from a folder it adds to ``sys.path`` after
+    its pool's workers started: the pool's new tasks run on workers that find that module (pickled by reference)."""
+    import importlib
+
+    from pemviz.engine.pool import LocalExecutor
+
+    first = LocalExecutor(2)
+    assert first._executor().submit(abs, -3).result(timeout=120) == 3  # workers up, on the old import path
+    (tmp_path / "pool_probe_mod.py").write_text("def answer():\n    return 42\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    probe = importlib.import_module("pool_probe_mod")
+    try:
+        assert LocalExecutor(2)._executor().submit(probe.answer).result(timeout=120) == 42
+    finally:
+        sys.modules.pop("pool_probe_mod", None)
