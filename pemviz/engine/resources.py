@@ -340,12 +340,12 @@ def load_slowdown(threads: int = 1, since: LoadWindow | None = None) -> float:
     :data:`LOAD_WINDOW_MAX_S` old; else now) and at least :data:`LOAD_WINDOW_S` long. The crowding is the wall over the
     CPU seconds the scheduler's sharing gives the run (:func:`crowding` of the other tasks' runnable time over the
     window): a time average, where a count of the tasks runnable at five instants in 20 ms priced the same run
-    (a tilted multi-car run) at 5.2-9.8 times the model's while it took 6.3-7.8 times. The 1-minute load average is not blended in:
-    it counts tasks, not the sessions the scheduler shares the CPUs among, and lags by a minute. S is the CPU seconds
-    the run's arithmetic takes now over the model's: :func:`cpu_speed`, half of it when the window opens and half when
-    it closes, the mean (it drifts by 10-40 % within seconds on a loaded machine). Where the tasks' times cannot be
-    read, ``max(1, (L + threads) / C) x S`` with L the 1-minute load average; 1 where neither can. On an idle machine 1;
-    beside two other busy sessions on two CPUs a one-thread run gets two thirds of a CPU, 1.5 (times S)."""
+    (a tilted multi-car run) at 5.2-9.8 times the model's while it took 6.3-7.8 times. The 1-minute load average is not
+    blended in: it counts tasks, not the sessions the scheduler shares the CPUs among, and lags by a minute. S is the
+    CPU seconds the run's arithmetic takes now over the model's: :func:`cpu_speed`, half of it when the window opens
+    and half when it closes, the mean (it drifts by 10-40 % within seconds on a loaded machine). Where the tasks' times
+    cannot be read, ``max(1, (L + threads) / C) x S`` with L the 1-minute load average; 1 where neither can. On an idle
+    machine 1; beside two other busy sessions on two CPUs a one-thread run gets two thirds of a CPU, 1.5 (times S)."""
     fresh = since is not None and time.perf_counter() - since.at <= LOAD_WINDOW_MAX_S
     opening = since if since is not None and fresh else open_load_window()
     speed = (opening.speed + cpu_speed(PROBE_PIECES - PROBE_PIECES // 2)) / 2
