@@ -114,3 +114,15 @@ def float64_network(layers, x):
         if i < len(layers) - 1:
             h = np.maximum(h, 0.0)
     return h
+
+
+def result_schema() -> dict:
+    """The result document's JSON schema, as docs/ci.md gives it."""
+    import json
+
+    text = (REPO / "docs" / "ci.md").read_text()
+    return json.loads(re.search(r"<!-- result schema -->\n```json\n(.*?)```", text, re.S).group(1))
+
+
+PLUGIN_SCENARIO_HEADING = "### A scenario package: one module, one registration"
+"""The heading of the guide's scenario module (docs/own-simulator.md)."""

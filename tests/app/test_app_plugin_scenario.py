@@ -9,9 +9,9 @@ import sys
 
 import pytest
 
+from conftest import PLUGIN_SCENARIO_HEADING as HEADING
 from conftest import doc_python_block
 from .test_app import TINY, app, browser, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
-from scenarios.test_scenario_plugin import HEADING
 
 
 @pytest.fixture

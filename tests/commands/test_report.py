@@ -237,7 +237,7 @@ def test_the_report_says_what_its_number_rests_on(tmp_path, uncertainty):
         assert main(["run", "--no-record", *flags, "--json", str(result), "--report", str(page)]) == 0
     doc = json.loads(result.read_text())
     jsonschema = pytest.importorskip("jsonschema")
-    from core.test_requirement import schema
+    from conftest import result_schema as schema
 
     jsonschema.validate(doc, schema())  # the docs' schema, pem_spread included
     sha = next(i["sha256"] for i in doc["inputs"] if i["what"] == "detection PEM")

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from conftest import REPO, run_cli
+from conftest import REPO, result_schema, run_cli
 from pemviz.core.confidence import CI_LEVEL, clopper_pearson
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.requirement import (
@@ -183,8 +183,7 @@ def test_the_sequential_test_keeps_its_error_rate_on_a_known_p():
 
 
 def schema() -> dict:
-    text = CI_PAGE.read_text()
-    return json.loads(re.search(r"<!-- result schema -->\n```json\n(.*?)```", text, re.S).group(1))
+    return result_schema()
 
 
 @pytest.mark.parametrize("require, code, outcome", [("p < 1e-13", 0, "met"), ("p < 1e-16", 1, "violated")])

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, doc_python_block, verify_rrd
+from conftest import PLUGIN_SCENARIO_HEADING, REPO, doc_python_block, verify_rrd
 
-HEADING = "### A scenario package: one module, one registration"
+HEADING = PLUGIN_SCENARIO_HEADING
 
 
 @pytest.fixture(scope="module")

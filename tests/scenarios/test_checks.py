@@ -13,7 +13,7 @@ from pemviz.config import ExperimentConfig
 from pemviz.estimators import build_estimator
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams
-from scenarios.test_simulator_protocol import ParkedCarAEB
+from .test_simulator_protocol import ParkedCarAEB
 
 
 class Car(ParkedCarAEB):
