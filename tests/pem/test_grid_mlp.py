@@ -91,7 +91,8 @@ def digests() -> dict[str, str]:
 def test_other_kernels_give_the_same_bits(setting):
     # OpenBLAS's Haswell and Sandybridge kernels rounded these products differently before the grid form
     code = (
-        "import json, sys; sys.path.insert(0, 'tests'); import pem.test_grid_mlp as t; print(json.dumps(t.digests()))"  # noqa: E501
+        "import json, sys; sys.path[:0] = ['tests/pem', 'tests']; import test_grid_mlp as t; "
+        "print(json.dumps(t.digests()))"
     )
     env = {**os.environ, **rp.DISPATCH_SETTINGS[setting]}
     proc = subprocess.run(
