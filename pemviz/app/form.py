@@ -12,9 +12,10 @@ that differ from the defaults. No viser here.
 from __future__ import annotations
 
 import dataclasses
+import time
 import types
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from pemviz.settings import SETTINGS, Setting
 from pemviz.config import ConfigError, ExperimentConfig
@@ -244,8 +245,25 @@ def run_cost(cfg: ExperimentConfig, n_steps: int | None = None, slowdown: float 
 
     steps, look, stated = _horizon(cfg) if n_steps is None else (n_steps, 0.0, None)
     idle = cost.run_cost(cfg, run_plan(cfg), steps, stream_above(cfg), look_ahead_s=look, problem=stated)
-    factor = load_slowdown() if slowdown is None else float(slowdown)
-    return dataclasses.replace(idle, seconds=idle.seconds * factor, then_seconds=idle.then_seconds * factor)
+    factor = _recent_load(load_slowdown) if slowdown is None else float(slowdown)
+    scaled = dataclasses.replace(idle, seconds=idle.seconds * factor, then_seconds=idle.then_seconds * factor)
+    return dataclasses.replace(scaled, slowdown=factor)
+
+
+LOAD_FRESH_S = 3.0
+"""How long the panel's cost line reuses a reading of the machine's load (one reading takes a quarter of a second
+of wall time: every change to the form would wait on it)."""
+_LOAD: list[tuple[float, float]] = []
+
+
+def _recent_load(read: Callable[[], float]) -> float:
+    """``read()`` (the load's slowdown), reused for :data:`LOAD_FRESH_S` seconds."""
+    now = time.monotonic()
+    if _LOAD and now - _LOAD[-1][0] <= LOAD_FRESH_S:
+        return _LOAD[-1][1]
+    factor = float(read())
+    _LOAD[:] = [(now, factor)]
+    return factor
 
 
 def setting_name(key: str) -> str:

@@ -360,7 +360,8 @@ class RunCost:
     ``then_simulations`` and ``then_seconds``: the most a run may add after its planned stages, when they end in a
     way it names (``then_words``: e.g. the cross-entropy sampler's retry and plain Monte Carlo where its weights back
     no interval, :mod:`pemviz.estimators.fallback`; :class:`FollowOn`); not in :attr:`needs_confirm` (a run may well
-    not need them)."""
+    not need them). ``slowdown``: how many times the model's seconds on an idle machine ``seconds`` and
+    ``then_seconds`` are (the machine's load when priced, :func:`pemviz.engine.resources.load_slowdown`)."""
 
     simulations: int
     memory_bytes: int
@@ -369,13 +370,15 @@ class RunCost:
     then_simulations: int = 0
     then_seconds: float = 0.0
     then_words: str = ""
+    slowdown: float = 1.0
 
     @property
     def needs_confirm(self) -> bool:
-        """Above any limit (:data:`CONFIRM_SIMULATIONS`, :data:`CONFIRM_SECONDS`, :data:`CONFIRM_BYTES`)."""
+        """Above any limit (:data:`CONFIRM_SIMULATIONS`, :data:`CONFIRM_SECONDS` on an idle machine,
+        :data:`CONFIRM_BYTES`): what the run is, not how loaded the machine is at the moment it is priced."""
         return (
             self.simulations > CONFIRM_SIMULATIONS
-            or self.seconds > CONFIRM_SECONDS
+            or self.seconds / max(self.slowdown, 1e-12) > CONFIRM_SECONDS
             or self.memory_bytes > CONFIRM_BYTES
         )
 

@@ -28,7 +28,7 @@ from pemviz.app.runs import (
     sanitize_export_name,
 )
 from pemviz.config import ExperimentConfig
-from pemviz.engine.cost import duration_text, stage_cost
+from pemviz.engine.cost import CONFIRM_SECONDS, duration_text, stage_cost
 from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RolloutsSampled, StageFinished, StageStarted
 from pemviz.sinks.console import ConsoleSink
@@ -216,6 +216,10 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     plan = run_plan(cfg)  # the memory check's model, less the process's own
     assert cost.memory_bytes == run_memory(plan, 100, cfg.adaptive.quantile_level, stream_above=20_000) - BASE_BYTES
     assert run_cost(cfg.replace(n_stages=1000, n_per_stage=1000)).needs_confirm
+    # whether a run asks first is what it is, not how loaded the machine is when it is priced: 1,000 times slower
+    # than the model's idle machine, this run is priced above the limit of seconds and still starts at once
+    loaded = run_cost(cfg, slowdown=1000.0)
+    assert loaded.seconds > CONFIRM_SECONDS > run_cost(cfg, slowdown=1.0).seconds and not loaded.needs_confirm
     assert cost.text().startswith("240 simulations, ")  # the rollouts are all a cross-entropy run counts
     # then, where the stages' weights back no interval, whatever the scene (the model on T = 100 steps, no problem):
     model = functools.partial(run_cost, n_steps=100)
