@@ -208,7 +208,7 @@ def time_split(sim: str) -> None:
         (braking, "simulate", "simulation"),
         (braking, "simulate_batched", "simulation"),
         (braking, "branch", "simulation"),
-        (braking, "branch_batched", "simulation"),
+        (braking, "branch_rollouts", "simulation"),
         (PEM, "logit_at_gap", "PEM"),
         (Proposal, "detect_logit", "proposal sampling"),
         (cross_entropy, "pretrain_proposal", "proposal training"),

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import html
 import threading
-from typing import Protocol, cast
+from typing import cast
 
 import viser
 
@@ -14,7 +14,7 @@ from pemviz.app.html import GREY, NO_ROLLOUT, RED, TABLE_STYLE, box
 from pemviz.app.objects_view import RobustnessOutcome
 from pemviz.app.runs import MAX_POPULATION, PanelRun, Population, Trajectory
 from pemviz.app.scene_view import SceneView
-from pemviz.core.drawing import Drawing
+from pemviz.core.drawing import Drawing, Severity
 
 
 ROLLOUT_ORDERS = ("importance weight", "robustness", "log p", "severity")
@@ -28,20 +28,6 @@ MAX_ROWS = 200
 
 MAX_GROUPS = 8
 """Groups of failures shown, largest share first (the rest summed in one row)."""
-
-
-class Severity(Protocol):
-    """What the tab reads of a rollout's outcome: a drawing's :class:`pemviz.core.drawing.Outcome`, else a
-    :class:`pemviz.app.objects_view.RobustnessOutcome`."""
-
-    @property
-    def failed(self) -> bool: ...
-
-    @property
-    def short(self) -> str: ...
-
-    @property
-    def rank(self) -> float: ...
 
 
 def format_share(share: float | None) -> str:

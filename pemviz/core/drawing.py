@@ -16,12 +16,12 @@ if TYPE_CHECKING:  # annotations only
 
 
 @runtime_checkable
-class Outcome(Protocol):
-    """How bad one rollout's outcome was, in the words every sink shares.
+class Severity(Protocol):
+    """How bad one rollout's outcome was, in the words every sink shares (what the panel's rollout list reads of a
+    drawing's :class:`Outcome`, or of a scene-neutral one).
 
     Attributes:
         failed: the safety formula is violated (classic robustness below 0).
-        contact: the objects touched (a collision), not only the margin breached.
         short: one line, e.g. ``contact at 3.2 m/s`` or ``safe, min gap 3.41 m``.
         rank: sort key, larger = worse.
     """
@@ -30,13 +30,22 @@ class Outcome(Protocol):
     def failed(self) -> bool: ...
 
     @property
-    def contact(self) -> bool: ...
-
-    @property
     def short(self) -> str: ...
 
     @property
     def rank(self) -> float: ...
+
+
+@runtime_checkable
+class Outcome(Severity, Protocol):
+    """A scenario's words for one rollout's outcome: its :class:`Severity` and whether the objects touched.
+
+    Attributes:
+        contact: the objects touched (a collision), not only the margin breached.
+    """
+
+    @property
+    def contact(self) -> bool: ...
 
 
 @runtime_checkable

@@ -380,8 +380,7 @@ def branch(
     scenario is deterministic given its perception, so it passes through the parent's states) and draws them from
     ``target`` from step ``at[i]`` on (``log_q = log_p``), in lockstep (:func:`run_batched`): one ``rng.random(K)``
     per step 0..T - 1 for single-object rollouts (replayed rows ignore theirs), as the vectorised twins
-    (e.g. :func:`pemviz.scenarios.braking.batched.branch_batched`, :func:`pemviz.scenarios.toy.simulator.branch_toy`)
-    draw.
+    (:func:`branch_rollouts`) draw.
 
     Args:
         make_simulator: builds a fresh simulator at its start state.

@@ -317,3 +317,35 @@ def step_robustness(problem: Problem, batch: RolloutBatch) -> np.ndarray:
     rho[:, : f.start] = np.inf
     rho[:, end + 1 :] = np.inf
     return rho
+
+
+class StateScore:
+    """A graded AMS score read off each step's state (:class:`pemviz.estimators.ams.GradedScore`): the rollouts are
+    the problem's own (``simulate`` / ``branch`` under its target, the PEM), scored at every step by :meth:`graded`,
+    no look-ahead. A scenario's score subclasses it and gives :meth:`graded` (e.g. -log of a committor V).
+
+    Attributes:
+        problem: the problem whose rollouts are scored (a ``branch`` of its own).
+        steps: rollout-steps simulated besides the rollouts (a solve this run made; 0 by default).
+    """
+
+    problem: Problem
+    steps: int = 0
+
+    def graded(self, batch: RolloutBatch) -> np.ndarray:
+        """The score of every rollout's state at every step, float64 [N, T] (nats, lower = closer to failure)."""
+        raise NotImplementedError
+
+    def simulate(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:
+        """``n`` rollouts of the problem's target and their scores, float64 [n, T] (nats)."""
+        batch = self.problem.simulate(n, self.problem.target, self.problem.target, rng)
+        return batch, self.graded(batch)
+
+    def branch(
+        self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, rng: np.random.Generator
+    ) -> tuple[RolloutBatch, np.ndarray]:
+        """``parents``' rollouts ``parent`` continued from the steps ``at`` (the problem's ``branch``) and their scores
+        [K, T]."""
+        assert self.problem.branch is not None, no_branch_message(self.problem)
+        batch = self.problem.branch(parents, parent, at, self.problem.target, rng)
+        return batch, self.graded(batch)

@@ -286,19 +286,7 @@ class Experiment:
             self.seen_failures.add(pb, batch, failed)
             log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
             self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler, tuple(plan.parts), pb.target))
-            self.emit(
-                RolloutsSampled(
-                    plan.stage,
-                    plan.kind,
-                    batch,
-                    by_metric[cfg.metric],
-                    by_metric,
-                    failed,
-                    log_w,
-                    plan.sampler,
-                    target=target,
-                )
-            )
+            self._sampled(plan, batch, by_metric, failed, log_w, target=target)
         self.n_simulations += plan.n
         out = estimator.finish()
         res = StageResult(
@@ -348,23 +336,33 @@ class Experiment:
             sample.add(batch, robustness, failed, log_w)
         batch, index = sample.rollouts()
         batch = batch.with_rows()  # the listeners' sample holds its rows
-        by_metric = RobustnessByMetric(pb, batch)
+        self._sampled(
+            plan,
+            batch,
+            RobustnessByMetric(pb, batch),
+            sample.failed[index],
+            sample.log_weight[index],
+            target=target,
+            n_total=plan.n,
+            index=index,
+            stage_robustness=sample.robustness,
+            stage_log_weight=sample.log_weight,
+        )
+
+    def _sampled(
+        self,
+        plan: StagePlan,
+        batch: RolloutBatch,
+        by_metric: RobustnessByMetric,
+        failed: np.ndarray,
+        log_w: np.ndarray,
+        **streamed: Any,
+    ) -> None:
+        """Show the listeners a stage's rollouts (:class:`RolloutsSampled`; ``streamed``: its ``target``, and for a
+        streamed stage's sample its ``n_total``, ``index`` and the whole stage's robustness and log-weights)."""
+        rho = by_metric[self.config.metric]
         self.emit(
-            RolloutsSampled(
-                plan.stage,
-                plan.kind,
-                batch,
-                by_metric[cfg.metric],
-                by_metric,
-                sample.failed[index],
-                sample.log_weight[index],
-                plan.sampler,
-                n_total=plan.n,
-                index=index,
-                stage_robustness=sample.robustness,
-                stage_log_weight=sample.log_weight,
-                target=target,
-            )
+            RolloutsSampled(plan.stage, plan.kind, batch, rho, by_metric, failed, log_w, plan.sampler, **streamed)
         )
 
 

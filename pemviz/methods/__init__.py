@@ -178,8 +178,8 @@ def setting(default: Any, words: str, help: str, **row: Any) -> Any:
     :class:`pemviz.methods.adaptive.CrossEntropySettings`) and its row of the settings table
     (:class:`pemviz.settings.Setting`): ``default``, then what the row says of it (``words``, ``help`` and any of
     ``kind``, ``symbol``, ``short``, ``unit``, ``lo``, ``hi``, ``lo_open``, ``hi_open``, ``optional``, ``choices``,
-    ``choice_help``, ``flags``); the field's name is the setting's (and the key a run records it by), the method's name
-    its owner."""
+    ``choice_help``, ``flags``, ``panel``: the place of a built-in method's setting in the panel's form); the field's
+    name is the setting's (and the key a run records it by), the method's name its owner."""
     return dataclasses.field(default=default, metadata={ROW: {"words": words, "help": help, **row}})
 
 
@@ -320,20 +320,31 @@ TILT_METHOD = "tilt"
 STATE_METHOD = "state"
 """The cross-entropy sampler whose proposal reads the state the stack acts on (:mod:`pemviz.methods.state`)."""
 
-for _record in (
-    Method(
-        CROSS_ENTROPY_METHOD,
-        "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
-        "pemviz.estimators.builtin:adaptive",
+
+def _cross_entropy(name: str, description: str, build: str, **more: Any) -> Method:
+    """A cross-entropy sampler's record: its stages, budget, advice and cost are the adaptive method's."""
+    return Method(
+        name,
+        description,
+        build,
         plan="pemviz.estimators.builtin:adaptive_plan",
-        validate="pemviz.estimators.builtin:adaptive_conflict",
         more_budget="pemviz.estimators.builtin:adaptive_more_budget",
         no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure",
         cost_model="proposal",
-        proposal_curves=True,
         then="pemviz.estimators.builtin:adaptive_then",
         then_most="pemviz.estimators.builtin:adaptive_then_most",
         then_plan="pemviz.estimators.builtin:adaptive_then_plan",
+        **more,
+    )
+
+
+for _record in (
+    _cross_entropy(
+        CROSS_ENTROPY_METHOD,
+        "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
+        "pemviz.estimators.builtin:adaptive",
+        validate="pemviz.estimators.builtin:adaptive_conflict",
+        proposal_curves=True,
         then_drawn="pemviz.estimators.builtin:adaptive_then_drawn",
         describe="pemviz.methods.words:adaptive",
     ),
@@ -388,21 +399,14 @@ for _record in (
         run_adds="plus the proposal's look-aheads",
         describe="pemviz.methods.words:tilt",
     ),
-    Method(
+    _cross_entropy(
         STATE_METHOD,
         "cross-entropy importance sampling of each detection (and with --state-fit-errors each error's location and "
         "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
         "report them",
         "pemviz.estimators.builtin:state",
-        plan="pemviz.estimators.builtin:adaptive_plan",
         validate="pemviz.estimators.builtin:state_conflict",
-        more_budget="pemviz.estimators.builtin:adaptive_more_budget",
-        no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure",
-        cost_model="proposal",
         run_adds="plus the replay of each batch's state features",
-        then="pemviz.estimators.builtin:adaptive_then",
-        then_most="pemviz.estimators.builtin:adaptive_then_most",
-        then_plan="pemviz.estimators.builtin:adaptive_then_plan",
         baseline=True,
     ),
 ):

@@ -412,10 +412,25 @@ part of its default run's stages against braking's in the same process, 4.2-5.2 
 steps) and 1.1-1.7 (CE fits) times braking's over the model's (3 readings) (2026-11-29, ``benchmarks/calibrate_cost.py
 --parts``); the first of its fits imports torch (braking's run never does)."""
 
-_CUT_IN = (
-    "ACC on a tracker, cars on a 3-lane highway, one cutting in at the {} rarity setting; failure: a collision "
-    "or the safe distance of rule R_G1"
-)
+
+def _cut_in(name: str, rarity: str, defaults: str, **more: Any) -> Scenario:
+    """A cut-in scene: the highway scenario at one rarity setting (``defaults``: its parameters' factory)."""
+    return Scenario(
+        name,
+        f"ACC on a tracker, cars on a 3-lane highway, one cutting in at the {rarity} rarity setting; failure: a "
+        "collision or the safe distance of rule R_G1",
+        "pemviz.scenarios.cut_in.scenario:CutInParams",
+        "pemviz.scenarios.problems:cut_in_run_problem",
+        simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
+        defaults=f"pemviz.scenarios.cut_in.scenario:{defaults}",
+        drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing",
+        cost_factor=_CUT_IN_COST_FACTOR,
+        random_params=("cut_in_gap_m",),
+        odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
+        n_objects=5,
+        **more,
+    )
+
 
 # The method and budget a scenario runs with when neither a method nor a preset is asked for (run_defaults): on the
 # cut-in scenes the adaptive sampler's estimates are orders of magnitude low (the user guide's Validation page). The
@@ -442,33 +457,17 @@ for _scenario in (
         random_params=("gap0_m", "ego_speed0_mps"),
         odd="pemviz.scenarios.braking.odd:braking_odd_problem",
     ),
-    Scenario(
+    _cut_in(
         "cut-in",
-        _CUT_IN.format("moderate (about 9e-5)"),
-        "pemviz.scenarios.cut_in.scenario:CutInParams",
-        "pemviz.scenarios.problems:cut_in_run_problem",
-        simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
-        defaults="pemviz.scenarios.cut_in.scenario:moderate_params",
-        drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing",
-        cost_factor=_CUT_IN_COST_FACTOR,
-        random_params=("cut_in_gap_m",),
-        odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
-        n_objects=5,
+        "moderate (about 9e-5)",
+        "moderate_params",
         run_defaults={"method": TILT_METHOD, "n_per_stage": 7_280},
         odd_defaults={"method": PLAIN_METHOD, "n_per_stage": 100_000},
     ),
-    Scenario(
+    _cut_in(
         "cut-in-rare",
-        _CUT_IN.format("rare (about 1e-7)"),
-        "pemviz.scenarios.cut_in.scenario:CutInParams",
-        "pemviz.scenarios.problems:cut_in_run_problem",
-        simulator="pemviz.scenarios.cut_in.highway:CutInScenario",
-        defaults="pemviz.scenarios.cut_in.scenario:rare_params",
-        drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing",
-        cost_factor=_CUT_IN_COST_FACTOR,
-        random_params=("cut_in_gap_m",),
-        odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
-        n_objects=5,
+        "rare (about 1e-7)",
+        "rare_params",
         run_defaults={"method": PLAIN_METHOD, "n_per_stage": 5_000},
         beyond=(
             "p is about 1e-7, a provisional figure (no reference; 10 tilted runs gave 1.8e-7, every one unreliable): "

@@ -41,7 +41,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from pemviz.core.detectors import Detector
-from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch_rollouts, check_counts, iter_rollouts, simulate_rollouts
+from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, check_counts, iter_rollouts, simulate_rollouts
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking.simulator import (
     OBSERVATION_NAMES,
@@ -261,28 +261,6 @@ def simulate_batched(
     """
     p = params or BrakingParams()
     return simulate_rollouts(lambda m: BatchedBraking(p, m), n, p.n_steps, sampler, target, rng, chunk_size=chunk_size)
-
-
-def branch_batched(
-    params: BrakingParams | None,
-    parents: RolloutBatch,
-    parent: np.ndarray,
-    at: np.ndarray,
-    target: Detector,
-    rng: np.random.Generator,
-) -> RolloutBatch:
-    """:func:`pemviz.scenarios.branch` on the batched twin, vectorised: new rollout i replays parent ``parent[i]``'s
-    actions before step ``at[i]`` (the state at a step is a function of the actions before it: the same state,
-    bit for bit, as :meth:`BatchedBraking.restore` of a snapshot there) and draws the rest from ``target``.
-
-    Returns:
-        :class:`RolloutBatch` [K, T]; ``rng`` gives one ``random(K)`` per step.
-    Raises:
-        ValueError: ``parent`` / ``at`` out of range (:func:`pemviz.core.lockstep.check_branch_args`).
-    """
-
-    p = params or BrakingParams()
-    return branch_rollouts(lambda m: BatchedBraking(p, m), parents, parent, at, target, rng)
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import numpy as np
 from pemviz import stl
 from pemviz.settings import SIMULATORS
 from pemviz.core.detectors import Detector, GapModel, PEMDetector
-from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch, simulate
+from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch, branch_rollouts, simulate
 from pemviz.core.problem_view import Thresholds
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
@@ -26,7 +26,7 @@ from pemviz.scenarios.braking.simulator import (
     BrakingParams,
     BrakingScenario,
 )
-from pemviz.scenarios.braking.batched import branch_batched, iter_batched, replay, simulate_batched
+from pemviz.scenarios.braking.batched import BatchedBraking, iter_batched, replay, simulate_batched
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.lookahead import LOOK_AHEAD_ROLLOUT_S, braking_look_ahead
 from pemviz.scenarios.braking.truth_known import known_log_failure_probability
@@ -92,7 +92,7 @@ def braking_problem(pem: GapModel, params: BrakingParams | None = None, sim: str
         parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector, rng: np.random.Generator
     ) -> RolloutBatch:
         if sim == "batched":
-            return branch_batched(p, parents, parent, at, target, rng)
+            return branch_rollouts(lambda m: BatchedBraking(p, m), parents, parent, at, target, rng)
         return branch(lambda: BrakingScenario(p), parents, parent, at, target, rng)
 
     scale = SeverityScale(

@@ -29,13 +29,14 @@ Units: metres, m/s, seconds; log-probabilities in nats.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 from scipy.special import log_expit
 
 from pemviz.core.detectors import Detector
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, simulate_rollouts
+from pemviz.core.problems import Problem, StateScore
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking.batched import BatchedBraking
 from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
@@ -325,7 +326,7 @@ class BrakingTilt:
         detector = BrakingTiltDetector(self.committor, self.logit_at_gap, self.eps)
         return draw_tilted(detector, self.target, n, rng), detector.steps
 
-    def splitting_score(self, problem: Any) -> "BrakingCommittorScore":
+    def splitting_score(self, problem: Problem) -> "BrakingCommittorScore":
         """-log V as the score of adaptive multilevel splitting (``ams_score = "committor"``), for ``problem`` (the
         braking problem of the same scene and PEM)."""
         solved = self.solve()
@@ -333,8 +334,8 @@ class BrakingTilt:
         return BrakingCommittorScore(self.committor, problem, solved or 0)
 
 
-class BrakingCommittorScore:
-    """-log V of the grid committor at every step as a graded AMS score (:class:`pemviz.estimators.ams.GradedScore`):
+class BrakingCommittorScore(StateScore):
+    """-log V of the grid committor at every step as a graded AMS score (:class:`pemviz.core.problems.StateScore`):
     the rollouts are the problem's own (``simulate`` / ``branch`` under the PEM); V is read off each step's
     observation (gap, speed, pending brake), no look-ahead.
 
@@ -345,20 +346,8 @@ class BrakingCommittorScore:
             rollouts (:attr:`steps`).
     """
 
-    def __init__(self, committor: GridCommittor, problem: Any, steps: int = 0) -> None:
+    def __init__(self, committor: GridCommittor, problem: Problem, steps: int = 0) -> None:
         self.committor, self.problem, self.steps = committor, problem, steps
-
-    def simulate(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:
-        """``n`` rollouts of the PEM and their scores, float64 [n, T] (nats)."""
-        batch = self.problem.simulate(n, self.problem.target, self.problem.target, rng)
-        return batch, self.graded(batch)
-
-    def branch(
-        self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, rng: np.random.Generator
-    ) -> tuple[RolloutBatch, np.ndarray]:
-        """``parents``' rollouts ``parent`` continued from the steps ``at`` and their scores [K, T]."""
-        batch = self.problem.branch(parents, parent, at, self.problem.target, rng)
-        return batch, self.graded(batch)
 
     def graded(self, batch: RolloutBatch) -> np.ndarray:
         """-log V of every rollout's state at every step, float64 [n, T] (nats; +inf before the committor's first

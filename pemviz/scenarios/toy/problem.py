@@ -10,13 +10,13 @@ import numpy as np
 from pemviz import stl
 from pemviz.core.detectors import Detector
 from pemviz.core.features import feature_replay
+from pemviz.core.lockstep import branch_rollouts
 from pemviz.core.problem_view import Thresholds
 from pemviz.core.problems import Problem
 from pemviz.scenarios.toy.simulator import (
     BatchedToy,
     ToyDetector,
     ToyParams,
-    branch_toy,
     simulate_toy,
     toy_log_failure_probability,
 )
@@ -37,7 +37,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
         return simulate_toy(p, n, sampler, target, rng)
 
     def branch(parents, parent, at, target: Detector, rng: np.random.Generator):
-        return branch_toy(p, parents, parent, at, target, rng)
+        return branch_rollouts(lambda m: BatchedToy(p, m), parents, parent, at, target, rng)
 
     def tilt() -> ToyTilt:
         from pemviz.scenarios.toy.tilt import ToyTilt

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.special import log_expit
 
 from pemviz.core.detectors import Detector
-from pemviz.core.lockstep import check_branch_args, run_batched
+from pemviz.core.lockstep import run_batched
 from pemviz.core.rollouts import RolloutBatch
 
 
@@ -197,14 +197,11 @@ def simulate_toy(
     sampler: Detector,
     target: Detector,
     rng: np.random.Generator,
-    forced: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> RolloutBatch:
     """``n`` toy rollouts, vectorised (:class:`BatchedToy`, :func:`pemviz.core.lockstep.run_batched`); the same draws
     and batch as :func:`pemviz.scenarios.simulate` with :class:`ToyBraking` (one ``rng.random(n)`` per step, detect
-    iff ``log u <= log q(detect)``).
-
-    ``forced``: optional (detected bool [n, T, 1], until int [n]): rollout i takes the given actions at steps
-    before ``until[i]`` instead of drawing them (a replayed prefix, for :func:`branch_toy`).
+    iff ``log u <= log q(detect)``). Its branches are :func:`pemviz.core.lockstep.branch_rollouts` on
+    :class:`BatchedToy`.
 
     Returns:
         :class:`~pemviz.core.rollouts.RolloutBatch` with observations [n, T, 2] (distance, stopped).
@@ -214,23 +211,7 @@ def simulate_toy(
     if n < 1:
         raise ValueError(f"simulate_toy: n must be >= 1, got {n}")
     uniforms = (rng.random(n) for _ in range(params.steps))
-    given = None if forced is None else (forced[0], None, forced[1])
-    return run_batched(BatchedToy(params, n), n, params.steps, sampler, target, uniforms, forced=given)
-
-
-def branch_toy(
-    params: ToyParams,
-    parents: RolloutBatch,
-    parent: np.ndarray,
-    at: np.ndarray,
-    target: Detector,
-    rng: np.random.Generator,
-) -> RolloutBatch:
-    """:func:`pemviz.scenarios.branch` for the toy, vectorised: the parents' prefixes are replayed (the state at a
-    step is a function of the actions before it) and the rest drawn from ``target``; [K, T]."""
-    parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
-    check_branch_args(parents, parent, at)
-    return simulate_toy(params, parent.size, target, target, rng, forced=(parents.detected[parent], at))
+    return run_batched(BatchedToy(params, n), n, params.steps, sampler, target, uniforms)
 
 
 # -- the exact answer ----------------------------------------------------------------------------------

@@ -12,10 +12,10 @@ weights p / q are exact, so its estimates average to the exact answer all the sa
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
+from pemviz.core.problems import Problem, StateScore
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.toy.simulator import ToyDetector, ToyParams, simulate_toy
 
@@ -73,37 +73,20 @@ class ToyTilt:
         """``n`` rollouts drawn from :class:`ToyTiltDetector`, scored under the toy's PEM; no look-ahead steps."""
         return simulate_toy(self.params, n, ToyTiltDetector(self.params), ToyDetector(self.params), rng), 0
 
-    def splitting_score(self, problem: Any) -> "ToyCommittorScore":
+    def splitting_score(self, problem: Problem) -> "ToyCommittorScore":
         """The poor V as the score of adaptive multilevel splitting (``ams_score = "committor"``)."""
         return ToyCommittorScore(self.params, problem)
 
 
-class ToyCommittorScore:
+class ToyCommittorScore(StateScore):
     """-log of a poor V (:func:`poor_committor`, a stopped car's :data:`SCORE_STOPPED_V`) at every step as a graded
-    AMS score
-    (:class:`pemviz.estimators.ams.GradedScore`): the check that committor-scored splitting is unbiased whatever its
-    score (Brehier, Gazeau, Goudenege, Lelievre & Rousset, Ann. Appl. Probab. 26(6), 2016). The rollouts are the
-    problem's own (``simulate`` / ``branch`` under its PEM); the score reads the state off them, no look-ahead."""
+    AMS score (:class:`pemviz.core.problems.StateScore`): the check that committor-scored splitting is unbiased
+    whatever its score (Brehier, Gazeau, Goudenege, Lelievre & Rousset, Ann. Appl. Probab. 26(6), 2016)."""
 
-    steps = 0
-
-    def __init__(self, params: ToyParams, problem: Any) -> None:
+    def __init__(self, params: ToyParams, problem: Problem) -> None:
         self.params, self.problem = params, problem
 
-    def simulate(self, n: int, rng: np.random.Generator) -> tuple[RolloutBatch, np.ndarray]:
-        """``n`` rollouts of the toy's PEM and their scores, float64 [n, T] (nats)."""
-        batch = self.problem.simulate(n, self.problem.target, self.problem.target, rng)
-        return batch, self._graded(batch)
-
-    def branch(
-        self, parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, rng: np.random.Generator
-    ) -> tuple[RolloutBatch, np.ndarray]:
-        """``parents``' rollouts ``parent`` continued from the steps ``at`` (the problem's ``branch``) and their
-        scores [K, T]."""
-        batch = self.problem.branch(parents, parent, at, self.problem.target, rng)
-        return batch, self._graded(batch)
-
-    def _graded(self, batch: RolloutBatch) -> np.ndarray:
+    def graded(self, batch: RolloutBatch) -> np.ndarray:
         obs = batch.observations
         v = poor_committor(self.params, obs[..., 0], obs[..., 1] > 0.5, SCORE_STOPPED_V)
         return -np.log(v)
