@@ -380,7 +380,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     """The run itself, its listeners and its files (:func:`main`), written where ``outputs`` says
     (:func:`pemviz.commands.run_outputs.plan_outputs`); ``early``: the recording process started before the problem was
     built, or None."""
-    save_path, result_files = outputs.recording, outputs.result_files
+    save_path, asks_results = outputs.recording, outputs.asks_results
     from pemviz.sinks.most_likely import MostLikelyFailure
     from pemviz.engine.cost import N_STEPS
     from pemviz.engine.resources import open_load_window, torch_threads
@@ -399,7 +399,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
     except ValueError as exc:
         raise UsageError(f"--preset / --scenario: {exc}") from None
     experiment = Experiment(cfg, problem=problem)
-    wanted = target != "no-record" or any(path is not None for path in result_files)  # files that show the groups
+    wanted = target != "no-record" or asks_results  # files that show the groups
     groups = FailureGroups(problem.drawing, problem, keys=wanted)  # the failures' severity (console), groups
     console = ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()
     console.clock.load_since = opened
@@ -476,7 +476,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
                 pass
         final = getattr(done, "final", None)
         results = None  # the result files' lines and document, made while the recording process writes the file
-        if final is not None and (target == "save" or any(path is not None for path in result_files)):
+        if final is not None and (target == "save" or asks_results):
             try:
                 failures = grouping_document(groups.grouping) if groups.grouping is not None else None
                 results = result_lines(cfg, problem, final, why, failures, getattr(groups.grouping, "severity", None))
@@ -492,7 +492,7 @@ def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink)
             if where is not None:
                 print(f"recording: {where}", file=sys.stderr)
         saved = Path(where) if where is not None and target == "save" else None
-        if results is not None and (saved is not None or any(path is not None for path in result_files)):
+        if results is not None and (saved is not None or asks_results):
             write_results(*results, str(where) if where is not None else None, outputs, saved)
         if cfg.stop.require is not None and final is not None and final.decision is not None:
             from pemviz.core.requirement import EXIT_CODES

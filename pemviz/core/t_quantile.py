@@ -36,16 +36,6 @@ TOLERANCE = 2e-12
 """The table's quantiles are within ``TOLERANCE * (1 + |Q|)`` of ``scipy.special.stdtrit``'s (tested)."""
 
 
-def _log_density(nu: float, z: float) -> float:
-    """log f(z) of Student's t with ``nu`` degrees of freedom (nats), in scalar libm arithmetic."""
-    return (
-        math.lgamma((nu + 1.0) / 2.0)
-        - math.lgamma(nu / 2.0)
-        - 0.5 * math.log(nu * math.pi)
-        - (nu + 1.0) / 2.0 * math.log1p(z * z / nu)
-    )
-
-
 @functools.lru_cache(maxsize=16)
 def _table(nu: float) -> np.ndarray:
     """Cubic coefficients float64 [B * K, 4] (``c0 + t (c1 + t (c2 + t c3))`` for t in [0, 1)), row ``b K + j`` for
@@ -58,8 +48,8 @@ def _table(nu: float) -> np.ndarray:
     exponents = -1 - np.arange(n_binades)  # e = -1, -2, ...
     u = np.ldexp(mantissa[None, :], exponents[:, None])  # [B, K + 1], exact
     q = stdtrit(nu, u)
-    # dQ/dt = (du/dt) / f(Q), t the step's coordinate; log f(z) = c - (nu + 1) / 2 log1p(z^2 / nu) (_log_density's
-    # operations in its order, its constant c computed once)
+    # dQ/dt = (du/dt) / f(Q), t the step's coordinate; log f(z) = c - (nu + 1) / 2 log1p(z^2 / nu), the density of
+    # Student's t in scalar libm arithmetic, its constant c computed once
     c = math.lgamma((nu + 1.0) / 2.0) - math.lgamma(nu / 2.0) - 0.5 * math.log(nu * math.pi)
     half, exp, log1p = (nu + 1.0) / 2.0, math.exp, math.log1p
     steps = (math.ldexp(1.0, int(e)) / (2.0 * k) for e in exponents)

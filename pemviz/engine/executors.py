@@ -43,10 +43,6 @@ from pemviz.core.detectors import Detector
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at, block_bounds
 from pemviz.core.rollouts import RolloutBatch
 
-MAX_CHUNK = RQMC_BLOCK
-"""Most rollouts a Ray task simulates in one call: one block (:data:`pemviz.core.rng.RQMC_BLOCK`), so that the batched
-simulator draws one ``random(m)`` per step inside a task."""
-
 
 class Executor(Protocol):
     """Simulates a stage's rollouts: ``simulate(problem, n, sampler, target, rng) -> RolloutBatch``."""

@@ -37,7 +37,6 @@ from pemviz.studies.pem_eval import Evaluated, stratified_folds
 
 NOISE_MODEL_NAMES = ("homo-normal", "homo-t", "hetero-normal", "hetero-laplace", "hetero-t")
 """Every noise model :func:`evaluate_noise_pems` knows, in table order."""
-BASELINE = "homo-normal"
 NOISE_MODEL_DESCRIPTIONS = {
     "homo-normal": "baseline: linear mean on the 14 features, one Normal scale per dimension (scikit-learn)",
     "homo-t": "one Student-t per dimension: constant location, scale, df (scipy.stats.t.fit)",
