@@ -83,6 +83,9 @@ STATE_MODELS = ("network", "glm")
 
 MAX_SEED = 2**64 - 1
 """Largest seed: torch's generator takes a 64-bit unsigned seed."""
+PANEL_PLACES = ("main", "advanced")
+"""Where the panel's form shows a setting (:attr:`Setting.panel`): above the fold, or in the folder *advanced*."""
+
 RUN = "run"
 """The owner of a setting that the run itself reads, whatever its method (the engine, the problem, the seed)."""
 
@@ -115,6 +118,8 @@ class Setting:
         choices: the allowed values of a ``choice``.
         choice_help: (value, what it does) for each choice: the rest of the help, and the panel dropdown's hint.
         flags: the command-line flags, the first the one error messages name (empty: no flag).
+        panel: where the panel's form shows it (:data:`PANEL_PLACES`: ``main``, or ``advanced``, the folder; empty:
+            not shown); the form's fields are the rows that say so, in the table's order (:mod:`pemviz.app.form`).
         owner: who reads it: :data:`RUN` (every method) or the method whose estimator reads it (``adaptive``:
             :class:`pemviz.estimators.cross_entropy.CrossEntropy`; ``ams``:
             :class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`).
@@ -137,6 +142,7 @@ class Setting:
     choices: tuple[str, ...] = ()
     choice_help: tuple[tuple[str, str], ...] = ()
     flags: tuple[str, ...] = ()
+    panel: str = ""
     owner: str = CROSS_ENTROPY_METHOD
 
     @property
@@ -284,7 +290,7 @@ SETTINGS: dict[str, Setting] = _settings(
     "n_stages",
     Setting("n_per_stage", "the rollouts per stage N",
             "rollouts of each stage; of mc, naive50 and mixed50 all their rollouts; of ams its particles",
-            kind="int", symbol="N", lo=2, owner=RUN, flags=("--n",)),
+            kind="int", symbol="N", lo=2, owner=RUN, flags=("--n",), panel="main"),
     "n_final",
     "quantile_level",
     "smoothing",
@@ -296,7 +302,7 @@ SETTINGS: dict[str, Setting] = _settings(
                          ("smooth-cumulative", "a soft minimum of softplus margins, so every near-worst step counts"))),
     Setting("seed", "the seed", "seeds the rollouts, the fits, tie-breaking and the proposal's initial weights; the "
             "same seed gives the same run", kind="int", lo=0, hi=MAX_SEED, hi_words="2^64 - 1", owner=RUN,
-            flags=("--seed",)),
+            flags=("--seed",), panel="main"),
     "ce_epochs",
     "pretrain_rollouts",
     "pretrain_epochs",
@@ -335,7 +341,8 @@ SETTINGS: dict[str, Setting] = _settings(
             kind="int", lo=1, optional=True, owner=RUN, flags=("--chunk",)),
     Setting("rel_error", "the target relative error", "sample more until the 95 % interval's half-width is at most "
             "this share of the estimate, or a cap (--max-sims, --max-time) is hit (None: the planned budget only)",
-            lo=0.0, hi=10.0, lo_open=True, optional=True, owner=RUN, short="rel. error", flags=("--rel-error",)),
+            lo=0.0, hi=10.0, lo_open=True, optional=True, owner=RUN, short="rel. error", flags=("--rel-error",),
+            panel="advanced"),
     Setting("require", "the requirement", "a requirement on p, e.g. 'p < 1e-9': sample more until the interval lies "
             "wholly on one side of the threshold (a sequential test whose error stays at most 5 % over every look), or "
             "a cap (--max-sims, --max-time) is hit; pemviz run exits 0 met, 1 violated, 3 undecided", kind="text",
@@ -355,10 +362,10 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("max_sims", "the most simulations", "with a precision target (--rel-error) or a requirement (--require): "
             "the run stops adding rollouts at this "
             f"many simulations in all (None: {DEFAULT_MAX_SIMS:,})", kind="int", lo=1, optional=True, owner=RUN,
-            short="max sims", flags=("--max-sims",)),
+            short="max sims", flags=("--max-sims",), panel="advanced"),
     Setting("max_time_s", "the most wall-clock time", "with --rel-error or --require: no more rollouts once the run "
             "has taken this long; where the run stops then depends on the machine (None: no time cap)", unit="s",
-            lo=0.0, lo_open=True, optional=True, owner=RUN, short="max time", flags=("--max-time",)),
+            lo=0.0, lo_open=True, optional=True, owner=RUN, short="max time", flags=("--max-time",), panel="advanced"),
     "proposal_inputs",
     "proposal_window",
     "skip_decided",

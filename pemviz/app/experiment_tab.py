@@ -11,7 +11,7 @@ from typing import Any
 import viser
 
 from pemviz.app._viser_compat import resend_value, set_value
-from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, FormResult, format_number, parse_form
+from pemviz.app.form import FIELDS_BY_KEY, NUMBERS, PANEL_ROWS, FormResult, format_number, panel_rows, parse_form
 from pemviz.app.host import PanelHost
 from pemviz.app.html import field_error
 from pemviz.app.params_form import ScenarioParamsForm
@@ -80,29 +80,22 @@ class ExperimentTab:
                 s.label, options or s.choices, initial_value=value or c0.value(key), **kw
             )
 
+        def place(where: str) -> None:  # the rows that say they are shown here (pemviz.settings.Setting.panel)
+            for row in panel_rows(SETTINGS.values(), where):
+                if row.kind in NUMBERS:
+                    number(row.name)
+                else:
+                    dropdown(row.name)
+
         dropdown("scenario", registered(), hint=scenario_hint())  # every registered scenario, plugins included
         dropdown("metric")
-        for key in ("smoothing", "quantile_level", "n_stages", "n_per_stage", "n_final", "seed"):
-            number(key)
+        place("main")
         dropdown("pem", tuple(pem_options), c0.perception.pem or self._default_pem)
         dropdown("sim", simulators, c0.sim if c0.sim in simulators else simulators[0], disabled=len(simulators) < 2)
         self.params.build(self.choices["scenario"].value, lambda: self._on_change())
         with gui.add_folder("advanced", expand_by_default=False):
             dropdown("method", method_names())  # every registered method, plugins included
-            for key in (
-                "rel_error",
-                "max_sims",
-                "max_time_s",
-                "plain_fallback",
-                "retry_factor",
-                "ce_epochs",
-                "pretrain_rollouts",
-                "pretrain_epochs",
-                "learning_rate",
-            ):
-                number(key)
-            dropdown("weights")
-            dropdown("final_estimate")
+            place("advanced")
         gui.add_markdown("Changes apply to the next run.")
         for handle in (*self.fields.values(), *self.choices.values()):
             handle.on_update(lambda _: self._on_change())
@@ -162,9 +155,9 @@ class ExperimentTab:
         """Set the fields to ``name``'s settings (metric, seed, PEM, simulator and method stay)."""
         cfg = ExperimentConfig.of(**PANEL_PRESETS.get(name, {}))
         with self.client.atomic():
-            for f in NUMBER_FIELDS:
-                if f.name in self.fields and f.name != "seed":
+            for f in PANEL_ROWS:
+                if f.kind not in NUMBERS:
+                    self.choices[f.name].value = cfg.value(f.name)
+                elif f.name != "seed":
                     set_value(self.fields[f.name], format_number(f, cfg.value(f.name)))
-            for key in ("weights", "final_estimate"):
-                self.choices[key].value = cfg.value(key)
         self._on_change()

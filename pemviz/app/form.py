@@ -15,9 +15,9 @@ import dataclasses
 import time
 import types
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
-from pemviz.settings import SETTINGS, Setting
+from pemviz.settings import PANEL_PLACES, SETTINGS, Setting
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import cost
 from pemviz.engine.cost import N_STEPS, RunCost
@@ -26,26 +26,20 @@ from pemviz.scenarios.odd import is_odd
 from pemviz.scenarios.registry import get
 
 
-NUMBER_FIELDS: tuple[Setting, ...] = tuple(
-    SETTINGS[name]
-    for name in (
-        "smoothing",
-        "quantile_level",
-        "n_stages",
-        "n_per_stage",
-        "n_final",
-        "seed",
-        "ce_epochs",
-        "pretrain_rollouts",
-        "pretrain_epochs",
-        "learning_rate",
-        "rel_error",
-        "max_sims",
-        "max_time_s",
-        "plain_fallback",
-        "retry_factor",
-    )
-)
+NUMBERS = ("int", "real")
+"""The kinds of setting the form types as a number (a text field); a ``choice`` is a dropdown."""
+
+
+def panel_rows(rows: Iterable[Setting], place: str) -> tuple[Setting, ...]:
+    """The rows of ``rows`` the panel's form shows at ``place`` (:attr:`pemviz.settings.Setting.panel`: ``main`` or
+    ``advanced``), in their order: a method's setting is in the form by its own row, no list here."""
+    return tuple(s for s in rows if s.panel == place)
+
+
+PANEL_ROWS: tuple[Setting, ...] = tuple(s for place in PANEL_PLACES for s in panel_rows(SETTINGS.values(), place))
+"""The settings the form shows, ``main`` first: every row of :data:`pemviz.settings.SETTINGS` with a
+:attr:`~pemviz.settings.Setting.panel` place (a number a text field, a choice a dropdown)."""
+NUMBER_FIELDS: tuple[Setting, ...] = tuple(s for s in PANEL_ROWS if s.kind in NUMBERS)
 """The numbers the form shows, each with its :class:`~pemviz.settings.Setting` (label, words, range, hint)."""
 FIELDS_BY_KEY = {f.name: f for f in NUMBER_FIELDS}
 

@@ -186,6 +186,7 @@ class CrossEntropySettings:
         lo=1,
         hi=MAX_STAGES,
         flags=("--k", "--stages"),
+        panel="main",
     )
     n_final: int = setting(
         1000,
@@ -195,6 +196,7 @@ class CrossEntropySettings:
         symbol="N_e",
         lo=1,
         flags=("--n-final",),
+        panel="main",
     )
     quantile_level: float = setting(
         0.95,
@@ -205,6 +207,7 @@ class CrossEntropySettings:
         hi=1.0,
         hi_open=True,
         flags=("--sigma",),
+        panel="main",
     )
     smoothing: float = setting(
         0.1,
@@ -215,6 +218,7 @@ class CrossEntropySettings:
         hi=1.0,
         lo_open=True,
         flags=("--alpha",),
+        panel="main",
     )
     ce_epochs: int = setting(
         150,
@@ -225,6 +229,7 @@ class CrossEntropySettings:
         lo=1,
         hi=MAX_EPOCHS,
         flags=("--ce-epochs",),
+        panel="advanced",
     )
     pretrain_rollouts: int = setting(
         100,
@@ -233,6 +238,7 @@ class CrossEntropySettings:
         kind="int",
         short="pretrain rollouts",
         lo=1,
+        panel="advanced",
     )
     pretrain_epochs: int = setting(
         500,
@@ -243,8 +249,11 @@ class CrossEntropySettings:
         lo=1,
         hi=MAX_EPOCHS,
         flags=("--pretrain-epochs",),
+        panel="advanced",
     )
-    learning_rate: float = setting(0.01, "the learning rate", "Adam's step size for the proposal", lo=0.0, lo_open=True)
+    learning_rate: float = setting(
+        0.01, "the learning rate", "Adam's step size for the proposal", lo=0.0, lo_open=True, panel="advanced"
+    )
     weights: str = setting(
         "frozen",
         "the importance weights of the fit",
@@ -255,6 +264,7 @@ class CrossEntropySettings:
             ("frozen", "constants of each fit (the paper's eq. 10-11)"),
             ("recomputed", "recomputed from the proposal, with their gradient (the authors' code)"),
         ),
+        panel="advanced",
     )
     final_estimate: str = setting(
         "pooled",
@@ -270,6 +280,7 @@ class CrossEntropySettings:
             ("fresh", "the final rollouts alone (the paper)"),
             ("last-stage", "the last stage's batch (the authors' code)"),
         ),
+        panel="advanced",
     )
     pool_weights: str = setting(
         "quadratic",
@@ -436,6 +447,7 @@ class CrossEntropySettings:
         kind="int",
         lo=0,
         flags=("--plain-fallback",),
+        panel="advanced",
     )
     retry_factor: int = setting(
         4,
@@ -445,6 +457,7 @@ class CrossEntropySettings:
         kind="int",
         lo=0,
         flags=("--retry-factor",),
+        panel="advanced",
     )
 
     @property

@@ -17,7 +17,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pemviz.scenarios.problems import problem_for
-from pemviz.app.form import FIELDS_BY_KEY, parse_form, parse_number, run_cost, run_label
+from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, PANEL_ROWS, panel_rows, parse_form, parse_number, run_cost
+from pemviz.app.form import run_label
 from pemviz.app.runs import (
     PanelRun,
     export_path,
@@ -28,6 +29,9 @@ from pemviz.app.runs import (
     sanitize_export_name,
 )
 from pemviz.config import ExperimentConfig
+from pemviz.methods import CROSS_ENTROPY_METHOD, ROW, setting
+from pemviz.methods.adaptive import CrossEntropySettings
+from pemviz.settings import SETTINGS, MethodSettings, rows_of
 from pemviz.engine.cost import CONFIRM_SECONDS, duration_text, stage_cost
 from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RolloutsSampled, StageFinished, StageStarted
@@ -261,6 +265,33 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     )
     assert parse_number(FIELDS_BY_KEY["n_stages"], "100000")[1].startswith("K: 100000 is out of range")
     assert parse_number(FIELDS_BY_KEY["seed"], str(2**64 - 1)) == (2**64 - 1, "")
+
+
+@dataclasses.dataclass(frozen=True)
+class _CoinSettings(MethodSettings):
+    """A method's settings: one row placed in the panel's folder, one not placed."""
+
+    coin_share: float = setting(0.5, "the coin's share eps", "the share drawn by the coin", lo=0.0, panel="advanced")
+    coin_flips: int = setting(3, "the coin's flips", "flips per step", kind="int", lo=1)
+
+
+def test_the_forms_fields_are_the_settings_rows_that_name_a_panel_place():
+    # the default method's settings: exactly the fields whose row names a place are in the form, at that place
+    placed = {f.name: f.metadata[ROW].get("panel", "") for f in dataclasses.fields(CrossEntropySettings)}
+    shown = {s.name: s.panel for s in PANEL_ROWS if s.owner == CROSS_ENTROPY_METHOD}
+    assert shown == {name: where for name, where in placed.items() if where}
+    assert {"n_stages": "main", "retry_factor": "advanced"}.items() <= shown.items()
+    assert {s.name for s in NUMBER_FIELDS} == {s.name for s in PANEL_ROWS} - {"weights", "final_estimate"}
+    # a setting added to a method's settings class: its row alone puts it in the form, parsed by its own range
+    rows = rows_of(_CoinSettings, "coin")
+    advanced = panel_rows([*SETTINGS.values(), *rows.values()], "advanced")
+    assert advanced[-1] is rows["coin_share"] and rows["coin_flips"] not in advanced
+    assert panel_rows(rows.values(), "main") == ()
+    assert parse_number(advanced[-1], " 0.25 ") == (0.25, "")
+    assert parse_number(advanced[-1], "-1") == (
+        None,
+        "coin share: -1 is out of range; the coin's share eps must be a number >= 0",
+    )
 
 
 def test_a_run_label_names_every_setting_that_differs_from_the_defaults():
