@@ -1,7 +1,8 @@
 """The *Experiment* tab of a :class:`pemviz.app.session.Session`: the form of the next run, each field with its own
 error line; a preset or a scenario sets the fields it has settings for, and the folder *scenario parameters*
-(:class:`pemviz.app.params_form.ScenarioParamsForm`) holds the chosen scenario's parameters. Whoever builds the tab is
-told of the scenario chosen (the 3D view draws its idle scene)."""
+(:class:`pemviz.app.params_form.ScenarioParamsForm`) holds the chosen scenario's parameters, the folder *method
+settings* (:class:`pemviz.app.params_form.MethodSettingsForm`, in *advanced*) the chosen method's own settings. Whoever
+builds the tab is told of the scenario chosen (the 3D view draws its idle scene)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from pemviz.app._viser_compat import resend_value, set_value
 from pemviz.app.form import FIELDS_BY_KEY, NUMBERS, PANEL_ROWS, FormResult, format_number, panel_rows, parse_form
 from pemviz.app.host import PanelHost
 from pemviz.app.html import field_error
-from pemviz.app.params_form import ScenarioParamsForm
+from pemviz.app.params_form import MethodSettingsForm, ScenarioParamsForm
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.config import ExperimentConfig, scene_defaults
 from pemviz.settings import SETTINGS, SIMULATORS
@@ -43,6 +44,8 @@ class ExperimentTab:
         self._on_scenario: Callable[[str], None] = lambda _: None
         self.params = ScenarioParamsForm(client, app.config0)
         """The folder of the chosen scenario's parameters."""
+        self.own = MethodSettingsForm(client, app.config0)
+        """The folder of the chosen method's own settings (hidden for a method without)."""
 
     def build(self, on_change: Callable[[], None], on_scenario: Callable[[str], None] | None = None) -> None:
         """Add the form to the tab open in ``client.gui``; ``on_change`` is called after every change to it,
@@ -95,12 +98,14 @@ class ExperimentTab:
         self.params.build(self.choices["scenario"].value, lambda: self._on_change())
         with gui.add_folder("advanced", expand_by_default=False):
             dropdown("method", method_names())  # every registered method, plugins included
+            self.own.build(self.choices["method"].value, lambda: self._on_change())
             place("advanced")
         gui.add_markdown("Changes apply to the next run.")
         for handle in (*self.fields.values(), *self.choices.values()):
             handle.on_update(lambda _: self._on_change())
         self.preset.on_update(lambda _: self._apply_preset(self.preset.value))
         self.choices["scenario"].on_update(lambda _: self._apply_scene(self.choices["scenario"].value))
+        self.choices["method"].on_update(lambda _: self._apply_method(self.choices["method"].value))
 
     def field_texts(self) -> dict[str, str]:
         return {key: handle.value for key, handle in self.fields.items()}
@@ -116,7 +121,8 @@ class ExperimentTab:
         name = self.preset.value
         base = self.app.config0 if name == self.app.preset_name else ExperimentConfig.of(**PANEL_PRESETS[name])
         choices = self.choice_values()
-        return parse_form(self.field_texts(), choices, base, self.params.texts(choices["scenario"]))
+        params, own = self.params.texts(choices["scenario"]), self.own.texts(choices["method"])
+        return parse_form(self.field_texts(), choices, base, params, own)
 
     def show_errors(self, form: FormResult) -> None:
         """Keep ``form`` as :attr:`parsed` and show each field's error under it (none: an empty line)."""
@@ -124,6 +130,7 @@ class ExperimentTab:
         for key, handle in self.field_errors.items():
             handle.content = field_error(form.errors.get(key, ""))
         self.params.show_errors(form.errors)
+        self.own.show_errors(form.errors)
 
     def echo(self) -> None:
         """Send every field's value as the server has it back to the browser, so the form shows what runs.
@@ -134,7 +141,13 @@ class ExperimentTab:
         the value the run really uses instead of what the browser alone remembers.
         """
         with self.client.atomic():
-            for handle in (*self.fields.values(), *self.choices.values(), self.preset, *self.params.handles()):
+            for handle in (
+                *self.fields.values(),
+                *self.choices.values(),
+                self.preset,
+                *self.params.handles(),
+                *self.own.handles(),
+            ):
                 resend_value(handle)
 
     def _apply_scene(self, scenario: str) -> None:
@@ -150,6 +163,11 @@ class ExperimentTab:
         self.params.show(scenario)
         self._on_change()
         self._on_scenario(scenario)
+
+    def _apply_method(self, method: str) -> None:
+        """Show ``method``'s own settings (none: the folder hidden)."""
+        self.own.show(method)
+        self._on_change()
 
     def _apply_preset(self, name: str) -> None:
         """Set the fields to ``name``'s settings (metric, seed, PEM, simulator and method stay)."""

@@ -4,7 +4,8 @@ Numbers are typed into text fields and parsed here, so the form never rounds, re
 keeps an earlier value: ``12.5`` in N is an error (N counts rollouts), ``1e-3`` in alpha is 0.001, an
 empty field is an error. :func:`parse_form` returns the config and, per field, the reason it is
 refused, all at once; a scenario's parameters are parsed by their own kind (:func:`parse_params`) and only those
-changed from the scenario's defaults go into the run's ``scenario_params``. :func:`run_cost` says what a run will
+changed from the scenario's defaults go into the run's ``scenario_params``; a method's own settings are parsed by their
+rows (:func:`parse_own`) and go into the config by their names, as their flags do. :func:`run_cost` says what a run will
 take before it starts (the model of :mod:`pemviz.engine.cost`), and :func:`run_label` names a run by the settings
 that differ from the defaults. No viser here.
 """
@@ -17,10 +18,11 @@ import types
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Mapping
 
-from pemviz.settings import PANEL_PLACES, SETTINGS, Setting
+from pemviz.settings import PANEL_PLACES, SETTINGS, Setting, rows_of
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import cost
 from pemviz.engine.cost import N_STEPS, RunCost
+from pemviz.methods import method_or_none
 from pemviz.scenarios.parameters import Parameter, ParameterError, PairValue, Value, check_pairs, parse_assignment
 from pemviz.scenarios.odd import is_odd
 from pemviz.scenarios.registry import get
@@ -62,12 +64,65 @@ def parse_number(field: Setting, text: str) -> tuple[float | int | None, str]:
 
 
 def format_number(field: Setting, value: Any) -> str:
-    """The text a field shows for a config value (``repr`` of floats: ``0.001`` stays ``0.001``; empty for None)."""
+    """The text a field shows for a config value (``repr`` of floats: ``0.001`` stays ``0.001``; empty for None;
+    ``true`` / ``false`` for a bool, a choice or a text as it is)."""
     if value is None:
         return ""
+    if field.kind == "bool":
+        return "true" if value else "false"
+    if field.kind not in NUMBERS:
+        return str(value)
     if field.integer:
         return str(int(value))
     return repr(float(value))
+
+
+def own_rows(method: str) -> tuple[Setting, ...]:
+    """The rows of the registered method ``method``'s own settings (:attr:`pemviz.methods.Method.settings`, each
+    field's :func:`pemviz.settings.setting`), in their order: the fields of the form's folder *method settings*;
+    ``()`` for a method without (the built-in ones) or an unknown name."""
+    record = method_or_none(method)
+    if record is None or record.settings is None:
+        return ()
+    return tuple(rows_of(record.settings, record.name).values())
+
+
+def parse_own(method: str, texts: Mapping[str, str]) -> tuple[dict[str, Any], dict[str, str]]:
+    """The settings of ``method``'s own typed into its fields, each parsed and checked by its row as its flag on
+    ``pemviz run`` is (:func:`parse_number`; a bool ``true`` / ``false``, a choice or text as typed).
+
+    Args:
+        method: a registered method's name.
+        texts: setting name -> the text typed into its field.
+    Returns:
+        ``(values, errors)``: name -> value of each valid field (the config takes them by name,
+        :meth:`pemviz.config.ExperimentConfig.of`), and name -> one line of each refused one.
+    """
+    rows = {s.name: s for s in own_rows(method)}
+    values: dict[str, Any] = {}
+    errors: dict[str, str] = {}
+    for name, text in texts.items():
+        row = rows.get(name)
+        if row is None:
+            errors[name] = f"{name!r} is not a setting of method {method}"
+            continue
+        if row.kind in NUMBERS:
+            value, error = parse_number(row, text)
+        else:
+            raw = str(text).strip()
+            if row.optional and raw.lower() in ("", "none"):
+                value: Any = None
+            elif row.kind == "bool":
+                value = {"true": True, "false": False}.get(raw.lower(), raw)
+            else:
+                value = raw
+            ok = row.accepts(value)
+            error = "" if ok else f"{row.label}: {raw!r} is not allowed; {row.words} must be {row.allowed}"
+        if error:
+            errors[name] = error
+        else:
+            values[name] = value
+    return values, errors
 
 
 PARAM_KEY = "param:"
@@ -163,6 +218,7 @@ def parse_form(
     choices: dict[str, Any],
     base: ExperimentConfig | None = None,
     params: Mapping[str, str] | None = None,
+    own: Mapping[str, str] | None = None,
 ) -> FormResult:
     """Parse every number field and build the config; every error at once.
 
@@ -172,6 +228,9 @@ def parse_form(
         base: settings the form does not show (default: :class:`ExperimentConfig`'s defaults).
         params: the chosen scenario's parameter fields, name -> the text typed (:func:`parse_params`): the config's
             ``scenario_params`` are the changed ones (``()``: none changed). None: ``base``'s are kept.
+        own: the chosen method's own settings' fields, name -> the text typed (:func:`parse_own`): each goes into the
+            config by its name, as its flag on ``pemviz run`` does; errors by the setting's name. None or ``{}``:
+            ``base``'s settings if it is of that method, else the method's defaults.
     """
     errors: dict[str, str] = {}
     values: dict[str, Any] = {}
@@ -187,6 +246,10 @@ def parse_form(
         pairs, param_errors = parse_params(values.get("scenario", (base or ExperimentConfig.of()).scenario), params)
         errors.update(param_errors)
         values["scenario_params"] = pairs
+    if own:
+        own_values, own_errors = parse_own(values.get("method", (base or ExperimentConfig.of()).method), own)
+        errors.update(own_errors)
+        values.update(own_values)
     if errors:
         return FormResult(None, errors)
     try:

@@ -1,6 +1,8 @@
-"""The folder *scenario parameters* of the *Experiment* tab: one text field per parameter of the chosen scenario, each
-with its own error line, rebuilt when the scenario changes. The texts are parsed by :func:`pemviz.app.form.parse_form`
-(:func:`pemviz.app.form.parse_params`); only the fields changed from the scenario's defaults go into the run."""
+"""The folders of the *Experiment* tab that change with a choice: *scenario parameters* (one text field per parameter
+of the chosen scenario) and *method settings* (one per setting of the chosen method's own,
+:attr:`pemviz.methods.Method.settings`). Each field has its own error line and the folder is rebuilt when the choice
+changes (:class:`ChoiceFolder`). The texts are parsed by :func:`pemviz.app.form.parse_form`
+(:func:`pemviz.app.form.parse_params`, :func:`pemviz.app.form.parse_own`)."""
 
 from __future__ import annotations
 
@@ -10,83 +12,96 @@ from typing import Any
 
 import viser
 
-from pemviz.app.form import format_param, param_key
+from pemviz.app.form import format_number, format_param, own_rows, param_key
 from pemviz.app.html import field_error
 from pemviz.config import ExperimentConfig
+from pemviz.methods import method_or_none
 from pemviz.scenarios.parameters import KINDS, Parameter
 from pemviz.scenarios.odd import is_odd
 from pemviz.scenarios.registry import get
 
+Field = tuple[str, str, str, str]
+"""One field of a folder: (name, label, first text, hint)."""
 
-class ScenarioParamsForm:
-    """The fields of one scenario's parameters inside a folder (collapsed at first): :attr:`fields` (name -> text
-    field) and their error lines, for the scenario :attr:`scenario`.
 
-    A field's label is the parameter's name and unit (``cut_in_gap_m (m)``, e.g. a cut-in's); its first text is the
-    panel's starting config's value when the config is of that scenario and sets it, else the scenario's default.
+class ChoiceFolder:
+    """The fields that belong to one value of a choice (a scenario, a method) inside a folder: :attr:`fields` (name
+    -> text field) and their error lines, for the value :attr:`shown`; rebuilt by :meth:`show` when the choice changes.
+    A subclass says which fields a value has (:meth:`fields_of`), the line shown when it has none (:meth:`empty`; an
+    empty line hides the folder) and the key of a field's error (:meth:`error_key`).
 
     Args:
         client: the viser client the folder draws into.
-        config0: the panel's starting config (its ``scenario`` and ``scenario_params``).
+        config0: the panel's starting config (its values are the first texts of the value it is of).
     """
+
+    title = ""
+    """The folder's label."""
+    expanded = False
+    """Whether the folder starts open."""
 
     def __init__(self, client: viser.ClientHandle, config0: ExperimentConfig) -> None:
         self.client, self.config0 = client, config0
-        self.scenario = ""
-        """The scenario whose parameters the fields are (``""``: none built yet)."""
+        self.shown = ""
+        """The value whose fields the folder holds (``""``: none built yet)."""
         self.fields: dict[str, viser.GuiTextHandle] = {}
         self.field_errors: dict[str, viser.GuiHtmlHandle] = {}
         self._extra: list[Any] = []
         self._lock = threading.Lock()
         self._on_change: Callable[[], None] = lambda: None
 
-    def build(self, scenario: str, on_change: Callable[[], None]) -> None:
-        """Add the folder to the container open in ``client.gui`` with the fields of ``scenario``; ``on_change`` is
+    def fields_of(self, value: str) -> list[Field]:
+        raise NotImplementedError
+
+    def empty(self, value: str) -> str:
+        """The line the folder shows for a value without fields (``""``: the folder is hidden)."""
+        return ""
+
+    def error_key(self, name: str) -> str:
+        """The key of the field ``name``'s error in :attr:`pemviz.app.form.FormResult.errors`."""
+        return name
+
+    def build(self, value: str, on_change: Callable[[], None]) -> None:
+        """Add the folder to the container open in ``client.gui`` with the fields of ``value``; ``on_change`` is
         called after every edit of a field."""
         self._on_change = on_change
-        self.folder = self.client.gui.add_folder("scenario parameters", expand_by_default=False)
-        self.show(scenario)
+        self.folder = self.client.gui.add_folder(self.title, expand_by_default=self.expanded)
+        self.show(value)
 
-    def show(self, scenario: str) -> None:
-        """Replace the fields by those of ``scenario`` (its defaults, or the starting config's values); nothing to do
-        when they are already its. A scenario without parameters shows one line saying so."""
+    def show(self, value: str) -> None:
+        """Replace the fields by those of ``value``; nothing to do when they are already its."""
         with self._lock:
-            if scenario == self.scenario:
+            if value == self.shown:
                 return
             for handle in (*self.fields.values(), *self.field_errors.values(), *self._extra):
                 handle.remove()
             self.fields, self.field_errors, self._extra = {}, {}, []
-            try:
-                params = get(scenario).parameters()
-            except KeyError:
-                params = ()
-            given = dict(self.config0.scenario_params) if scenario == self.config0.scenario else {}
+            made = self.fields_of(value)
             gui = self.client.gui
             with self.client.atomic(), self.folder:
-                if not params:
-                    self._extra.append(gui.add_markdown(f"The {scenario} scenario has no parameters."))
-                for p in params:
-                    value = given.get(p.name, p.default)
-                    text = value if is_odd(value) else format_param(p, value)
-                    field = gui.add_text(label(p), text, hint=hint(p, scenario))
+                if not made and self.empty(value):
+                    self._extra.append(gui.add_markdown(self.empty(value)))
+                for name, text_label, text, text_hint in made:
+                    field = gui.add_text(text_label, text, hint=text_hint)
                     field.on_update(lambda _: self._on_change())
-                    self.fields[p.name] = field
-                    self.field_errors[p.name] = gui.add_html("")
-            self.scenario = scenario
+                    self.fields[name] = field
+                    self.field_errors[name] = gui.add_html("")
+                self.folder.visible = bool(made or self.empty(value))
+            self.shown = value
 
-    def texts(self, scenario: str) -> dict[str, str]:
-        """Name -> the text of each field when they are ``scenario``'s; ``{}`` while they are another's (the scenario
-        has just changed: its fields are on their way, at their defaults)."""
+    def texts(self, value: str) -> dict[str, str]:
+        """Name -> the text of each field when they are ``value``'s; ``{}`` while they are another's (the choice has
+        just changed: its fields are on their way, at their first texts)."""
         with self._lock:
-            if scenario != self.scenario:
+            if value != self.shown:
                 return {}
             return {name: handle.value for name, handle in self.fields.items()}
 
     def show_errors(self, errors: dict[str, str]) -> None:
-        """Show each field's error (``errors`` by :func:`pemviz.app.form.param_key`) under it; none: an empty line."""
+        """Show each field's error (``errors`` by :meth:`error_key`) under it; none: an empty line."""
         with self._lock:
             for name, handle in self.field_errors.items():
-                handle.content = field_error(errors.get(param_key(name), ""))
+                handle.content = field_error(errors.get(self.error_key(name), ""))
 
     def handles(self) -> list[viser.GuiTextHandle]:
         """The text fields shown now."""
@@ -94,9 +109,67 @@ class ScenarioParamsForm:
             return list(self.fields.values())
 
 
+class ScenarioParamsForm(ChoiceFolder):
+    """The folder *scenario parameters* (collapsed at first): a field per parameter of the chosen scenario.
+
+    A field's label is the parameter's name and unit (``cut_in_gap_m (m)``, e.g. a cut-in's); its first text is the
+    panel's starting config's value when the config is of that scenario and sets it, else the scenario's default.
+    Only the fields changed from the scenario's defaults go into the run (:func:`pemviz.app.form.parse_params`).
+    """
+
+    title = "scenario parameters"
+
+    @property
+    def scenario(self) -> str:
+        """The scenario whose parameters the fields are (``""``: none built yet)."""
+        return self.shown
+
+    def fields_of(self, value: str) -> list[Field]:
+        try:
+            params = get(value).parameters()
+        except KeyError:
+            params = ()
+        given = dict(self.config0.scenario_params) if value == self.config0.scenario else {}
+        return [(p.name, label(p), text(p, given.get(p.name, p.default)), hint(p, value)) for p in params]
+
+    def empty(self, value: str) -> str:
+        return f"The {value} scenario has no parameters."
+
+    def error_key(self, name: str) -> str:
+        return param_key(name)
+
+
+class MethodSettingsForm(ChoiceFolder):
+    """The folder *method settings* (open, hidden for a method without settings of its own): a field per row of the
+    chosen method's :attr:`~pemviz.methods.Method.settings` (:func:`pemviz.app.form.own_rows`), labelled and hinted by
+    its row as the command line's flag is; its first text is the starting config's value when the config is of that
+    method, else the row's default. Parsed by the row's range (:func:`pemviz.app.form.parse_own`)."""
+
+    title = "method settings"
+    expanded = True
+
+    @property
+    def method(self) -> str:
+        """The method whose settings the fields are (``""``: none built yet)."""
+        return self.shown
+
+    def fields_of(self, value: str) -> list[Field]:
+        record = method_or_none(value)
+        if record is None or record.settings is None:
+            return []
+        mine = self.config0.method == value and self.config0.method_settings is not None
+        first = self.config0.method_settings if mine else record.settings()
+        return [(s.name, s.label, format_number(s, getattr(first, s.name)), s.hint) for s in own_rows(value)]
+
+
 def label(p: Parameter) -> str:
     """A field's label: the parameter's name, and its unit in brackets when it has one."""
     return f"{p.name} ({p.unit})" if p.unit else p.name
+
+
+def text(p: Parameter, value: Any) -> str:
+    """A field's first text: the value by the parameter's kind, or a distribution as typed (``~uniform(18, 22)``)."""
+    return value if is_odd(value) else format_param(p, value)
 
 
 def hint(p: Parameter, scenario: str = "") -> str:
