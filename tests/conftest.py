@@ -126,3 +126,17 @@ def result_schema() -> dict:
 
 PLUGIN_SCENARIO_HEADING = "### A scenario package: one module, one registration"
 """The heading of the guide's scenario module (docs/own-simulator.md)."""
+
+
+@pytest.fixture
+def defensive_mc(monkeypatch):
+    """The guide's method of one's own (``tests/estimators/user_method.py``, ``defensive-mc``, two settings),
+    imported (so registered) for this test only."""
+    from pemviz.methods import unregister_method
+
+    monkeypatch.syspath_prepend(str(REPO / "tests" / "estimators"))
+    sys.modules.pop("user_method", None)
+    __import__("user_method")
+    yield sys.modules["user_method"]
+    unregister_method("defensive-mc")
+    sys.modules.pop("user_method", None)

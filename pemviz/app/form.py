@@ -102,6 +102,7 @@ def parse_own(method: str, texts: Mapping[str, str]) -> tuple[dict[str, Any], di
     values: dict[str, Any] = {}
     errors: dict[str, str] = {}
     for name, text in texts.items():
+        value: Any
         row = rows.get(name)
         if row is None:
             errors[name] = f"{name!r} is not a setting of method {method}"
@@ -111,7 +112,7 @@ def parse_own(method: str, texts: Mapping[str, str]) -> tuple[dict[str, Any], di
         else:
             raw = str(text).strip()
             if row.optional and raw.lower() in ("", "none"):
-                value: Any = None
+                value = None
             elif row.kind == "bool":
                 value = {"true": True, "false": False}.get(raw.lower(), raw)
             else:
@@ -345,7 +346,8 @@ def setting_value(value: Any) -> str:
 
 def run_label(run_id: int, cfg: ExperimentConfig, defaults: ExperimentConfig | None = None) -> str:
     """``run 3 · agm, alpha 0.2, K 8``: the run number, the metric and every setting that differs from ``defaults``;
-    scenario parameters by name and value (``scenario cut-in, cut_in_gap_m=19.5``, e.g. a cut-in's)."""
+    scenario parameters by name and value (``scenario cut-in, cut_in_gap_m=19.5``, e.g. a cut-in's); a method of one's
+    own's settings that differ from its defaults (``method defensive-mc, eps 0.2``)."""
     base = defaults or ExperimentConfig.of()
     parts = [cfg.metric]
     for name in SETTINGS:
@@ -357,4 +359,9 @@ def run_label(run_id: int, cfg: ExperimentConfig, defaults: ExperimentConfig | N
                 parts.append(setting_value(value) if value else f"{setting_name(name)} {setting_value(value)}")
             else:
                 parts.append(f"{setting_name(name)} {setting_value(value)}")
+    if cfg.method_settings is not None:  # a method of one's own: its settings that differ from its defaults
+        first = type(cfg.method_settings)()
+        for row in own_rows(cfg.method):
+            if (value := getattr(cfg.method_settings, row.name)) != getattr(first, row.name):
+                parts.append(f"{row.label} {setting_value(value)}")
     return f"run {run_id} · " + ", ".join(parts)

@@ -101,6 +101,7 @@ class Tab:
         out = {FIELDS_BY_KEY[k].label: h for k, h in s.fields.items()}
         lists = (s.preset, s.run_choice, s.rollout_dropdown, s.rollout_order)
         out.update({h.label: h for h in (*s.choices.values(), *lists)})
+        out.update({h.label: h for h in s.form.own.handles()})  # the chosen method's own settings, if any
         return out
 
     def fill_form(self, values: dict[str, str]) -> None:

@@ -11,7 +11,7 @@ import pytest
 
 from conftest import PLUGIN_SCENARIO_HEADING as HEADING
 from conftest import doc_python_block
-from .test_app import TINY, app, browser, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
+from .test_app import TINY, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 
 @pytest.fixture
@@ -48,27 +48,18 @@ def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, brow
         assert not scene.object_box.visible and not scene.ego_box.visible
 
 
-@pytest.fixture
-def defensive_mc(monkeypatch):
-    """The method of one's own of ``tests/estimators/user_method.py``, imported (so registered) for this test only."""
-    from pathlib import Path
-
-    from pemviz.methods import unregister_method
-
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "estimators"))
-    sys.modules.pop("user_method", None)
-    __import__("user_method")
-    yield
-    unregister_method("defensive-mc")
-    sys.modules.pop("user_method", None)
-
-
 def test_the_panel_lists_and_runs_a_registered_method_of_ones_own(defensive_mc, browser, app):  # noqa: F811
     for tab in open_tab(browser, app):
         assert "defensive-mc" in tab.session.choices["method"].options
-        tab.session.choices["method"].value = "defensive-mc"  # the menu sits in the folded "advanced" folder
-        record = tab.run({"N": "400"}, timeout=120)
+        tab.open_advanced()  # the menu sits in the folded "advanced" folder; the method's settings below it
+        tab.choose("method", "defensive-mc")
+        expect(tab.field("eps")).to_have_value("0.3")
+        expect(tab.field("coin radius m")).to_have_value("")
+        record = tab.run({"N": "400", "eps": "0.2"}, timeout=120)
         assert record.config.method == "defensive-mc" and record.config.n_per_stage == 400
+        assert record.config.flat()["coin_share"] == 0.2 and "eps 0.2" in record.label  # its own setting, run
+        tab.choose("method", "mc")  # another method: the fields go
+        expect(tab.field("eps")).to_have_count(0)
         wait_until(
             lambda: f"Final estimate of {record.short_label}" in tab.page.inner_text("body"),  # noqa: B023
             what="the method's final estimate in the panel",
