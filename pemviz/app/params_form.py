@@ -157,8 +157,8 @@ class MethodSettingsForm(ChoiceFolder):
         record = method_or_none(value)
         if record is None or record.settings is None:
             return []
-        mine = self.config0.method == value and self.config0.method_settings is not None
-        first = self.config0.method_settings if mine else record.settings()
+        given = self.config0.method_settings  # the starting config's, when they are this method's
+        first = given if isinstance(given, record.settings) else record.settings()
         return [(s.name, s.label, format_number(s, getattr(first, s.name)), s.hint) for s in own_rows(value)]
 
 

@@ -83,3 +83,12 @@ def test_the_chosen_methods_own_settings_are_fields_of_the_form(defensive_mc):
     method.pick("defensive-mc")  # back: its defaults again
     assert own.texts("defensive-mc") == {"coin_share": "0.3", "coin_radius_m": ""}
     assert tab.read_form().config.method_settings == defensive_mc.CoinSettings()
+
+
+def test_the_fields_start_at_the_starting_configs_settings_of_that_method(defensive_mc):
+    config0 = ExperimentConfig.of(method="defensive-mc", coin_share=0.2)  # a config the panel is opened with
+    tab = ExperimentTab(SimpleNamespace(gui=Gui(), atomic=contextlib.nullcontext), SimpleNamespace(config0=config0))
+    tab.app.preset_name = "default"
+    tab.build(lambda: None)
+    assert tab.own.folder.visible and tab.own.texts("defensive-mc") == {"coin_share": "0.2", "coin_radius_m": ""}
+    assert tab.read_form().config.method_settings == config0.method_settings
