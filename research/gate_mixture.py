@@ -29,10 +29,20 @@ Cost, in rollout-equivalents: the pilot's simulated steps over T (look-ahead inc
 features, every rollout of the estimate stage (pretraining, CE stage, final), and the replays of their features
 (``pemviz run --method state`` replays each batch it weighs; shown apart, as ``sim`` and ``+ replays``).
 
-Commands whose figures were recorded (one process, ``nice -n 10``; seeds 1-5)::
+Commands whose figures were recorded (one process, ``nice -n 10``, seeds 1-5; 1-3.5 min a seed on the loaded
+2-core machine)::
 
-    nice -n 10 python research/gate_mixture.py --seeds 1 2 3 4 5
-    nice -n 10 python research/gate_mixture.py --seeds 1 2 3 4 5 --param brake_ttc_s=1.5 --reference 1.294e-4
+    python research/gate_mixture.py --seeds 1 2 3 4 5    # one pilot of 200 particles, k = 20
+    python research/gate_mixture.py --seeds 1 2 3 4 5 --pilots 3 --particles 100 --killed 10
+    python research/gate_mixture.py --seeds 1 2 3 4 5 --pilots 3 --particles 100 --killed 10 \\
+        --refit 4000 --refit-gates 2
+    python research/gate_mixture.py --seeds 1 2 3 4 5 --pilots 3 --particles 100 --killed 10 \\
+        --param brake_ttc_s=1.5 --reference 1.294e-4
+
+``--refit N1``: a round of N1 rollouts from the pilot's mixture (its own stream) whose failures, weighted by their
+exact importance weights, fit ``--refit-gates`` more gates, each to the failures the mixture so far covers least
+(adaptive multiple importance sampling's refit: Cornuet, Marin, Mira & Robert, Scand. J. Stat. 39, 2012); the
+estimate is the next round's alone, so it stays unbiased.
 """
 
 from __future__ import annotations

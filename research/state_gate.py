@@ -536,7 +536,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def draw(seed: int, flags: list[str]) -> tuple[list[Any], Any, float]:
     """``pemviz run --scenario crossing --method state --plain-fallback 0 FLAGS --seed SEED`` (no recording): each
-    stage's :class:`pemviz.engine.events.RolloutsSampled`, the final estimate and log p of the reference."""
+    stage's :class:`pemviz.engine.events.RolloutsSampled`, the final estimate and log p of the reference (nan:
+    none at these parameters)."""
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
     from pemviz.engine.events import RolloutsSampled
@@ -549,7 +550,7 @@ def draw(seed: int, flags: list[str]) -> tuple[list[Any], Any, float]:
     pb = problem_for(cfg)
     listen = [lambda ev: isinstance(ev, RolloutsSampled) and seen.append(ev)]
     final = Experiment(cfg, problem=pb, listeners=listen).run().final
-    return seen, final, float(pb.reference.log_p)
+    return seen, final, math.nan if pb.reference is None else float(pb.reference.log_p)
 
 
 def one_run(seed: int, flags: list[str]) -> int:

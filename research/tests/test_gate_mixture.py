@@ -100,6 +100,13 @@ def test_gates_fitted_to_splitting_s_failures_make_failures_more_frequent():
     assert pilot.cost > 60 and pilot.rows.shape[:3] == pilot.detected.shape
     gates = gate.mixture_of_gates(pb, pilot.rows, pilot.detected, pilot.z, 2, 2)
     assert gates
+    # failures of weight 0 do not count: weights on two failures fit what those two alone fit
+    w = np.zeros(pilot.rows.shape[0])
+    w[[0, -1]] = (0.25, 0.75)
+    two = (pilot.rows[[0, -1]], pilot.detected[[0, -1]], pilot.z[[0, -1]])
+    alone = gate.mixture_of_gates(pb, *two, 2, 1, weights=np.array([0.25, 0.75]), given=gates)
+    got = gate.mixture_of_gates(pb, pilot.rows, pilot.detected, pilot.z, 2, 1, weights=w, given=gates)
+    assert alone and repr(got) == repr(alone)
     restore = gate.install(True, 2, None, True, gates[0], gates)
     try:
         seen, _, _ = gate.draw(6, ["--state-share", "0.1", "--k", "1", "--n", "20", "--n-final", "500"])
