@@ -379,14 +379,40 @@ def oracle_gate(path: str, depth: int) -> ErrorGate | None:
 
 
 def oracle_mixture(path: str, depth: int, k: int) -> tuple[ErrorGate, ...]:
-    """``k`` gates fitted to the failures of ``path`` (:func:`collect`), each to the failures the ones before cover
-    least (weights 1 / the mean of their q / p), as :func:`held_out` fits them, on every failure."""
+    """``k`` gates fitted to the failures of ``path`` (:func:`collect`) by :func:`mixture_of_gates`."""
     from pemviz.scenarios.crossing.problem import crossing_problem
-    from pemviz.scenarios.crossing.scene import OBJECT_NAMES
 
     d = np.load(path)
-    rows, det, z = d["rows"], d["detected"], d["z"]
-    pb = crossing_problem()
+    return mixture_of_gates(crossing_problem(), d["rows"], d["detected"], d["z"], depth, k)
+
+
+def mixture_of_gates(
+    pb: Any,
+    rows: np.ndarray,
+    det: np.ndarray,
+    z: np.ndarray,
+    depth: int,
+    k: int,
+    label: str = "oracle gate",
+    weights: np.ndarray | None = None,
+    given: tuple[ErrorGate, ...] = (),
+) -> tuple[ErrorGate, ...]:
+    """``k`` gates fitted to failures of the crossing problem ``pb``, each to the failures the ones before cover
+    least (weights 1 / the mean of their q / p), as :func:`held_out` fits them, on every failure.
+
+    Args:
+        rows: float64 [F, T, O, G] the failures' object rows with their state features (time first).
+        det: bool [F, T, O] the detections taken; z: float64 [F, T, O, D] the errors standardised by the PEM's
+            location and scale at the row (:func:`collect`).
+        depth: the most intervals a gate is the intersection of; k: the most gates.
+        weights: float64 [F] >= 0, each failure's weight in the failures' law (None: every failure alike), e.g. its
+            importance weight under the proposal that drew it.
+        given: gates already in the mixture: the first new gate is fitted to the failures they cover least.
+    Returns:
+        The new gates (fewer than ``k`` where one more gains too little: :func:`fit_error_gate`).
+    """
+    from pemviz.scenarios.crossing.scene import OBJECT_NAMES
+
     t = cast(Any, pb.target)
     win = rows[..., 0] < pb.window
     n, inside_rows = rows.shape[0], rows[win]
@@ -394,24 +420,30 @@ def oracle_mixture(path: str, depth: int, k: int) -> tuple[ErrorGate, ...]:
     logit = np.zeros(win.shape)
     logit[win] = lp
     sign = np.where(det, 1.0, -1.0)
-    gates: list[ErrorGate] = []
-    ratios: list[np.ndarray] = []
-    w = np.ones(n)
-    for _ in range(k):
-        ew = np.broadcast_to((w / w.sum())[:, None, None], win.shape)[win]
-        gate = fit_error_gate(inside_rows, det[win], lp, z[win], ew, t.noise_family, t.noise_df, depth)
-        if gate is None:
-            break
+    base = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
+
+    def ratio(gate: ErrorGate) -> np.ndarray:
+        """q_gate / p of each failure [F]."""
         ins = np.zeros(win.shape, bool)
         ins[win] = gate.inside(inside_rows)
         dq = np.where(ins, log_expit(sign * (logit + gate.logit_shift)) - log_expit(sign * logit), 0.0)
         b = gate.log_scale
         f = standard_log_density(t.noise_family, t.noise_df, z * np.exp(-b)) - b
         eq = (f - standard_log_density(t.noise_family, t.noise_df, z)).sum(-1)
-        ratios.append(np.exp((dq + np.where(ins & det, eq, 0.0)).sum(axis=(1, 2))))
+        return np.exp((dq + np.where(ins & det, eq, 0.0)).sum(axis=(1, 2)))
+
+    gates: list[ErrorGate] = []
+    ratios: list[np.ndarray] = [ratio(g) for g in given]
+    w = base / np.mean(ratios, axis=0) if ratios else base
+    for _ in range(k):
+        ew = np.broadcast_to((w / w.sum())[:, None, None], win.shape)[win]
+        gate = fit_error_gate(inside_rows, det[win], lp, z[win], ew, t.noise_family, t.noise_df, depth)
+        if gate is None:
+            break
+        ratios.append(ratio(gate))
         gates.append(gate)
-        print(f"oracle gate {len(gates)}: {gate}")
-        w = 1.0 / np.mean(ratios, axis=0)
+        print(f"{label} {len(gates)}: {gate}")
+        w = base / np.mean(ratios, axis=0)
     return tuple(gates)
 
 
@@ -504,7 +536,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def draw(seed: int, flags: list[str]) -> tuple[list[Any], Any, float]:
     """``pemviz run --scenario crossing --method state --plain-fallback 0 FLAGS --seed SEED`` (no recording): each
-    stage's :class:`pemviz.engine.events.RolloutsSampled`, the final estimate and log p of the reference."""
+    stage's :class:`pemviz.engine.events.RolloutsSampled`, the final estimate and log p of the reference (nan:
+    none at these parameters)."""
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
     from pemviz.engine.events import RolloutsSampled
@@ -517,7 +550,7 @@ def draw(seed: int, flags: list[str]) -> tuple[list[Any], Any, float]:
     pb = problem_for(cfg)
     listen = [lambda ev: isinstance(ev, RolloutsSampled) and seen.append(ev)]
     final = Experiment(cfg, problem=pb, listeners=listen).run().final
-    return seen, final, float(pb.reference.log_p)
+    return seen, final, math.nan if pb.reference is None else float(pb.reference.log_p)
 
 
 def one_run(seed: int, flags: list[str]) -> int:
