@@ -11,7 +11,7 @@ import math
 import re
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pemviz.settings import RUN, SETTINGS, settings_of
@@ -218,6 +218,7 @@ def test_every_flag_gives_the_hint_of_its_setting():
     assert seen == {name for name, s in SETTINGS.items() if s.flags}  # every flag of SETTINGS is on a command
 
 
+@settings(deadline=None)  # the first example imports the panel's form (seconds); the examples after it take ms
 @given(
     name=st.sampled_from(list(PAPER_RANGES)),
     x=st.one_of(st.integers(-3, 2000), st.floats(-2, 3, allow_nan=False), st.sampled_from([0.0, 0.5, 1.0, 2**64])),
