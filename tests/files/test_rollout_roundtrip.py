@@ -448,7 +448,7 @@ def cut_in_file(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("cut_in")
     path = tmp / "r.parquet"
     # K = 10: its pooled stages are mixtures with the target; the stages' own file (no plain Monte Carlo after them)
-    args = ["--scenario", "cut-in", "--method", "adaptive", "--n-final", "300", "--plain-fallback", "0"]
+    args = ["--scenario", "cut-in", "--method", "adaptive", "--n", "50", "--n-final", "150", "--plain-fallback", "0"]
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert cli.main(["run", "--no-record", "--save-rollouts", str(path), *args]) == 0
