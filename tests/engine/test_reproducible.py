@@ -76,7 +76,7 @@ def fingerprints_in_subprocess(env: dict[str, str]) -> dict[str, dict]:
     )
     runs = json.dumps({"braking": BRAKING, "cut-in": CUT_IN})
     proc = subprocess.run(
-        [sys.executable, "-c", code, runs], capture_output=True, text=True, env={**os.environ, **env}, timeout=600
+        [sys.executable, "-c", code, runs], capture_output=True, text=True, env={**os.environ, **env}, timeout=1800
     )
     assert proc.returncode == 0, (env, proc.stderr[-2000:])
     return json.loads(proc.stdout.strip().splitlines()[-1])
