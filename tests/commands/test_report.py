@@ -11,6 +11,7 @@ import json
 import os
 import re
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -222,19 +223,33 @@ def test_the_report_shows_the_failures_severity_by_share_as_the_console_printed_
     assert f"median min {sev['label']}: {sev['median_min_distance']:.2f} m" in text
 
 
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory) -> tuple[str, Path, Path]:
+    """``pemviz run --no-record --json r.json --report r.html``: (its stdout, the page, the result document)."""
+    tmp = tmp_path_factory.mktemp("default")
+    page, result = tmp / "r.html", tmp / "r.json"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["run", "--no-record", "--json", str(result), "--report", str(page)]) == 0
+    return out.getvalue(), page, result
+
+
 @pytest.mark.parametrize("uncertainty", [True, False], ids=["pem-uncertainty", "no-spread"])
-def test_the_report_says_what_its_number_rests_on(tmp_path, uncertainty):
+def test_the_report_says_what_its_number_rests_on(tmp_path, uncertainty, request):
     """`pemviz run [--pem-uncertainty] --report r.html`: a section with the PEM's sha256, the members' median and
     90 % range as the console printed them (or that the spread was not computed, and how), the verdict's checks and
     the limits; checked in headless Chromium. The headline puts the verdict and the spread side by side."""
     sync_api = pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")
     if not os.path.exists(CHROMIUM):
         pytest.skip("Debian's chromium is not installed (apt-get install chromium)")
-    page, result = tmp_path / "r.html", tmp_path / "r.json"
-    out = io.StringIO()
-    flags = ["--pem-uncertainty"] if uncertainty else []
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
-        assert main(["run", "--no-record", *flags, "--json", str(result), "--report", str(page)]) == 0
+    if uncertainty:
+        page, result = tmp_path / "r.html", tmp_path / "r.json"
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+            assert main(["run", "--no-record", "--pem-uncertainty", "--json", str(result), "--report", str(page)]) == 0
+        stdout = out.getvalue()
+    else:  # the default run, which the report's words are also checked on (`meant`)
+        stdout, page, result = request.getfixturevalue("default_run")
     doc = json.loads(result.read_text())
     jsonschema = pytest.importorskip("jsonschema")
     from conftest import result_schema as schema
@@ -254,7 +269,7 @@ def test_the_report_says_what_its_number_rests_on(tmp_path, uncertainty):
     assert sha in body and "false positives are not modelled" in body and "check: Pareto k-hat" in body
     if uncertainty:
         # the console's own line: "members: median 2.856e-15, 90 % of them in [3.549e-19, 6.182e-12] (x...)"
-        line = next(ln for ln in out.getvalue().splitlines() if "members: median" in ln)
+        line = next(ln for ln in stdout.splitlines() if "members: median" in ln)
         median, lo, hi = re.search(r"median (\S+), 90 % of them in \[(\S+), (\S+)\]", line).groups()
         members = doc["pem_spread"]["members"]
         assert float(median) == pytest.approx(members["median"]["p"], rel=2e-3)
@@ -274,6 +289,11 @@ alone), for the report's words against the console's."""
 
 @pytest.fixture(scope="module", params=sorted(MEANINGS))
 def meant(request, tmp_path_factory):
+    if request.param == "reliable":  # the default run
+        stdout, page, result = request.getfixturevalue("default_run")
+        doc = json.loads(result.read_text())
+        assert doc["estimate"]["verdict"] == "reliable", doc["estimate"]
+        return request.param, stdout, page, doc
     tmp = tmp_path_factory.mktemp(f"meaning-{request.param}")
     page, result = tmp / "page.html", tmp / "result.json"
     out = io.StringIO()

@@ -3,39 +3,38 @@ pemviz.studies.reproducibility, which the user guide's Reproducibility section s
 
 from __future__ import annotations
 
+import json
+import os
 import platform
+import subprocess
+import sys
 
 import pytest
 
 from pemviz.config import ExperimentConfig
 from pemviz.studies import reproducibility as rp
 
-SMALL = ["--k", "3", "--n", "100", "--n-final", "300", "--plain-fallback", "0"]
+BRAKING = dict(n_stages=3, n_per_stage=100, n_final=300, plain_fallback=0)
 """A short default run: pretraining, 3 CE stages of 100, a final batch of 300 (the default sampler's stages alone: the
 plain Monte Carlo after them has its own chunking test, tests/estimators/test_fallback.py)."""
-SMALL_CUT_IN = ["--scenario", "cut-in", "--k", "2", "--n", "150", "--n-final", "200", "--pretrain", "100"]
-SMALL_CUT_IN += ["--plain-fallback", "0"]  # the stages alone, as SMALL
+CUT_IN = dict(n_stages=2, n_per_stage=60, n_final=60, pretrain_rollouts=40, plain_fallback=0)
+"""The stages alone, as BRAKING: 2 CE stages of 60 whose thresholds differ (0.101, then 0.0093), 39 failures in the
+final 60 (seed 0)."""
 
 
 def small(scenario: str = "braking", **fields) -> ExperimentConfig:
-    # the stages alone: the plain Monte Carlo after them has its own chunking test (tests/estimators/test_fallback.py)
-    base = (
-        dict(n_stages=3, n_per_stage=100, n_final=300, plain_fallback=0)
-        if scenario == "braking"
-        else dict(n_stages=2, n_per_stage=150, n_final=200, pretrain_rollouts=100, plain_fallback=0)
-    )
+    base = BRAKING if scenario == "braking" else CUT_IN
     return ExperimentConfig.of(scenario=scenario, **{**base, **fields})
 
 
 @pytest.mark.parametrize("scenario", ["braking", "cut-in"])
 def test_any_chunk_size_gives_the_run_of_whole_batches_bit_for_bit(scenario):
+    # chunks of 32 cut every stage (40, 60, 100, 300 rollouts) with a remainder; a chunk size at or above a stage's
+    # rollouts runs the whole batch, the path of `whole` itself
     whole = rp.fingerprint(small(scenario))
-    for chunk in (64, 1000):
-        got = rp.fingerprint(small(scenario, chunk_rollouts=chunk))
-        assert rp.compare(whole, got, same_machine=True) == []
-        stages = len(got["stages"])
-        # chunks of 64 really cut every stage of more than 64 rollouts; 1,000 cuts none of these stages
-        assert got["chunks"] > stages if chunk == 64 else got["chunks"] == whole["chunks"]
+    got = rp.fingerprint(small(scenario, chunk_rollouts=32))
+    assert rp.compare(whole, got, same_machine=True) == []
+    assert got["chunks"] > len(got["stages"]) and whole["chunks"] == len(whole["stages"])
     assert whole["failures"] > 0  # the runs found failures: the fingerprints hash real draws
 
 
@@ -62,28 +61,41 @@ x86 = pytest.mark.skipif(
 )
 
 
+def fingerprints_in_subprocess(env: dict[str, str]) -> dict[str, dict]:
+    """scenario -> :func:`rp.fingerprint` of the braking and the cut-in run (``small``, serial as the module's command
+    line runs them), both in one fresh process started with ``env`` added (the dispatch is read at start-up)."""
+    code = (
+        "import json, sys\n"
+        "from pemviz.config import ExperimentConfig\n"
+        "from pemviz.engine.executors import close_executors\n"
+        "from pemviz.studies.reproducibility import fingerprint\n"
+        "runs = json.loads(sys.argv[1])\n"
+        "out = {s: fingerprint(ExperimentConfig.of(scenario=s, executor='serial', **f)) for s, f in runs.items()}\n"
+        "close_executors()\n"
+        "print(json.dumps(out))\n"
+    )
+    runs = json.dumps({"braking": BRAKING, "cut-in": CUT_IN})
+    proc = subprocess.run(
+        [sys.executable, "-c", code, runs], capture_output=True, text=True, env={**os.environ, **env}, timeout=1800
+    )
+    assert proc.returncode == 0, (env, proc.stderr[-2000:])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 @x86
-@pytest.mark.parametrize(
-    ("args", "settings"),
-    [
-        (SMALL, list(rp.DISPATCH_SETTINGS)),
-        (SMALL_CUT_IN, list(rp.DISPATCH_SETTINGS)),
-    ],
-    ids=["braking", "cut-in"],
-)
-def test_every_dispatch_setting_gives_the_same_rollouts_and_printed_numbers(args, settings):
+def test_every_dispatch_setting_gives_the_same_rollouts_and_printed_numbers():
     # each setting picks the kernels another x86-64 CPU would run (AVX2 without AVX-512, scalar torch, MKL's SSE4.2
     # path, OpenBLAS's Haswell or Sandybridge kernels, numpy without its AVX-512 loops): the same rollouts, elites,
-    # thresholds and printed line; log mu_hat to 1e-12 relative
-    found = rp.fingerprint_in_subprocess(args, {})
-    assert found["failures"] > 0
-    for name in settings:
+    # thresholds and printed line; log mu_hat to 1e-12 relative. Both scenarios run in each setting's one process.
+    found = fingerprints_in_subprocess({})
+    assert all(f["failures"] > 0 for f in found.values())
+    for name, env in rp.DISPATCH_SETTINGS.items():
         if name == "as found":
             continue
-        env = rp.DISPATCH_SETTINGS[name]
-        got = rp.fingerprint_in_subprocess(args, env)
-        assert_took_effect(env, found["dispatch"], got["dispatch"])
-        assert rp.compare(found, got, same_machine=False) == [], name
+        got = fingerprints_in_subprocess(env)
+        for scenario in ("braking", "cut-in"):
+            assert_took_effect(env, found[scenario]["dispatch"], got[scenario]["dispatch"])
+            assert rp.compare(found[scenario], got[scenario], same_machine=False) == [], (name, scenario)
 
 
 def assert_took_effect(env: dict[str, str], before: dict, after: dict) -> None:
@@ -109,22 +121,24 @@ def test_the_numpy_settings_name_what_this_numpy_dispatches():
 
 
 def test_cut_in_chunks_of_1000_give_the_default_chunk_s_rollouts_bit_for_bit():
-    """8,192 cut-in rollouts (one default chunk: 40,960 object rows the PEM is asked about at once) and the same seed
-    in chunks of 1,000 (blocks of rows that fall elsewhere, remainders of every size): the same measurement errors,
-    log p and observations, bit for bit. The PEM networks compute each row on its own (GridMLP); with float64 BLAS
-    products, chunks of 1,000 gave other last bits."""
+    """2,001 cut-in rollouts in one default chunk (10,005 object rows the PEM is asked about at once) and the same seed
+    in chunks of 1,000 (blocks of rows that fall elsewhere, and a last chunk of one rollout): the same measurement
+    errors, log p and observations, bit for bit. The PEM networks compute each row on its own (GridMLP); with float64
+    BLAS products, chunks of 1,000 gave other last bits than the default chunk."""
     import numpy as np
 
     from pemviz.scenarios.problems import problem_for
+    from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE
     from pemviz.core.rollouts import RolloutBatch
 
     pb = problem_for(ExperimentConfig.of(scenario="cut-in"))
 
-    def rollouts(chunk: int) -> RolloutBatch:
-        return RolloutBatch.concatenate(
-            list(pb.stream(8192, pb.target, pb.target, np.random.default_rng(0), chunk_size=chunk, keep_rows=False))
-        )
+    def rollouts(chunk: int) -> tuple[RolloutBatch, int]:
+        rng = np.random.default_rng(0)
+        chunks = list(pb.stream(2001, pb.target, pb.target, rng, chunk_size=chunk, keep_rows=False))
+        return RolloutBatch.concatenate(chunks), len(chunks)
 
-    whole, parts = rollouts(8192), rollouts(1000)
+    (whole, one), (parts, three) = rollouts(DEFAULT_CHUNK_SIZE), rollouts(1000)
+    assert (one, three) == (1, 3)
     for name in ("noise", "log_p", "observations", "detected"):
         np.testing.assert_array_equal(getattr(parts, name), getattr(whole, name), err_msg=name)

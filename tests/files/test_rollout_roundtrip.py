@@ -156,17 +156,19 @@ def test_a_tilted_run_round_trips_and_its_sidecar_names_the_tilt_without_a_weigh
     assert "warning" not in est and "checked above 1 only" in est
 
 
-def test_chunked_runs_above_20000_rollouts_round_trip(tmp_path, capsys):
-    # naive50 with 20,001 rollouts (streamed in chunks of 8,192) and a small default sampler whose final batch is
-    run, est, sidecar = run_and_estimate(capsys, tmp_path, "--method", "naive50", "--n", "20001")
+def test_chunked_runs_round_trip(tmp_path, capsys):
+    # --chunk 1000 streams a stage of more than 1,000 rollouts, the path a stage above 20,000 takes in chunks of 8,192:
+    # naive50 with 2,001 rollouts (chunks of 1,000, 1,000 and 1, a row group each) and a small default sampler whose
+    # final batch streams
+    run, est, sidecar = run_and_estimate(capsys, tmp_path, "--method", "naive50", "--n", "2001", "--chunk", "1000")
     assert_round_trip(run, est, sidecar, estimated_log_mu(tmp_path / "estimate.json"))
     assert pq.ParquetFile(tmp_path / "r.parquet").num_row_groups == 3
     (tmp_path / "r.parquet").unlink(), rollout_format.sidecar_path(tmp_path / "r.parquet").unlink()
-    run, est, sidecar = run_and_estimate(
-        capsys, tmp_path, "--preset", "quick", "--k", "3", "--n", "40", "--n-final", "20001", "--seed", "2"
-    )
+    quick = ("--preset", "quick", "--k", "3", "--n", "40", "--n-final", "2001", "--chunk", "1000", "--seed", "2")
+    run, est, sidecar = run_and_estimate(capsys, tmp_path, *quick)
     assert_round_trip(run, est, sidecar, estimated_log_mu(tmp_path / "estimate.json"))
-    assert sidecar["stages"][-1]["n"] == 20001 and len(sidecar["pooling"]["stages"]) >= 2
+    assert sidecar["stages"][-1]["n"] == 2001 and len(sidecar["pooling"]["stages"]) >= 2
+    assert pq.ParquetFile(tmp_path / "r.parquet").num_row_groups > 3  # the stages', then the final batch's 3 chunks
 
 
 def test_all_stages_are_written_on_request_and_only_the_pooled_ones_are_pooled(tmp_path, capsys):
@@ -446,7 +448,7 @@ def cut_in_file(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("cut_in")
     path = tmp / "r.parquet"
     # K = 10: its pooled stages are mixtures with the target; the stages' own file (no plain Monte Carlo after them)
-    args = ["--scenario", "cut-in", "--method", "adaptive", "--n-final", "300", "--plain-fallback", "0"]
+    args = ["--scenario", "cut-in", "--method", "adaptive", "--n", "50", "--n-final", "150", "--plain-fallback", "0"]
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert cli.main(["run", "--no-record", "--save-rollouts", str(path), *args]) == 0

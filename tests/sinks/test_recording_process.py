@@ -47,17 +47,26 @@ def tables(path: Path) -> dict:
         return {index: ds.reader(index=index).to_arrow_table() for index in (None, "step", "stage")}
 
 
-def test_the_programs_recording_equals_the_one_process_recording(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def the_program(tmp_path_factory) -> tuple[subprocess.CompletedProcess, Path]:
+    """``pemviz run RUN --save child.rrd`` as the program, run once with Python's import listing (``-X importtime``,
+    which changes nothing the run writes): its process and its recording."""
+    cwd = tmp_path_factory.mktemp("program")
+    proc = program(*RUN, "--save", "child.rrd", cwd=cwd, importtime=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc, cwd / "child.rrd"
+
+
+def test_the_programs_recording_equals_the_one_process_recording(the_program, tmp_path, capsys):
     """``pemviz run --save`` as the program (a child process records) and as a library call (the sink in the run's
     process): the same entities and components, every value equal but the wall times, and rerun's checker accepts
     both."""
-    proc = program(*RUN, "--save", "child.rrd", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    _, child_rrd = the_program
     assert cli.main([*RUN, "--save", str(tmp_path / "inproc.rrd")]) == 0
     capsys.readouterr()
-    for name in ("child.rrd", "inproc.rrd"):
-        verify_rrd(tmp_path / name)
-    child, inproc = tables(tmp_path / "child.rrd"), tables(tmp_path / "inproc.rrd")
+    for path in (child_rrd, tmp_path / "inproc.rrd"):
+        verify_rrd(path)
+    child, inproc = tables(child_rrd), tables(tmp_path / "inproc.rrd")
     compared = 0
     for index in child:
         a, b = child[index], inproc[index]
@@ -74,14 +83,13 @@ def test_the_programs_recording_equals_the_one_process_recording(tmp_path, capsy
     assert len(mu) >= 2 and np.isfinite(mu[-1][0])  # stages with failures: an estimate each
 
 
-def test_the_run_itself_never_imports_rerun(tmp_path):
+def test_the_run_itself_never_imports_rerun(the_program):
     """The run's process: no rerun, no pyarrow (the child imports both); the recording is written all the same."""
-    proc = program(*RUN, "--save", "r.rrd", cwd=tmp_path, importtime=True)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc, rrd = the_program
     imported = {line.split("|")[-1].strip() for line in proc.stderr.splitlines() if line.startswith("import time:")}
     assert "pemviz.engine.experiment" in imported  # the listing is the run's own
     assert not {"rerun", "pyarrow", "pemviz.sinks.recording"} & imported
-    assert (tmp_path / "r.rrd").stat().st_size > 10_000
+    assert rrd.stat().st_size > 10_000
 
 
 def test_the_child_is_sent_the_events_the_rerun_sink_takes():
