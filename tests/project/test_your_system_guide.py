@@ -26,8 +26,6 @@ from pemviz.engine.experiment import Experiment
 from pemviz.io.rollout_estimate import estimate_rollouts
 from pemviz.io.rollouts import read_rollouts
 from pemviz.scenarios.registry import registered, unregister
-from pemviz.sinks.most_likely import MostLikelyFailure
-from pemviz.sinks.rollouts import RolloutSink
 
 PAGE = REPO / "docs" / "your-system.md"
 NAME = "my-crosswalk"
@@ -133,22 +131,20 @@ def test_seeds_1_to_3_give_what_the_page_says(guide):
     assert "Seeds 1-3 give 0.91, 0.95 and 0.97 times it" in prose()
 
 
-def test_a_run_s_rollout_file_re_estimates_and_its_why_line_names_the_pedestrians(guide, tmp_path):
-    """The page's run again, with a rollout file and the console's why-line: the same mu_hat; the file re-estimates to
-    it within 1e-9 and names dist_m as its h column; the why-line (quoted) calls the objects by their labels."""
+def test_a_run_s_rollout_file_re_estimates_and_its_why_line_names_the_pedestrians(guide, command_line):
+    """The page's run from the command line (:func:`command_line`), with its rollout file and the console's why-line:
+    the file re-estimates to the page's in-process mu_hat (the seed contract) within 1e-9 and names dist_m as its h
+    column; the why-line (quoted) calls the objects by their labels."""
     ns, _ = guide
-    problem = ns["problem"]
-    sink, likely = RolloutSink(tmp_path / "r.parquet"), MostLikelyFailure()
-    sink.problem = problem
-    done = Experiment(ExperimentConfig.of(seed=0), [sink, likely], problem=problem).run()
-    assert done.final.estimate.log_mu_hat == ns["done"].final.estimate.log_mu_hat  # the seed contract
-    side = json.loads((tmp_path / "r.rollouts.json").read_text())
+    folder, run, _ = command_line
+    side = json.loads((folder / "r.rollouts.json").read_text())
     assert side["h_column"] == "dist_m" and side["dt_s"] == 0.1 and side["objects"] == 2
-    data = read_rollouts(tmp_path / "r.parquet")
+    data = read_rollouts(folder / "r.parquet")
     again = estimate_rollouts(data, data.log_p, data.log_q, log_p_seen=side["provenance"]["estimate"]["log_p_seen"])
-    assert again.estimate.log_mu_hat == pytest.approx(done.final.estimate.log_mu_hat, rel=1e-9, abs=1e-9)
-    why = likely.why(problem)
-    assert why is not None and ("pedestrian A" in why or "pedestrian B" in why) and "object 0" not in why
+    ran = ns["done"].final.estimate.log_mu_hat
+    assert again.estimate.log_mu_hat == pytest.approx(ran, rel=1e-9, abs=1e-9)
+    (why,) = [line for line in run.stdout.splitlines() if line.startswith("why: ")]
+    assert "object 0" not in why
     quoted = (
         "37 misses and 8 measurement errors before the failure at step 28; decisive alone: pedestrian B missed "
         "at step 11; pedestrian A missed at step 12;"
@@ -173,31 +169,38 @@ def pemviz(command: str, cwd: Path) -> subprocess.CompletedProcess:
     )
 
 
-def test_the_command_line_form_runs_the_saved_module_and_estimate_gives_its_number_back(guide, tmp_path):
+@pytest.fixture(scope="module")
+def command_line(tmp_path_factory):
+    """The first four blocks saved as my_crosswalk.py and the page's ``pemviz`` commands run as written in that folder
+    (the estimate with ``--json e.json``, its result kept in full): (folder, the run, the estimate)."""
+    folder = tmp_path_factory.mktemp("my-crosswalk")
+    (folder / "my_crosswalk.py").write_text("\n\n".join(blocks()[:MODULE_BLOCKS]))
+    commands = [line for line in blocks("bash")[0].splitlines() if line.startswith("pemviz ")]
+    assert [c.split()[1] for c in commands] == ["run", "estimate"]
+    run = pemviz(commands[0], folder)
+    assert run.returncode == 0, run.stderr[-2000:]
+    estimate = pemviz(f"{commands[1].split('#', 1)[0]} --json e.json", folder)
+    assert estimate.returncode == 0, estimate.stderr[-2000:]
+    return folder, run, estimate
+
+
+def test_the_command_line_form_runs_the_saved_module_and_estimate_gives_its_number_back(guide, command_line):
     """The first four blocks saved as my_crosswalk.py, found through PEMVIZ_SCENARIOS in the folder the installed
     ``pemviz`` runs in: the page's ``pemviz`` commands as written; the run prints the page's line and a why-line in the
     objects' names, writes the recording and the rollout file, and ``pemviz estimate`` gives the run's log mu_hat back
     within 1e-9."""
-    (tmp_path / "my_crosswalk.py").write_text("\n\n".join(blocks()[:MODULE_BLOCKS]))
-    commands = [line for line in blocks("bash")[0].splitlines() if line.startswith("pemviz ")]
-    assert [c.split()[1] for c in commands] == ["run", "estimate"]
     assert "export PEMVIZ_SCENARIOS=my_crosswalk  # in the folder of my_crosswalk.py" in blocks("bash")[0]
-    run = pemviz(commands[0], tmp_path)
-    assert run.returncode == 0, run.stderr[-2000:]
+    folder, run, estimate = command_line
     assert blocks("text")[0].strip() in run.stdout.splitlines()
     why = [line for line in run.stdout.splitlines() if line.startswith("why: ")]
     assert len(why) == 1 and "pedestrian B missed at step 11; pedestrian A missed at step 12" in why[0]
-    assert (tmp_path / "r.rrd").stat().st_size > 0
-    estimate = pemviz(
-        f"{commands[1].split('#', 1)[0]} --json e.json", tmp_path
-    )  # the page's command, its result kept in full
-    assert estimate.returncode == 0, estimate.stderr[-2000:]
-    logged = json.loads((tmp_path / "e.json").read_text())["estimate"]["log_p"]
+    assert (folder / "r.rrd").stat().st_size > 0
+    logged = json.loads((folder / "e.json").read_text())["estimate"]["log_p"]
     ran = guide[0]["done"].final.estimate.log_mu_hat  # the page's run in this process: the same seed, the same run
     assert logged == pytest.approx(ran, rel=1e-9, abs=1e-9)
     assert f"log mu_hat = {ran:.4f} nats" in estimate.stdout
-    assert json.loads((tmp_path / "r.rollouts.json").read_text())["h_column"] == "dist_m"
-    assert not list(tmp_path.glob("recordings/estimate-*"))  # --no-record
+    assert json.loads((folder / "r.rollouts.json").read_text())["h_column"] == "dist_m"
+    assert not list(folder.glob("recordings/estimate-*"))  # --no-record
 
 
 def test_the_command_line_form_outside_the_module_s_folder_says_what_to_set(tmp_path):
