@@ -110,9 +110,7 @@ class Tab:
             self.type(label, value)
 
     def open_advanced(self) -> None:
-        if not self.field("CE epochs").is_visible():
-            self.page.get_by_text("advanced", exact=True).click()
-            self.field("CE epochs").wait_for()
+        self.open_folder("advanced", "CE epochs")
 
     def choose(self, label: str, option: str) -> None:
         self.page.get_by_label(label, exact=True).click()
@@ -130,8 +128,8 @@ class Tab:
         for _ in range(3):
             if field.is_visible():
                 return field
-            self.page.get_by_text(label, exact=True).click()
-            try:
+            try:  # a click that a loaded browser cannot land in 10 s (the panel still moving) is made again
+                self.page.get_by_text(label, exact=True).click(timeout=10_000)
                 field.wait_for(state="visible", timeout=5_000)
             except sync_api.TimeoutError:
                 continue
