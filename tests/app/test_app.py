@@ -68,6 +68,7 @@ class Tab:
     def __init__(self, browser, app: PanelApp, viewport: dict | None = None) -> None:
         known = set(app.sessions)
         self.page = browser.new_page(viewport=viewport or VIEWPORT)
+        self.page.set_default_timeout(90_000)  # a click waits for a renderer a loaded machine starves
         self.page.goto(app.url)
         self.session: Session = app.wait_for_session(known)
         hide_notifications(self.page)
