@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.special import expit
 
 sync_api = pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -69,6 +68,7 @@ class Tab:
     def __init__(self, browser, app: PanelApp, viewport: dict | None = None) -> None:
         known = set(app.sessions)
         self.page = browser.new_page(viewport=viewport or VIEWPORT)
+        self.page.set_default_timeout(90_000)  # a click waits for a renderer a loaded machine starves
         self.page.goto(app.url)
         self.session: Session = app.wait_for_session(known)
         hide_notifications(self.page)
@@ -111,9 +111,7 @@ class Tab:
             self.type(label, value)
 
     def open_advanced(self) -> None:
-        if not self.field("CE epochs").is_visible():
-            self.page.get_by_text("advanced", exact=True).click()
-            self.field("CE epochs").wait_for()
+        self.open_folder("advanced", "CE epochs")
 
     def choose(self, label: str, option: str) -> None:
         self.page.get_by_label(label, exact=True).click()
@@ -131,8 +129,8 @@ class Tab:
         for _ in range(3):
             if field.is_visible():
                 return field
-            self.page.get_by_text(label, exact=True).click()
-            try:
+            try:  # a click that a loaded browser cannot land in 10 s (the panel still moving) is made again
+                self.page.get_by_text(label, exact=True).click(timeout=10_000)
                 field.wait_for(state="visible", timeout=5_000)
             except sync_api.TimeoutError:
                 continue
@@ -224,6 +222,23 @@ def open_tab(browser, app, viewport: dict | None = None):
 @pytest.fixture
 def tab(browser, app):
     yield from open_tab(browser, app)
+
+
+class Crashed:
+    """A tab at 1400 x 900 (``tab``), the scene it drew before any run (``idle``: :meth:`Tab.scene`), and its finished
+    run of three stages (``record``) whose most likely failure is shown: tests that only read them, or move the step
+    slider, share one run."""
+
+    def __init__(self, tab: Tab) -> None:
+        self.tab = tab
+        self.idle = tab.scene()
+        self.record = tab.run({**TINY, "K": "3"})
+
+
+@pytest.fixture(scope="module")
+def crashed(browser, app):
+    for t in open_tab(browser, app, {"width": 1400, "height": 900}):
+        yield Crashed(t)
 
 
 # 1 ------------------------------------------------------------------------------------------------
@@ -411,9 +426,9 @@ def test_one_stage_numbering_and_plot_axes_follow_the_stages_that_ran(tab):
 
 # 5 (units) ------------------------------------------------------------------------------------------
 def test_gamma_of_runs_with_other_metrics_is_not_drawn_on_the_same_axis(tab):
-    classic = tab.run()
+    classic = tab.run({**TINY, "K": "1"})  # one stage each: a gamma per run is all the chart needs
     tab.choose("metric", "agm")
-    agm = tab.run()
+    agm = tab.run({**TINY, "K": "1"})
     p = tab.plot("gamma per stage, agm (unitless)")
     assert p["caption"].endswith("; 1 run of another metric not shown")
     assert p["labels"] == ["stage", agm.short_label]
@@ -421,10 +436,10 @@ def test_gamma_of_runs_with_other_metrics_is_not_drawn_on_the_same_axis(tab):
 
 
 # 6 ------------------------------------------------------------------------------------------------
-def test_the_final_estimate_comes_with_its_interval_verdict_and_a_hint_when_nothing_failed(tab):
-    record = tab.run()
+def test_the_final_estimate_comes_with_its_interval_verdict_and_a_hint_when_nothing_failed(crashed, tab):
+    record = crashed.record
     e = record.final.estimate
-    text = tab.page.inner_text("body")
+    text = crashed.tab.page.inner_text("body")
     assert f"failures {e.n_failures}/{e.n}" in text and "ESS" in text and "k-hat" in text
     if hasattr(e, "log_ci"):
         assert "95 % interval" in text and e.verdict in text and e.reason in text
@@ -444,15 +459,15 @@ def test_the_final_estimate_comes_with_its_interval_verdict_and_a_hint_when_noth
 
 
 # 7 ------------------------------------------------------------------------------------------------
-def test_scene_colours_are_the_recordings_idle_ego_is_grey_and_the_cars_never_overlap(tab, app):
+def test_scene_colours_are_the_recordings_idle_ego_is_grey_and_the_cars_never_overlap(crashed, app):
     from pemviz.sinks import rerun_views as recording  # the recording's colours
 
-    before = tab.scene()
+    tab, record = crashed.tab, crashed.record
+    before = crashed.idle  # the scene before any run
     assert tuple(before["color"]) == colours.IDLE  # not green ("detected") before any rollout
     assert before["lead_label"] == "lead" and "within 10 m" in before["zones"] and "2 m crash" in before["zones"]
     assert recording.MISSED_RGBA == (245, 130, 30, 255) and recording.DETECTED_RGBA == (40, 170, 80, 255)
     assert (colours.MISSED, colours.DETECTED) == ((245, 130, 30), (40, 170, 80))  # the panel's: orange and green
-    record = tab.run({**TINY, "K": "3"})
     shown = tab.session.shown
     assert shown is not None and shown.crashed, "the quick preset finds a crash"
     t_crash = int(np.argmax(shown.signal("gap_m") < app.drawing.params.crash_gap_m))
@@ -517,7 +532,7 @@ def test_live_shows_what_the_sampler_did_and_explain_says_why_and_how_bad(tab, a
 
     s = tab.session
     tab.choose("preset", "state-ce")
-    record = tab.run({"seed": "0"}, timeout=300)
+    record = tab.run({"seed": "0", "K": "4", "N_e": "300"}, timeout=300)  # state-ce, fewer stages and final rollouts
     live = tab.plot("mean q(detect) vs the PEM")
     x = np.array(live["data"][0])
     pem = np.array(live["data"][live["labels"].index("PEM")], dtype=float)
@@ -648,79 +663,74 @@ def test_every_dropdown_shows_its_hint_in_the_browser(tab):
 
 
 # 12 -----------------------------------------------------------------------------------------------
-def test_the_scene_frames_both_cars_and_shows_the_gap_the_breach_and_the_detections_so_far(browser, app):
+def test_the_scene_frames_both_cars_and_shows_the_gap_the_breach_and_the_detections_so_far(crashed, app):
     """At 1400 x 900, at the step a failure crosses the 2 m line: the canvas lies between the panels and both cars
     project inside it; the ruler spans the gap and says it in metres; a red gate stands where the ego's camera crossed
     the line; the trail holds one square per step so far, green where detected and orange where missed; every label
     beside the road lies outside both cars on screen, on the side its text runs to."""
-    tab = Tab(browser, app, {"width": 1400, "height": 900})
-    try:
-        record = tab.run({**TINY, "K": "3"})
-        s, p = tab.session, app.drawing.params
-        shown = s.shown
-        assert shown is not None and shown.crashed, "the quick preset finds a crash"
-        b = s.explanation.severity.breach_step
-        assert b == int(np.argmax(shown.signal("gap_m") < p.crash_gap_m))
-        s.step_slider.value = b
-        wait_until(
-            lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.name} t={b * p.dt_s:.2f}s"),
-            what="the breach step",
-        )
-        ego_x, lead_x = app.drawing.lane_positions(shown.batch, 0)[:2]
-        cam, rear = ego_x[b] + p.camera_offset_m, lead_x[b] - p.lead_length_m / 2
-        h = 1.5  # the boxes' height (metres)
-        grid = np.linspace(-0.5, 0.5, 5)
-        boxes = [
-            [x + fx * length, fy * p.vehicle_width_m, (fz + 0.5) * h]
-            for x, length in ((ego_x[b], p.ego_length_m), (lead_x[b], p.lead_length_m))
-            for fx in grid
-            for fy in grid
-            for fz in grid
-        ]
-        labels = {
-            "/ego/label": "right",
-            "/gap_ruler/label": "right",
-            "/ego/brake_zone_10m/label": "right",
-            "/breach/label": "left",
-        }  # the labels beside the road and the side their text runs to
+    tab, record = crashed.tab, crashed.record
+    s, p = tab.session, app.drawing.params
+    shown = s.shown
+    assert shown is not None and shown.crashed, "the quick preset finds a crash"
+    b = s.explanation.severity.breach_step
+    assert b == int(np.argmax(shown.signal("gap_m") < p.crash_gap_m))
+    s.step_slider.value = b
+    wait_until(
+        lambda: tab.scene()["label"].startswith(f"{record.short_label} {shown.name} t={b * p.dt_s:.2f}s"),
+        what="the breach step",
+    )
+    ego_x, lead_x = app.drawing.lane_positions(shown.batch, 0)[:2]
+    cam, rear = ego_x[b] + p.camera_offset_m, lead_x[b] - p.lead_length_m / 2
+    h = 1.5  # the boxes' height (metres)
+    grid = np.linspace(-0.5, 0.5, 5)
+    boxes = [
+        [x + fx * length, fy * p.vehicle_width_m, (fz + 0.5) * h]
+        for x, length in ((ego_x[b], p.ego_length_m), (lead_x[b], p.lead_length_m))
+        for fx in grid
+        for fy in grid
+        for fz in grid
+    ]
+    labels = {
+        "/ego/label": "right",
+        "/gap_ruler/label": "right",
+        "/ego/brake_zone_10m/label": "right",
+        "/breach/label": "left",
+    }  # the labels beside the road and the side their text runs to
 
-        def read():
-            return tab.page.evaluate(SCENE_JS, [boxes, list(labels)])
+    def read():
+        return tab.page.evaluate(SCENE_JS, [boxes, list(labels)])
 
-        # the camera follows the cars (it may arrive after the scene's step): both cars inside the canvas
-        wait_until(lambda: np.all(np.abs(np.array(read()["boxes"])) < 1.0), what="both cars inside the canvas")
-        got = read()
-        # the canvas is the space between the panels
-        assert got["left_panel"] <= got["canvas"][0] and got["canvas"][1] <= got["run_left"]
-        # the gap ruler: from the ego's camera to the lead's rear, its label the gap in metres
-        ruler = np.array(got["ruler"]).reshape(3, 2, 3)
-        np.testing.assert_allclose(ruler[0, :, 0], [cam, rear], atol=1e-4)
-        gap_b = shown.signal("gap_m")[b]
-        assert got["gap_text"] == f"gap {gap_b:.2f} m" and gap_b < p.crash_gap_m
-        # the breach gate where the camera crossed the 2 m line, with its time
-        assert got["breach_visible"] and abs(got["breach_x"] - cam) < 1e-4
-        assert got["breach_text"] == f"{p.crash_gap_m:g} m line crossed\nat {b * p.dt_s:.2f} s"
-        # the trail: a square per step 0..b behind where the ego was, coloured by the detection
-        trail = np.array(got["trail"]).reshape(-1, 3)
-        assert got["trail_visible"] and trail.shape[0] == b + 1
-        np.testing.assert_allclose(trail[:, 0], ego_x[: b + 1] - p.ego_length_m / 2 - 0.35, atol=1e-4)
-        drawn = np.array(got["trail_colours"]).reshape(-1, 3)
-        want = np.where(shown.detected[: b + 1, None], colours.DETECTED, colours.MISSED)
-        np.testing.assert_array_equal(drawn, want)
-        assert not shown.detected[: b + 1].all() and shown.detected[: b + 1].any()  # both colours are drawn
-        # labels beside the road: the rectangle of each one's text (7 px a character, 17 px a line, generously)
-        # holds no point of either car on screen
-        width_px, height_px = got["canvas"][2], got["canvas"][3]
-        cars = np.array(got["boxes"])
-        for (name, side), (ax, ay), text in zip(labels.items(), got["anchors"], got["texts"], strict=False):
-            lines = text.split("\n")
-            w, hh = 7 * max(map(len, lines)) / (width_px / 2), 17 * len(lines) / (height_px / 2)
-            x0, x1 = (ax, ax + w) if side == "right" else (ax - w, ax)
-            inside = (cars[:, 0] > x0) & (cars[:, 0] < x1) & (np.abs(cars[:, 1] - ay) < hh / 2)
-            assert not inside.any(), f"{name} ({text!r}) covers a car"
-    finally:
-        tab.session.stop_run()
-        tab.close()
+    # the camera follows the cars (it may arrive after the scene's step): both cars inside the canvas
+    wait_until(lambda: np.all(np.abs(np.array(read()["boxes"])) < 1.0), what="both cars inside the canvas")
+    got = read()
+    # the canvas is the space between the panels
+    assert got["left_panel"] <= got["canvas"][0] and got["canvas"][1] <= got["run_left"]
+    # the gap ruler: from the ego's camera to the lead's rear, its label the gap in metres
+    ruler = np.array(got["ruler"]).reshape(3, 2, 3)
+    np.testing.assert_allclose(ruler[0, :, 0], [cam, rear], atol=1e-4)
+    gap_b = shown.signal("gap_m")[b]
+    assert got["gap_text"] == f"gap {gap_b:.2f} m" and gap_b < p.crash_gap_m
+    # the breach gate where the camera crossed the 2 m line, with its time
+    assert got["breach_visible"] and abs(got["breach_x"] - cam) < 1e-4
+    assert got["breach_text"] == f"{p.crash_gap_m:g} m line crossed\nat {b * p.dt_s:.2f} s"
+    # the trail: a square per step 0..b behind where the ego was, coloured by the detection
+    trail = np.array(got["trail"]).reshape(-1, 3)
+    assert got["trail_visible"] and trail.shape[0] == b + 1
+    np.testing.assert_allclose(trail[:, 0], ego_x[: b + 1] - p.ego_length_m / 2 - 0.35, atol=1e-4)
+    drawn = np.array(got["trail_colours"]).reshape(-1, 3)
+    want = np.where(shown.detected[: b + 1, None], colours.DETECTED, colours.MISSED)
+    np.testing.assert_array_equal(drawn, want)
+    assert not shown.detected[: b + 1].all() and shown.detected[: b + 1].any()  # both colours are drawn
+    # labels beside the road: the rectangle of each one's text (7 px a character, 17 px a line, generously)
+    # holds no point of either car on screen
+    width_px, height_px = got["canvas"][2], got["canvas"][3]
+    cars = np.array(got["boxes"])
+    for (name, side), (ax, ay), text in zip(labels.items(), got["anchors"], got["texts"], strict=False):
+        lines = text.split("\n")
+        w, hh = 7 * max(map(len, lines)) / (width_px / 2), 17 * len(lines) / (height_px / 2)
+        x0, x1 = (ax, ax + w) if side == "right" else (ax - w, ax)
+        inside = (cars[:, 0] > x0) & (cars[:, 0] < x1) & (np.abs(cars[:, 1] - ay) < hh / 2)
+        assert not inside.any(), f"{name} ({text!r}) covers a car"
 
 
 SCENE_JS = """([boxes, names]) => {
@@ -747,117 +757,3 @@ SCENE_JS = """([boxes, names]) => {
 """What the browser's scene holds: the given world points (the cars) and the named labels' anchors projected by its
 camera to the canvas ([-1, 1] inside), the canvas' and the panels' edges (pixels), the labels' texts, the ruler's
 points, the breach gate, the trail's points and colours."""
-
-
-# 14 -----------------------------------------------------------------------------------------------
-OBJECTS_JS = """(n) => {
-    const m = window.__viserMutable, tree = window.__viserSceneTree.getState();
-    const cells = Array.from(document.querySelectorAll('svg.pemviz-raster rect[height="10"]'))
-        .map(r => r.getAttribute('fill'));
-    const cars = [...Array(n).keys()].map(j => {
-        const name = '/objects/car' + j;
-        return {position: m.nodePoseData[name]?.position, color: tree[name]?.message?.props?.color,
-                visible: tree[name]?.visibility, label: tree[name + '/label']?.message?.props?.text};
-    });
-    const above = Array.from(document.querySelectorAll('div')).map(d => d.textContent)
-        .filter(t => t.startsWith('From above at step')).at(-1) ?? '';
-    const tracks = document.querySelectorAll('svg.pemviz-birds-eye rect.pemviz-track').length;
-    const detect = Array.from(document.querySelectorAll('svg.pemviz-detect polyline'))
-        .map(p => p.getAttribute('points'));
-    return {cells, cars, above, tracks, detect, braking_lead: tree['/lead']?.visibility};
-}"""
-"""The Explain raster's cells (fill colours, object by object, step by step), each car of the scene (position,
-colour, visibility, label), the bird's-eye view's heading, the proposal bands' polylines (each object's p then q) and
-the braking scene's lead's visibility."""
-
-
-def test_a_cut_in_run_shows_every_car_and_names_the_errors_that_decided_its_failure(tab):
-    """The scenario choice runs the cut-in (five cars, missed and mislocated). Explain then shows its most likely
-    failure: the errors that decided it, each car's events step by step as the rollout holds them, and every car in
-    the 3D scene where the rollout has it, coloured by whether it was detected; the playback moves both."""
-    from pemviz.app import objects_view as OV
-
-    s = tab.session
-    tab.choose("scenario", "cut-in")
-    # the scene's own default is its tilted proposal (its adaptive estimates are not right): N and method follow
-    wait_until(
-        lambda: s.choices["method"].value == "tilt" and s.fields["n_per_stage"].value == "7280",
-        what="the cut-in's default method and N",
-    )
-    s.choices["method"].value = "adaptive"  # the sampler whose failure this test explains
-    # the stages alone: their failures are what Explain shows (no retry, no plain Monte Carlo after them)
-    record = tab.run({**TINY, "K": "3", "N": "60", "N_e": "60", "seed": "1", "plain fallback": "0"}, timeout=300)
-    assert record.config.method == "adaptive"
-    assert record.config.scenario == "cut-in"
-    # no exact answer: the final estimate stands beside the scenario's plain Monte Carlo reference
-    assert record.exact_log_p is None and record.reference is not None
-    wait_until(
-        lambda: f"reference {record.reference.text()}: " in tab.page.inner_text("body"),
-        what="the final estimate beside the Monte Carlo reference",
-    )
-    wait_until(
-        lambda: s.objects_ex is not None and s.shown is record.most_likely_failure,
-        timeout=60,
-        what="the most likely failure explained",
-    )
-    ox, shown = s.objects_ex, s.shown
-    t_steps, m = ox.detected.shape
-    assert m == 5 and shown.crashed and shown.batch.detected.shape == (1, t_steps, m)
-    cf = ox.counterfactuals
-    assert cf is not None and cf.decisive and all(i.robustness >= 0.0 for i in cf.decisive)
-    first = cf.decisive[0]
-    tab.page.get_by_role("tab", name="Explain").click()
-    expect(tab.page.get_by_text("Which errors decided it", exact=False)).to_be_visible(timeout=10_000)
-    expect(tab.page.get_by_text(cf.summary(ox.names), exact=False)).to_be_visible()
-    wait_until(
-        lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {first.step}"),
-        what="Explain at the first decisive error",
-    )
-    got = tab.page.evaluate(OBJECTS_JS, m)
-    # the raster: one cell per car and step, green detected, orange missed, grey unseen, as the rollout has them
-    want = np.where(ox.detected, OV.GREEN, np.where(ox.seen, OV.ORANGE, OV.UNSEEN))
-    assert got["cells"] == want.T.reshape(-1).tolist()
-    assert ox.detected.any() and (~ox.detected & ox.seen).any()  # both colours are drawn
-
-    def check_cars(t: int, cars: list) -> None:
-        decisive = {obj for obj, _ in ox.decisive_at(t)}
-        for j, car in enumerate(cars):
-            assert car["visible"], f"car {j} hidden at step {t}"
-            np.testing.assert_allclose(car["position"][:2], [ox.ahead_m[t, j], -ox.lateral_m[t, j]], atol=1e-4)
-            det, seen = bool(ox.detected[t, j]), bool(ox.seen[t, j])
-            assert car["color"] == list(colours.DETECTED if det else colours.MISSED if seen else colours.IDLE)
-            state = "detected" if det else ("missed" if seen else "unseen")
-            assert car["label"] == f"car {j}: {state}" + (" (decisive)" if j in decisive else "")
-
-    check_cars(first.step, got["cars"])
-    # each object's proposal band: p(detect) of the PEM, recomputed here at the rollout's rows, and q(detect) of the
-    # sampler as the trajectory kept it, drawn 0 at the band's foot and 1 at 17 px above it
-    rows = shown.batch.objects[0]
-    p_want = expit(record.problem.target.detect_logit(rows.reshape(-1, rows.shape[-1]))).reshape(t_steps, m)
-    np.testing.assert_allclose(shown.object_p, p_want, atol=1e-12)
-    assert shown.object_q.shape == (t_steps, m) and np.all((shown.object_q >= 0) & (shown.object_q <= 1))
-    assert len(got["detect"]) == 2 * m
-    for j in range(m):
-        foot = 2 + (j + 1) * 22 - 3
-        for k, values in enumerate((shown.object_p[:, j], shown.object_q[:, j])):
-            ys = np.array([float(pt.split(",")[1]) for pt in got["detect"][2 * j + k].split()])
-            np.testing.assert_allclose(ys, foot - 17 * values, atol=0.051)
-    assert got["braking_lead"] is False  # the braking scene's lead is hidden
-    # from above, a dashed box where the tracker places each tracked car drawn (in the view)
-    t = first.step
-    drawn = (
-        (ox.ahead_m[t] >= OV.AHEAD_M[0]) & (ox.ahead_m[t] <= OV.AHEAD_M[1]) & (np.abs(ox.lateral_m[t]) <= OV.LATERAL_M)
-    )
-    assert got["tracks"] == int((np.isfinite(ox.tracked[t, :, 0]) & drawn).sum()) > 0
-    # the playback moves the scene and the view from above to the failure
-    s.step_slider.value = cf.failure_step
-    wait_until(
-        lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {cf.failure_step}"),
-        what="Explain at the failure step",
-    )
-    wait_until(
-        lambda: tab.page.evaluate(OBJECTS_JS, m)["cars"][0]["position"][0]
-        == pytest.approx(ox.ahead_m[cf.failure_step, 0], abs=1e-4),
-        what="the scene at the failure step",
-    )
-    check_cars(cf.failure_step, tab.page.evaluate(OBJECTS_JS, m)["cars"])

@@ -1,7 +1,8 @@
 """Every tab of the panel after a run, in headless Chromium, for the braking scenario and the cut-in: every uPlot chart
 shown has data (at least one finite point beside its x values), and a cut-in's *Live* and *Explain* are at the braking
 scenario's level: q(detect) of the cut-in car per bin of its gap ahead beside the PEM's, what happened in words, the
-severity, the tracker's estimate of the cut-in car against the truth and the ACC's acceleration.
+severity, the tracker's estimate of the cut-in car against the truth and the ACC's acceleration; the same run's most
+likely failure shows every car of the cut-in and the errors that decided it.
 
 Uses the browser, server and tab helpers of ``tests/app/test_app.py``. With ``PEMVIZ_SCREENSHOTS=1`` the tests also
 write ``assets/screenshots/panel_<scene>_<tab>.png`` (braking and cut_in; live, explain, compare, rollouts, runs,
@@ -23,6 +24,7 @@ from .test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # n
 
 from pemviz.app import charts
 from pemviz.app.captions import MAX_TITLE
+from pemviz.sinks import colours
 from pemviz.scenarios.cut_in.panel import GAP_BINS_M as OBJECT_GAP_BINS_M
 from pemviz.scenarios.cut_in.panel import VIEW_OBJECT
 
@@ -45,6 +47,27 @@ CHARTS_JS = """() => Object.entries(window.__viserTestpoints?.uplots ?? {}).map(
     data: u.chart.data.map(d => Array.from(d ?? []).map(v => v ?? null))}))"""
 """Every uPlot chart of the page: its title, its caption (the text below it), whether it is shown, its series' labels,
 each y series' count of finite values and its data."""
+
+
+OBJECTS_JS = """(n) => {
+    const m = window.__viserMutable, tree = window.__viserSceneTree.getState();
+    const cells = Array.from(document.querySelectorAll('svg.pemviz-raster rect[height="10"]'))
+        .map(r => r.getAttribute('fill'));
+    const cars = [...Array(n).keys()].map(j => {
+        const name = '/objects/car' + j;
+        return {position: m.nodePoseData[name]?.position, color: tree[name]?.message?.props?.color,
+                visible: tree[name]?.visibility, label: tree[name + '/label']?.message?.props?.text};
+    });
+    const above = Array.from(document.querySelectorAll('div')).map(d => d.textContent)
+        .filter(t => t.startsWith('From above at step')).at(-1) ?? '';
+    const tracks = document.querySelectorAll('svg.pemviz-birds-eye rect.pemviz-track').length;
+    const detect = Array.from(document.querySelectorAll('svg.pemviz-detect polyline'))
+        .map(p => p.getAttribute('points'));
+    return {cells, cars, above, tracks, detect, braking_lead: tree['/lead']?.visibility};
+}"""
+"""The Explain raster's cells (fill colours, object by object, step by step), each car of the scene (position,
+colour, visibility, label), the bird's-eye view's heading, the proposal bands' polylines (each object's p then q) and
+the braking scene's lead's visibility."""
 
 
 def shown_charts(tab: Tab) -> list[dict]:
@@ -125,15 +148,33 @@ def test_every_braking_tab_shows_only_charts_with_data(wide_tab):
     assert not any(c["title"].startswith("slot ") for c in seen["Compare"])
 
 
-def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and_the_acc(wide_tab):
+def test_a_cut_in_run_fills_live_and_explain_and_shows_every_car_and_the_errors_that_decided_its_failure(wide_tab):
+    """The scenario choice runs the cut-in (five cars, missed and mislocated), one run for both halves. Live and
+    Explain are at the braking scenario's level: q(detect) of the cut-in car per bin of its gap ahead beside the PEM's,
+    what happened in words, the severity, the tracker against the truth and the ACC. Explain's most likely failure:
+    the errors that decided it, each car's events step by step as the rollout holds them, and every car in the 3D
+    scene where the rollout has it, coloured by whether it was detected; the playback moves both."""
+    from pemviz.app import objects_view as OV
+
     tab = wide_tab
     s = tab.session
     tab.choose("scenario", "cut-in")
-    wait_until(lambda: s.choices["method"].value == "tilt", what="the cut-in's default method")
+    # the scene's own default is its tilted proposal (its adaptive estimates are not right): N and method follow
+    wait_until(
+        lambda: s.choices["method"].value == "tilt" and s.fields["n_per_stage"].value == "7280",
+        what="the cut-in's default method and N",
+    )
     s.choices["method"].value = "adaptive"  # a few stages of 60 rollouts find failures in a few seconds
     # the stages alone (no retry, no plain Monte Carlo after them): their failures are what Live and Explain show
-    record = tab.run({**TINY, "K": "3", "N": "60", "N_e": "60", "seed": "1", "plain fallback": "0"}, timeout=120)
-    assert record.config.scenario == "cut-in" and record.most_likely_failure is not None
+    record = tab.run({**TINY, "K": "3", "N": "60", "N_e": "60", "seed": "1", "plain fallback": "0"}, timeout=300)
+    assert record.config.method == "adaptive" and record.config.scenario == "cut-in"
+    assert record.most_likely_failure is not None
+    # no exact answer: the final estimate stands beside the scenario's plain Monte Carlo reference
+    assert record.exact_log_p is None and record.reference is not None
+    wait_until(
+        lambda: f"reference {record.reference.text()}: " in tab.page.inner_text("body"),
+        what="the final estimate beside the Monte Carlo reference",
+    )
     wait_until(
         lambda: s.objects_ex is not None and s.shown is record.most_likely_failure,
         timeout=60,
@@ -193,6 +234,68 @@ def test_a_cut_in_run_fills_live_and_explain_with_the_cut_in_car_its_tracker_and
     assert a.min() < 0.0  # and braked
     # the braking scenario's strip charts are hidden, never shown empty
     assert not any("gap and speeds" in c["title"] or "log w" in c["title"] for c in explain)
+    # the objects' view: the raster, the 3D scene's cars, the proposal bands, from above
+    shown = s.shown
+    t_steps, m = ox.detected.shape
+    assert m == 5 and shown.crashed and shown.batch.detected.shape == (1, t_steps, m)
+    cf = ox.counterfactuals
+    assert cf is not None and cf.decisive and all(i.robustness >= 0.0 for i in cf.decisive)
+    first = cf.decisive[0]
+    tab.page.get_by_role("tab", name="Explain").click()
+    expect(tab.page.get_by_text("Which errors decided it", exact=False)).to_be_visible(timeout=10_000)
+    expect(tab.page.get_by_text(cf.summary(ox.names), exact=False)).to_be_visible()
+    wait_until(
+        lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {first.step}"),
+        what="Explain at the first decisive error",
+    )
+    got = tab.page.evaluate(OBJECTS_JS, m)
+    # the raster: one cell per car and step, green detected, orange missed, grey unseen, as the rollout has them
+    want = np.where(ox.detected, OV.GREEN, np.where(ox.seen, OV.ORANGE, OV.UNSEEN))
+    assert got["cells"] == want.T.reshape(-1).tolist()
+    assert ox.detected.any() and (~ox.detected & ox.seen).any()  # both colours are drawn
+
+    def check_cars(t: int, cars: list) -> None:
+        decisive = {obj for obj, _ in ox.decisive_at(t)}
+        for j, car in enumerate(cars):
+            assert car["visible"], f"car {j} hidden at step {t}"
+            np.testing.assert_allclose(car["position"][:2], [ox.ahead_m[t, j], -ox.lateral_m[t, j]], atol=1e-4)
+            det, seen = bool(ox.detected[t, j]), bool(ox.seen[t, j])
+            assert car["color"] == list(colours.DETECTED if det else colours.MISSED if seen else colours.IDLE)
+            state = "detected" if det else ("missed" if seen else "unseen")
+            assert car["label"] == f"car {j}: {state}" + (" (decisive)" if j in decisive else "")
+
+    check_cars(first.step, got["cars"])
+    # each object's proposal band: p(detect) of the PEM, recomputed here at the rollout's rows, and q(detect) of the
+    # sampler as the trajectory kept it, drawn 0 at the band's foot and 1 at 17 px above it
+    rows = shown.batch.objects[0]
+    p_want = expit(record.problem.target.detect_logit(rows.reshape(-1, rows.shape[-1]))).reshape(t_steps, m)
+    np.testing.assert_allclose(shown.object_p, p_want, atol=1e-12)
+    assert shown.object_q.shape == (t_steps, m) and np.all((shown.object_q >= 0) & (shown.object_q <= 1))
+    assert len(got["detect"]) == 2 * m
+    for j in range(m):
+        foot = 2 + (j + 1) * 22 - 3
+        for k, values in enumerate((shown.object_p[:, j], shown.object_q[:, j])):
+            ys = np.array([float(pt.split(",")[1]) for pt in got["detect"][2 * j + k].split()])
+            np.testing.assert_allclose(ys, foot - 17 * values, atol=0.051)
+    assert got["braking_lead"] is False  # the braking scene's lead is hidden
+    # from above, a dashed box where the tracker places each tracked car drawn (in the view)
+    t = first.step
+    drawn = (
+        (ox.ahead_m[t] >= OV.AHEAD_M[0]) & (ox.ahead_m[t] <= OV.AHEAD_M[1]) & (np.abs(ox.lateral_m[t]) <= OV.LATERAL_M)
+    )
+    assert got["tracks"] == int((np.isfinite(ox.tracked[t, :, 0]) & drawn).sum()) > 0
+    # the playback moves the scene and the view from above to the failure
+    s.step_slider.value = cf.failure_step
+    wait_until(
+        lambda: tab.page.evaluate(OBJECTS_JS, m)["above"].startswith(f"From above at step {cf.failure_step}"),
+        what="Explain at the failure step",
+    )
+    wait_until(
+        lambda: tab.page.evaluate(OBJECTS_JS, m)["cars"][0]["position"][0]
+        == pytest.approx(ox.ahead_m[cf.failure_step, 0], abs=1e-4),
+        what="the scene at the failure step",
+    )
+    check_cars(cf.failure_step, tab.page.evaluate(OBJECTS_JS, m)["cars"])
 
 
 def test_the_cut_in_story_tells_a_hand_made_rollout_step_by_step():
