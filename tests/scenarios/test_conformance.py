@@ -19,6 +19,7 @@ from pemviz.methods import BUILTIN_METHODS as METHODS
 from pemviz.settings import SCENARIOS
 from pemviz.scenarios.problems import build_problem
 from pemviz.estimators.fixed import FixedSampler
+from pemviz.io.rollouts import read_rollouts
 from pemviz.scenarios import builtin, register, registered
 from pemviz.scenarios.registry import get as get_scenario, unregister
 from pemviz.scenarios.toy import ToyBraking
@@ -95,12 +96,10 @@ def test_every_registered_scenario_passes_the_kit(name, tmp_path):
         "rollout-file",
         "recording",
     )
-    import pyarrow.parquet as pq
-
     files = [tmp_path / f"{name}-{method}.parquet" for method in ("naive50", "adaptive")]
     assert any(f.is_file() for f in files)
     for f in filter(Path.is_file, files):  # the kit's runs are small: no retry or plain Monte Carlo (1e6 rollouts)
-        assert pq.read_metadata(f).num_rows <= 4 * RUN_ROLLOUTS
+        assert read_rollouts(f).observations.shape[0] <= 4 * RUN_ROLLOUTS
 
 
 @pytest.mark.parametrize("method", METHODS)
