@@ -277,8 +277,8 @@ def check_scenario(
       (:class:`pemviz.core.drawing.Outcome`) says failed for exactly the rollouts the problem's failure event
       (:meth:`pemviz.core.problems.Problem.failed`) says failed, on the rollouts drawn by the PEM and by a 50 %
       detector. Skipped without one.
-    - ``rollout-file``: a ``naive50`` run of :data:`RUN_ROLLOUTS` (a small adaptive run if it sees no failure) saved by
-      :class:`pemviz.sinks.rollouts.RolloutSink` re-estimates from the file
+    - ``rollout-file``: a ``naive50`` run of :data:`RUN_ROLLOUTS` (if none fails, 2 adaptive stages, no fallback)
+      saved by :class:`pemviz.sinks.rollouts.RolloutSink` re-estimates from the file
       (:func:`pemviz.io.rollout_estimate.estimate_rollouts`) to the run's own mu_hat within
       :data:`pemviz.io.rollout_estimate.REESTIMATE_RTOL` (1e-9, relative), with its failures, rollouts and verdict.
     - ``recording``: the same run recorded by :meth:`pemviz.sinks.recording.RerunSink.to_file` writes a non-empty
@@ -460,7 +460,7 @@ def _registered(sc: Any) -> bool:
 
 def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -> list[Any]:
     """The runs whose files :func:`check_scenario` checks: ``naive50``, then a small adaptive run where it sees no
-    failure (a round trip of no failure weighs nothing)."""
+    failure (a round trip of no failure weighs nothing), with no retry and plain Monte Carlo (up to 1e6 rollouts)."""
     from pemviz.config import ExperimentConfig
 
     from pemviz.methods import CROSS_ENTROPY_METHOD, NAIVE_METHOD
@@ -469,10 +469,8 @@ def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -
     if _registered(sc):  # the run names it (its rollout files say which scene), its parameters checked by the config
         pairs = cast("dict[str, float | int | bool]", dict(params or {}))
         base = dataclasses.replace(base, scenario=sc.name, scenario_params=tuple(pairs.items()))
-    adaptive = base.replace(
-        method=CROSS_ENTROPY_METHOD, n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50, pretrain_epochs=50
-    )
-    return [base, adaptive]
+    small = dict(n_stages=2, n_final=RUN_ROLLOUTS, ce_epochs=50, pretrain_epochs=50, plain_fallback=0)
+    return [base, base.replace(method=CROSS_ENTROPY_METHOD, **small)]
 
 
 # -- estimators -----------------------------------------------------------------------------------------------------
