@@ -101,20 +101,13 @@ def problem(params: list[str]) -> Any:
 def pilot(pb: Any, seed: int, n: int, killed: int) -> Pilot:
     """Look-ahead splitting of N particles (``killed`` an iteration) from stream ``seed``: its failing particles with
     their state features (:class:`Pilot`)."""
-    from pemviz.core.features import with_state
     from pemviz.estimators.ams import run_ams
-    from pemviz.scenarios.crossing.scene import OBJECT_NAMES
 
     s = run_ams(pb, n, killed, seed=seed, score="lookahead")
     failed = s.running[:, -1] < 0.0
     assert s.particles is not None
     batch = s.particles.select(failed)
-    b = with_state(batch, pb.features(batch, None))
-    rows = np.asarray(b.object_rows, dtype=np.float64)
-    noise = np.asarray(b.noise, dtype=np.float64)
-    own = rows.reshape(-1, rows.shape[-1])[:, : len(OBJECT_NAMES)]
-    loc, log_scale = pb.target.noise_params(np.ascontiguousarray(own))
-    z = ((noise.reshape(-1, noise.shape[-1]) - loc) * np.exp(-log_scale)).reshape(noise.shape)
+    b, rows, z = _replayed(pb, batch)
     return Pilot(
         rows,
         np.asarray(b.detected, bool),
@@ -165,17 +158,10 @@ def weighted_failures(pb: Any, ev: Any) -> tuple[np.ndarray, np.ndarray, np.ndar
     """The failures of a drawn batch (a :class:`pemviz.engine.events.RolloutsSampled` of a whole stage) as
     :func:`state_gate.mixture_of_gates` takes them, with their importance weights: (rows [F, T, O, G], detected
     [F, T, O], z [F, T, O, D], w [F] over their sum)."""
-    from pemviz.core.features import with_state
-    from pemviz.scenarios.crossing.scene import OBJECT_NAMES
 
     failed = np.asarray(ev.failed, bool)
     batch = ev.batch.select(failed)
-    b = with_state(batch, pb.features(batch, None))
-    rows = np.asarray(b.object_rows, dtype=np.float64)
-    noise = np.asarray(b.noise, dtype=np.float64)
-    own = rows.reshape(-1, rows.shape[-1])[:, : len(OBJECT_NAMES)]
-    loc, log_scale = pb.target.noise_params(np.ascontiguousarray(own))
-    z = ((noise.reshape(-1, noise.shape[-1]) - loc) * np.exp(-log_scale)).reshape(noise.shape)
+    b, rows, z = _replayed(pb, batch)
     lw = np.asarray(ev.log_weight, dtype=np.float64)[failed]
     w = np.exp(lw - lw.max()) if lw.size else lw
     return rows, np.asarray(b.detected, bool), z, w / w.sum() if w.size else w
@@ -282,3 +268,17 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def _replayed(pb: Any, batch: Any) -> tuple[Any, np.ndarray, np.ndarray]:
+    """``batch`` with its state features replayed, its object rows [F, T, O, G], standardised errors z [F, T, O, D]."""
+    from pemviz.core.features import with_state
+    from pemviz.scenarios.crossing.scene import OBJECT_NAMES
+
+    b = with_state(batch, pb.features(batch, None))
+    rows = np.asarray(b.object_rows, dtype=np.float64)
+    noise = np.asarray(b.noise, dtype=np.float64)
+    own = rows.reshape(-1, rows.shape[-1])[:, : len(OBJECT_NAMES)]
+    loc, log_scale = pb.target.noise_params(np.ascontiguousarray(own))
+    z = ((noise.reshape(-1, noise.shape[-1]) - loc) * np.exp(-log_scale)).reshape(noise.shape)
+    return b, rows, z
