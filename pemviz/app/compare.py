@@ -20,14 +20,13 @@ from __future__ import annotations
 import html
 import math
 from dataclasses import dataclass
-from typing import TypedDict
+from typing import Any, TypedDict
 
 import numpy as np
 import viser
 import viser.uplot as up
 
-from pemviz.app.form import setting_name, setting_value
-from pemviz.settings import SETTINGS
+from pemviz.app.form import settings_of, setting_value
 from pemviz.app.captions import add_chart
 from pemviz.app.html import TABLE_STYLE
 from pemviz.app.plots import axes, finite_or_dash, run_colour
@@ -314,12 +313,12 @@ def result_cells(record: PanelRun) -> list[str]:
     ]
 
 
-def differing_settings(runs: list[PanelRun]) -> tuple[list[str], int]:
-    """The names of the :class:`pemviz.config.ExperimentConfig` fields whose values differ between ``runs``, in the
-    config's order, and how many fields are the same in every run."""
-    names = list(SETTINGS)
-    differ = [name for name in names if len({repr(r.config.value(name)) for r in runs}) > 1]
-    return differ, len(names) - len(differ)
+def differing_settings(runs: list[PanelRun]) -> tuple[list[tuple[str, list[Any]]], int]:
+    """``(label, [value per run])`` of each setting whose values differ between ``runs`` (:func:`settings_of`'s order,
+    a method of one's own's settings included), and how many settings are the same in every run."""
+    rows = settings_of([r.config for r in runs])
+    differ = [(label, values) for _, label, values in rows if len({repr(v) for v in values}) > 1]
+    return differ, len(rows) - len(differ)
 
 
 def answer_lines(runs: list[PanelRun]) -> list[str]:
@@ -355,10 +354,10 @@ def compare_html(runs: list[PanelRun], notes: list[str] | None = None) -> str:
         for i, label in enumerate(RESULT_ROWS)
     )
     differ, same = differing_settings(runs)
-    for name in differ:
+    for label, values in differ:
         body += (
-            f'<tr style="font-weight:bold"><th style="text-align:left">{html.escape(setting_name(name))}</th>'
-            + "".join(f"<td>{html.escape(setting_value(r.config.value(name)))}</td>" for r in runs)
+            f'<tr style="font-weight:bold"><th style="text-align:left">{html.escape(label)}</th>'
+            + "".join(f"<td>{html.escape(setting_value(v))}</td>" for v in values)
             + "</tr>"
         )
     if len(runs) < 2:

@@ -330,10 +330,36 @@ def setting_name(key: str) -> str:
     return SETTINGS[key].label
 
 
+NOT_HELD = object()
+"""The value :func:`settings_of` gives a run for a setting its method does not have (shown as ``-``)."""
+
+
+def settings_of(configs: list[ExperimentConfig]) -> list[tuple[str, str, list[Any]]]:
+    """Every setting of the runs ``configs`` as ``(name, label, [its value in each config])``: the settings table's, in
+    its order, then each method of one's own's settings (:attr:`pemviz.config.ExperimentConfig.method_settings`) in
+    their fields' order, labelled by their rows; a run whose method lacks one has :data:`NOT_HELD` there. What the
+    *Runs* and *Compare* tables list."""
+    labels = {name: s.label for name, s in SETTINGS.items()}
+    for cfg in configs:
+        if cfg.method_settings is not None:
+            rows = rows_of(type(cfg.method_settings), cfg.method)
+            labels.update({name: row.label for name, row in rows.items() if name not in labels})
+    flats = [cfg.flat() for cfg in configs]
+    return [(name, label, [flat.get(name, NOT_HELD) for flat in flats]) for name, label in labels.items()]
+
+
+def default_settings(cfg: ExperimentConfig) -> dict[str, Any]:
+    """The flat settings of a run of ``cfg``'s method with every setting at its default (its own settings too)."""
+    own = cfg.method_settings
+    return {**ExperimentConfig.of().flat(), **({} if own is None else dataclasses.asdict(type(own)()))}
+
+
 def setting_value(value: Any) -> str:
     """The text of a setting's value in labels and tables: ``0.2`` (``:g`` of a float), ``default`` for None, and
     ``cut_in_gap_m=19.5, n_objects=4`` for scenario parameters (``(name, value)`` pairs, e.g. a cut-in's; none:
-    ``default``)."""
+    ``default``), ``-`` for :data:`NOT_HELD`."""
+    if value is NOT_HELD:
+        return "-"
     if value is None:
         return "default"
     if isinstance(value, tuple) and all(isinstance(x, tuple) and len(x) == 2 for x in value):

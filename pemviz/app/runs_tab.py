@@ -11,14 +11,12 @@ import viser
 
 from pemviz.app._viser_compat import set_value
 from pemviz.app import plots
-from pemviz.app.form import setting_name, setting_value
-from pemviz.settings import SETTINGS
+from pemviz.app.form import NOT_HELD, default_settings, settings_of, setting_value
 from pemviz.app.host import PanelHost
 from pemviz.app.html import GREEN, GREY, RED, TABLE_STYLE, box, display_path
 from pemviz.app.plots_panel import PlotsPanel
 from pemviz.app.rollouts_tab import RolloutsTab
 from pemviz.app.runs import PanelRun, export_path, export_run, keep_runs
-from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability
 
 
@@ -105,7 +103,6 @@ class RunsTab:
             runs = list(self.runs)
         if not runs:
             return
-        names = list(SETTINGS)
         head = "".join(
             f'<th style="color:{plots.run_colour(r.run_id)}">run {r.run_id}{" (pinned)" if r.pinned else ""}</th>'
             for r in runs
@@ -128,13 +125,13 @@ class RunsTab:
             + "</tr>"
             for i, label in enumerate(rows[0])
         )
-        defaults = ExperimentConfig.of()
-        for name in names:
-            values = [r.config.value(name) for r in runs]
-            differs = any(v != defaults.value(name) for v in values) or len({repr(v) for v in values}) > 1
+        defaults = [default_settings(r.config) for r in runs]
+        for name, label, values in settings_of([r.config for r in runs]):
+            away = (v != d.get(name, NOT_HELD) for v, d in zip(values, defaults, strict=True))
+            differs = len({repr(v) for v in values}) > 1 or any(away)
             style = "font-weight:bold" if differs else "color:#777"
             body += (
-                f'<tr style="{style}"><th style="text-align:left">{html.escape(setting_name(name))}</th>'
+                f'<tr style="{style}"><th style="text-align:left">{html.escape(label)}</th>'
                 + "".join(f"<td>{html.escape(setting_value(v))}</td>" for v in values)
                 + "</tr>"
             )

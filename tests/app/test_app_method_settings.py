@@ -92,3 +92,25 @@ def test_the_fields_start_at_the_starting_configs_settings_of_that_method(defens
     tab.build(lambda: None)
     assert tab.own.folder.visible and tab.own.texts("defensive-mc") == {"coin_share": "0.2", "coin_radius_m": ""}
     assert tab.read_form().config.method_settings == config0.method_settings
+
+
+def test_the_runs_and_compare_tables_list_a_methods_own_settings(defensive_mc):
+    from pemviz.app.compare import compare_html, differing_settings
+    from pemviz.app.form import default_settings, settings_of
+    from pemviz.app.runs import PanelRun
+
+    own = ExperimentConfig.of(method="defensive-mc", coin_share=0.2)
+    other = ExperimentConfig.of(method="defensive-mc", coin_share=0.5, coin_radius_m=3.0)
+    plain = ExperimentConfig.of()
+    rows = {name: (label, values) for name, label, values in settings_of([own, other, plain])}
+    assert rows["coin_share"][0] == "eps" and rows["coin_share"][1][:2] == [0.2, 0.5]
+    assert rows["coin_radius_m"][1][:2] == [None, 3.0]
+    assert default_settings(own)["coin_share"] == 0.3 and "coin_share" not in default_settings(plain)
+    runs = [PanelRun(1, own), PanelRun(2, other), PanelRun(3, plain)]
+    differ, same = differing_settings(runs)
+    labels = [label for label, _ in differ]
+    assert "eps" in labels and "coin radius m" in labels and "method" in labels
+    assert same == len(rows) - len(differ)
+    page = compare_html(runs)
+    eps_row = page[page.index(">eps<") :].split("</tr>")[0]
+    assert [cell.split("</td>")[0] for cell in eps_row.split("<td>")[1:]] == ["0.2", "0.5", "-"]
