@@ -141,7 +141,11 @@ def scaled_grid(b_grid: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
 
 
 def matmul_t(
-    at: np.ndarray, b_grid: tuple[np.ndarray, np.ndarray], bt: np.ndarray | None, nonneg: bool = False, own: bool = False
+    at: np.ndarray,
+    b_grid: tuple[np.ndarray, np.ndarray],
+    bt: np.ndarray | None,
+    nonneg: bool = False,
+    own: bool = False,
 ) -> np.ndarray:
     """:func:`matmul` transposed: ``(a @ b).T`` float64 [n, m] of ``at = a.T`` [k, m], with the bits of
     ``matmul(a, None, b_grid, nonneg)``, in fewer passes over the data (a row of ``a`` is a column here: its largest

@@ -54,7 +54,13 @@ def test_a_product_on_grids_is_the_rational_product_of_the_rounded_operands(m, k
 
 @pytest.mark.parametrize(
     "a_exp, b_exp, fast",
-    [((-8, 8), 0, True), ((-900, -400), -560, True), ((400, 900), 500, True), ((-1074, 0), 0, False), ((0, 8), -1060, False)],
+    [
+        ((-8, 8), 0, True),
+        ((-900, -400), -560, True),
+        ((400, 900), 500, True),
+        ((-1074, 0), 0, False),
+        ((0, 8), -1060, False),
+    ],
 )
 @pytest.mark.parametrize("k, n, nonneg", [(4, 32, False), (32, 32, True), (32, 1, True), (1, 32, False)])
 def test_the_transposed_product_gives_the_products_bits_from_the_normal_range_to_the_subnormals(
