@@ -351,14 +351,14 @@ def _network_logit(x: np.ndarray, weights: tuple) -> np.ndarray:
     :meth:`Proposal._sampling_weights`: three products on grids, each row's from its own inputs alone, computed on the
     transposed activations [32, N] (:func:`pemviz.core.exact.matmul_t`, the bits of
     :func:`pemviz.core.exact.matmul`)."""
-    w1, w2, w3, b1, b2, b3 = weights
-    a = exact.matmul_t(x.T.copy(), *w1, own=True)  # a copy of its own, C-contiguous
+    (g1, t1), (g2, t2), (g3, t3), b1, b2, b3 = weights
+    a = exact.matmul_t(x.T.copy(), g1, t1, own=True)  # a copy of its own, C-contiguous
     a += b1
     np.maximum(a, 0.0, out=a)
-    a = exact.matmul_t(a, *w2, nonneg=True, own=True)
+    a = exact.matmul_t(a, g2, t2, nonneg=True, own=True)
     a += b2
     np.maximum(a, 0.0, out=a)
-    return exact.matmul_t(a, *w3, nonneg=True, own=True)[0] + b3
+    return exact.matmul_t(a, g3, t3, nonneg=True, own=True)[0] + b3
 
 
 class StateProposal(Proposal):
