@@ -130,6 +130,49 @@ def matmul(
     return times_power_of_two(ai @ bi, ea, eb)
 
 
+def scaled_grid(b_grid: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
+    """An operand on its grid (``(bi [k, n], eb [1, n])``, :func:`on_grid` with ``axis`` 0) as its values ``bi *
+    2^eb``, transposed: float64 [n, k], C-contiguous, for :func:`matmul_t`; None where a column's power of two is
+    below 2^-1074 or above 2^971 (a product's partial sums times it could then round or overflow)."""
+    bi, eb = b_grid
+    if eb.size and not (-1074 <= int(eb.min()) and int(eb.max()) <= 971):
+        return None
+    return np.ascontiguousarray(np.ldexp(bi, eb).T)
+
+
+def matmul_t(
+    at: np.ndarray,
+    b_grid: tuple[np.ndarray, np.ndarray],
+    bt: np.ndarray | None,
+    nonneg: bool = False,
+    own: bool = False,
+) -> np.ndarray:
+    """:func:`matmul` transposed: ``(a @ b).T`` float64 [n, m] of ``at = a.T`` [k, m], with the bits of
+    ``matmul(a, None, b_grid, nonneg)``, in fewer passes over the data (a row of ``a`` is a column here: its largest
+    magnitude is an elementwise maximum over k rows, not a reduction along a short axis).
+
+    The product of ``at``'s integers with ``bt`` (:func:`scaled_grid` of ``b_grid``: column j's integers times
+    ``2^eb_j``) is exact, every partial sum an integer multiple of ``2^eb_j`` below ``2^(53 + eb_j)``; one multiply by
+    each row's ``2^ea`` then rounds it once, as :func:`matmul`'s scaling of the integer product by ``2^(ea + eb)``
+    does. Where a power of two of ``a``'s grid leaves the normal range, or ``bt`` is None, :func:`matmul` itself.
+
+    Args:
+        at: float64 [k, m]; b_grid: ``b`` on its grid (:func:`on_grid`, ``grid_bits(k)`` bits, ``axis`` 0);
+        bt: ``scaled_grid(b_grid)`` [n, k] or None; nonneg: ``at`` >= 0; own: ``at`` may be overwritten.
+    Returns:
+        float64 [n, m].
+    """
+    largest = (at if nonneg else np.abs(at)).max(axis=0) if at.shape[0] else np.zeros(at.shape[1])
+    shift = grid_bits(at.shape[0]) - np.frexp(largest)[1]
+    if bt is None or not shift.size or not (-1022 <= int(shift.min()) and int(shift.max()) <= 1022):
+        return matmul(at.T, None, b_grid, nonneg).T
+    xi = np.multiply(at, np.ldexp(1.0, shift), out=at if own else None)  # exact: the grid's integers, but rint
+    np.rint(xi, out=xi)
+    out = bt @ xi  # exact: column j of b's integers times 2^eb_j
+    out *= np.ldexp(1.0, -shift)
+    return out
+
+
 def exact_sum(x: np.ndarray, axis: int) -> np.ndarray:
     """The sum of ``x`` [m, n] along ``axis`` (0: per column, 1: per row) of its values rounded to a grid per
     summed slice with ``53 - ceil(log2 length)`` bits: integers whose sum is exact in any order. float64 [n] or [m]."""

@@ -224,9 +224,9 @@ class Proposal:
 
     def _sampling_weights(self) -> tuple:
         """The weights of :meth:`detect_logit`, each layer's on its grid (:func:`pemviz.core.exact.on_grid`, per
-        output unit): (W1 [k, 32] with the input scales folded in, b1 [32], W2 [32, 32], b2, w_detect - w_miss
-        [32, 1], b_detect - b_miss), kept while the parameters and input scales are unchanged
-        (:meth:`_parameter_key`)."""
+        output unit) with its values (:func:`pemviz.core.exact.scaled_grid`): (W1 [k, 32] with the input scales folded
+        in, W2 [32, 32], w_detect - w_miss [32, 1], then the biases b1 [32, 1], b2 [32, 1], b_detect - b_miss), kept
+        while the parameters and input scales are unchanged (:meth:`_parameter_key`)."""
         if self._module is None and self._arrays is None:
             self._to_torch()  # never initialised: torch's default initialisation, as before
         cached = self.__dict__.get("_sampling_cache")
@@ -238,14 +238,8 @@ class Proposal:
         w2 = w2.T
         w3 = (w[1] - w[0])[:, None]
         b1, b2, b3 = b1.copy(), b2.copy(), float(b[1] - b[0])
-        weights = (
-            exact.on_grid(w1, exact.grid_bits(w1.shape[0]), 0),
-            b1,
-            exact.on_grid(w2, exact.grid_bits(w2.shape[0]), 0),
-            b2,
-            exact.on_grid(w3, exact.grid_bits(w3.shape[0]), 0),
-            b3,
-        )
+        grids = [exact.on_grid(w, exact.grid_bits(w.shape[0]), 0) for w in (w1, w2, w3)]
+        weights = tuple((g, exact.scaled_grid(g)) for g in grids) + (b1[:, None], b2[:, None], b3)
         held = () if self._module is None else tuple(p.untyped_storage() for p in self._module.net.parameters())
         self.__dict__["_sampling_cache"] = (key, weights, held)
         return weights
@@ -354,16 +348,17 @@ def _distinct_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
 
 def _network_logit(x: np.ndarray, weights: tuple) -> np.ndarray:
     """The logit of :meth:`Proposal.detect_logit`, float64 [N], of inputs x [N, k] and the weights of
-    :meth:`Proposal._sampling_weights`: three products on grids (:func:`pemviz.core.exact.matmul`), each row's from
-    its own inputs alone."""
-    w1, b1, w2, b2, w3, b3 = weights
-    a = exact.matmul(x, None, w1)
+    :meth:`Proposal._sampling_weights`: three products on grids, each row's from its own inputs alone, computed on the
+    transposed activations [32, N] (:func:`pemviz.core.exact.matmul_t`, the bits of
+    :func:`pemviz.core.exact.matmul`)."""
+    (g1, t1), (g2, t2), (g3, t3), b1, b2, b3 = weights
+    a = exact.matmul_t(x.T.copy(), g1, t1, own=True)  # a copy of its own, C-contiguous
     a += b1
     np.maximum(a, 0.0, out=a)
-    a = exact.matmul(a, None, w2, nonneg=True)
+    a = exact.matmul_t(a, g2, t2, nonneg=True, own=True)
     a += b2
     np.maximum(a, 0.0, out=a)
-    return exact.matmul(a, None, w3, nonneg=True)[:, 0] + b3
+    return exact.matmul_t(a, g3, t3, nonneg=True, own=True)[0] + b3
 
 
 class StateProposal(Proposal):

@@ -50,9 +50,9 @@ class ScoredTarget(ErrorModelOf):
             self._asked = []
             return None
         out = np.empty((len(self.extras) + 1, n, n_steps, n_objects))
-        for first, row, m in groups:
-            for t in range(n_steps):
-                for k, logit in enumerate(asked[first + t]):
-                    out[k, row : row + m, t] = logit.reshape(m, n_objects)
+        for first, row, m in groups:  # each detector's T asks of a group stacked [T, m M], copied in once
+            for k in range(out.shape[0]):
+                block = np.stack([asked[first + t][k] for t in range(n_steps)])
+                out[k, row : row + m] = block.reshape(n_steps, m, n_objects).transpose(1, 0, 2)
         del asked[:used]
         return out[1:], out[0]

@@ -52,6 +52,40 @@ def test_a_product_on_grids_is_the_rational_product_of_the_rounded_operands(m, k
         np.testing.assert_array_equal(exact.matmul(a[i : i + 1], b), got[i : i + 1])
 
 
+@pytest.mark.parametrize(
+    "a_exp, b_exp, fast",
+    [
+        ((-8, 8), 0, True),
+        ((-900, -400), -560, True),
+        ((400, 900), 500, True),
+        ((-1074, 0), 0, False),
+        ((0, 8), -1060, False),
+    ],
+)
+@pytest.mark.parametrize("k, n, nonneg", [(4, 32, False), (32, 32, True), (32, 1, True), (1, 32, False)])
+def test_the_transposed_product_gives_the_products_bits_from_the_normal_range_to_the_subnormals(
+    a_exp, b_exp, fast, k, n, nonneg
+):
+    # matmul_t computes (a @ b).T with b's integers times its column powers of two and one multiply per row: the same
+    # bits as matmul's integer product scaled by 2^(ea + eb), also where results round into the subnormals (b at
+    # 2^-560 and rows at 2^-900) or overflow, and by matmul itself where a row's or a column's power of two leaves
+    # the range the multiplies need
+    rng = np.random.default_rng(k + n)
+    a = rng.normal(size=(300, k)) * 2.0 ** rng.integers(*a_exp, size=(300, 1))
+    a[:40] = 0.0
+    a = np.abs(a) if nonneg else a
+    grid = exact.on_grid(rng.normal(size=(k, n)) * 2.0**b_exp, exact.grid_bits(k), 0)
+    shift = exact.grid_bits(k) - np.frexp(np.abs(a).max(axis=1))[1]
+    taken = exact.scaled_grid(grid) is not None and -1022 <= shift.min() and shift.max() <= 1022
+    with np.errstate(over="ignore", invalid="ignore"):
+        want = exact.matmul(a, None, grid, nonneg)
+        got = exact.matmul_t(a.T.copy(), grid, exact.scaled_grid(grid), nonneg, own=True)
+    assert taken == fast and got.shape == (n, 300)
+    assert np.array_equal(got.T.view(np.int64), want.view(np.int64))
+    if b_exp == -560:  # results below the normal range, rounded once
+        assert ((want != 0) & (np.abs(want) < 2.0**-1022)).any()
+
+
 def test_a_sum_on_a_grid_is_exact_in_any_order():
     rng = np.random.default_rng(3)
     x = rng.normal(size=(5000, 3)) * np.array([1e-8, 1.0, 1e8])
