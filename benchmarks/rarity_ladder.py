@@ -219,7 +219,7 @@ RUNGS: tuple[Rung, ...] = (
         "1.7e-7 at 22.25 m), while at 22.5 m a slower lane change raises it, the tilt giving 1.2e-6 and 4.1e-7 at "
         "cut_in_lateral_time_s=1.05 (seeds 0, 1), 4.0e-7 to 2.0e-6 at 1.1 (seeds 0-5: geometric mean 9.7e-7, p >= "
         "5.9e-7 at 95 %, Markov), and 5.8e-5 at 1.2 with the gap 22.125 m (seed 0); splitting by the same committor "
-        "1.3e-7 and 7.2e-8 (seeds 0, 1): x9.9 below",
+        "1.3e-7, 7.2e-8 and 2.4e-7 (seeds 0-2): x7.4 below",
         "plain Monte Carlo at 5 % needs 400 failures, 4e8 rollouts at 1e-6: "
         + CUT_IN_MC.format("cut_in_gap_m=22.5 --param cut_in_lateral_time_s=1.1", "400000000 --chunk 1000000")
         + ": about 38 core-hours at 2,900 rollouts/s",
