@@ -212,15 +212,16 @@ RUNGS: tuple[Rung, ...] = (
     Rung(
         "cut-in-1e-6",
         "cut-in",
-        ("cut_in_gap_m=22.125",),
+        ("cut_in_gap_m=22.5", "cut_in_lateral_time_s=1.1"),
         -6,
         None,
-        "NOT located: p falls by steps in the gap, the tilt giving 4.0e-6 and 4.2e-6 at 21.5 and 22 m "
-        "(docs/cut-in.md), 5.2e-6 and 5.3e-6 at 22.125 m (seeds 0, 1 of this ladder) and 1.7e-7 at 22.25 m "
-        "(one run, seed 1): the step from about 5e-6 to about 2e-7 lies between 22.125 and 22.25 m, and no gap "
-        "off it gives 1e-6",
+        "the cut-in car's lane-change time is the second knob: the gap alone moves p by steps (about 5e-6 at 22.125 m, "
+        "1.7e-7 at 22.25 m), while at 22.5 m a slower lane change raises it, the tilt giving 1.2e-6 and 4.1e-7 at "
+        "cut_in_lateral_time_s=1.05 (seeds 0, 1), 4.0e-7 to 2.0e-6 at 1.1 (seeds 0-5: geometric mean 9.7e-7, p >= "
+        "5.9e-7 at 95 %, Markov), and 5.8e-5 at 1.2 with the gap 22.125 m (seed 0); splitting by the same committor "
+        "1.3e-7, 7.2e-8 and 2.4e-7 (seeds 0-2): x7.4 below",
         "plain Monte Carlo at 5 % needs 400 failures, 4e8 rollouts at 1e-6: "
-        + CUT_IN_MC.format("cut_in_gap_m=22.125", "400000000 --chunk 1000000")
+        + CUT_IN_MC.format("cut_in_gap_m=22.5 --param cut_in_lateral_time_s=1.1", "400000000 --chunk 1000000")
         + ": about 38 core-hours at 2,900 rollouts/s",
     ),
     Rung(
