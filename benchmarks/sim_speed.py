@@ -22,7 +22,8 @@ is low (``uptime``). Run from the repository root:
 
     python benchmarks/sim_speed.py              # everything (~2-3 minutes)
     python benchmarks/sim_speed.py --quick      # parts 1-3 and 5, the highway-env split skipped
-    python benchmarks/sim_speed.py --quick --highway-rollouts 10 --batched-rollouts 2000 --million 20000  # ~20 s
+    python benchmarks/sim_speed.py --quick --highway-rollouts 10 --batched-rollouts 2000 --million 20000 \
+        --mc-rollouts 2000 20000  # ~20 s
     python benchmarks/sim_speed.py --cut-in [--before /tmp/before] [--repeat 2]   # part 5 only (~1-2 minutes)
 """
 
@@ -50,8 +51,14 @@ TARGET_RUN_S = 10.0
 TARGET_CUT_IN_RATIO = 14.0
 """Part 5: braking's plain Monte Carlo rollouts/s over the cut-in's, at most (about 69 before the cut-in's detector
 evaluated each head once per step)."""
-CUT_IN_MC = ["run", "--scenario", "cut-in", "--method", "mc", "--n", "20000", "--no-record"]
-BRAKING_MC = ["run", "--method", "mc", "--n", "200000", "--no-record"]
+CUT_IN_MC_N, BRAKING_MC_N = 20_000, 200_000
+"""Part 5's rollouts: ``pemviz run --scenario cut-in --method mc --n 20000`` and ``pemviz run --method mc --n 200000``
+(``--mc-rollouts CUT_IN BRAKING``; fewer measure the start-up more than the rollouts)."""
+
+
+def mc_command(scenario: str, n: int) -> list[str]:
+    """The ``pemviz`` arguments of part 5's plain Monte Carlo run of ``n`` rollouts on ``scenario``."""
+    return ["run", "--scenario", scenario, "--method", "mc", "--n", str(n), "--no-record"]
 
 
 def load() -> str:
@@ -325,16 +332,19 @@ def mc_rate(args: list[str], tree: Path | None = None) -> tuple[float, int, floa
     return n / seconds, n, seconds
 
 
-def cut_in_vs_braking(before: Path | None, repeat: int) -> list[float]:
-    """Print part 5 for this code (and ``before``'s): each repeat runs braking's then the cut-in's command. Returns
-    this code's ratios (braking's rollouts/s over the cut-in's), one per repeat."""
+def cut_in_vs_braking(
+    before: Path | None, repeat: int, n_cut_in: int = CUT_IN_MC_N, n_braking: int = BRAKING_MC_N
+) -> list[float]:
+    """Print part 5 for this code (and ``before``'s): each repeat runs braking's then the cut-in's command
+    (``n_braking``, ``n_cut_in`` rollouts). Returns this code's ratios (braking's rollouts/s over the cut-in's), one
+    per repeat."""
     print(f"5. plain Monte Carlo, cut-in against braking, fresh processes ({load()})")
     trees = [("after", None)] if before is None else [("before", before), ("after", None)]
     ratios = []
     for _ in range(repeat):
         for label, tree in trees:
-            braking, nb, sb = mc_rate(BRAKING_MC, tree)
-            cut_in, nc, sc = mc_rate(CUT_IN_MC, tree)
+            braking, nb, sb = mc_rate(mc_command("braking", n_braking), tree)
+            cut_in, nc, sc = mc_rate(mc_command("cut-in", n_cut_in), tree)
             ratio = braking / cut_in
             ratios += [ratio] if tree is None else []
             print(
@@ -362,6 +372,14 @@ def main() -> None:
         help="part 5 also for the code of this directory (a git worktree), run first",
     )
     parser.add_argument("--repeat", type=int, default=1, help="part 5's measurements per code")
+    parser.add_argument(
+        "--mc-rollouts",
+        type=int,
+        nargs=2,
+        default=[CUT_IN_MC_N, BRAKING_MC_N],
+        metavar=("CUT_IN", "BRAKING"),
+        help="part 5's plain Monte Carlo rollouts on the cut-in and on braking",
+    )
     parser.add_argument("--million-child", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.million_child is not None:
@@ -370,7 +388,7 @@ def main() -> None:
     os.environ.setdefault("RERUN_ANALYTICS", "false")
     print(f"start: {load()}")
     if args.cut_in:
-        cut_in_vs_braking(args.before, args.repeat)
+        cut_in_vs_braking(args.before, args.repeat, *args.mc_rollouts)
         print(f"end: {load()}")
         return
     rollouts_per_second(args.highway_rollouts, args.batched_rollouts, args.seed)
@@ -379,7 +397,7 @@ def main() -> None:
         time_split(sim)
     if not args.quick:
         commands(not args.no_mc_million)
-    cut_in_vs_braking(args.before, args.repeat)
+    cut_in_vs_braking(args.before, args.repeat, *args.mc_rollouts)
     print(f"end: {load()}")
 
 

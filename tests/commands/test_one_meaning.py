@@ -53,7 +53,7 @@ def test_braking_console_uses_one_meaning_per_word(capsys):
 
 @pytest.mark.slow
 def test_cut_in_console_uses_one_meaning_per_word(capsys):
-    text = _console(capsys, "--scenario", "cut-in")
+    text = _console(capsys, "--scenario", "cut-in", "--n", "600")  # the default tilt, a twelfth of its rollouts
     _check(text, "clearance", 0.0)
     assert "why: the most likely failure (stage " in text
     assert "\n  clearance < 0 m  " in text and "(contact)" not in text

@@ -58,11 +58,12 @@ def test_the_score_is_the_nominal_continuation_s_robustness():
 
 @pytest.mark.slow
 def test_splitting_on_the_look_ahead_is_unbiased_with_a_good_and_a_poor_score(crowd):
-    """The mean of 24 estimates is within 0.2 + 4 standard errors of the exact p, whether every step is scored
+    """The mean of 12 estimates is within 0.2 + 4 standard errors of the exact p, whether every step is scored
     (stride 1) or only every second (a deliberately poor score: the levels skip steps, particles tie and die out more
-    often); the poor one spreads more."""
-    good = _ratios(crowd, range(24), 100, 1)
-    poor = _ratios(crowd, range(24), 100, 2)
+    often); the poor one spreads more. Seeds 0-11 give mean ratios 1.30 (standard error 0.26) with the good score and
+    0.96 (0.59) with the poor one; good estimates halved or doubled fail the median check, as with 24 seeds."""
+    good = _ratios(crowd, range(12), 100, 1)
+    poor = _ratios(crowd, range(12), 100, 2)
     for ratios in (good, poor):
         se = ratios.std(ddof=1) / math.sqrt(ratios.size)
         assert abs(ratios.mean() - 1.0) <= 0.2 + 4.0 * se, ratios
@@ -111,22 +112,3 @@ def test_splitting_on_the_look_ahead_lands_near_the_crossing_reference(capsys):
     mu, line = _final_line(capsys.readouterr().out)
     assert 2.98e-4 / 2 <= mu <= 2 * 2.98e-4, line
     assert "doubtful (AMS: " in line and "above the lower bound" in line
-
-
-@pytest.mark.slow
-def test_the_crossing_default_is_the_default_sampler_then_plain_monte_carlo_to_a_20_percent_interval(capsys):
-    """``pemviz run --scenario crossing``: the cross-entropy stages, whose weights back no interval on this stack (nor
-    their retry's at N = 400), then plain Monte Carlo until its interval's relative half-width is 20 %: a
-    ``reliable`` interval holding the reference."""
-    from pemviz.cli import main
-
-    assert (
-        main(["run", "--scenario", "crossing", "--no-record", "--seed", "0"]) == 0
-    )  # its default: --plain-fallback 500
-    out = capsys.readouterr().out
-    mu, line = _final_line(out)
-    assert "reliable" in line and "inside the interval" in line, line
-    assert "plain Monte Carlo after the stages, whose weights backed no interval (unreliable): 110 failures" in out
-    assert "target reached: the interval's relative half-width 0.192 <= 0.2 after 304,871 simulations" in out
-    assert "the stages once more at N = 400 from a stream of their own, the first run's weights backing" in out
-    assert "from 312071 simulations" in out  # 2,100 + the retry's 5,100 + 304,871 plain rollouts

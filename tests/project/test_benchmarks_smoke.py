@@ -38,7 +38,7 @@ def number(pattern: str, text: str) -> float:
 
 def test_sim_speed_quick_prints_every_part_it_runs():
     """Parts 1-3 and 5 (``--quick``; part 3 wraps the run's functions where they are looked up now, so a moved
-    function stops it with an AttributeError), at small sizes."""
+    function stops it with an AttributeError), at small sizes (part 5: a tenth of its plain Monte Carlo rollouts)."""
     out = run_benchmark(
         "sim_speed.py",
         "--quick",
@@ -47,6 +47,9 @@ def test_sim_speed_quick_prints_every_part_it_runs():
         "--batched-rollouts",
         "2000",
         "--million",
+        "20000",
+        "--mc-rollouts",
+        "2000",
         "20000",
         timeout=240,
     )

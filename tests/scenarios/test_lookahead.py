@@ -12,12 +12,11 @@ import numpy as np
 import pytest
 from scipy.special import log_expit, logsumexp
 
+from pemviz.cli import main
 from pemviz.pem.store import load_pem
 from pemviz.scenarios.braking.batched import replay
 from pemviz.scenarios.braking.lookahead import log_exceedance_after, start_steps
 from pemviz.scenarios.braking.simulator import BrakingParams
-
-from conftest import run_cli
 
 
 def brute_force(p: BrakingParams, logit_at_gap, prefix: np.ndarray, level: float) -> float:
@@ -59,28 +58,15 @@ def test_start_steps_are_the_first_below_the_gap():
     assert start_steps(gaps, 6.0).tolist() == [2, 4, 0]
 
 
-def test_a_run_that_targets_contact_is_right_and_its_file_re_estimates_to_it(tmp_path):
+def test_a_run_that_targets_contact_is_right_and_its_file_re_estimates_to_it(tmp_path, capsys):
     """`pemviz run --margin 0 --seed 0 --plain-fallback 0` at the default budget: within x1.5 of the exact 8.058e-33
     with the exact answer inside its interval, capped at doubtful; before the look-ahead the same run gave 3.9e-33 (ESS
     1.4). (Without the flag, plain Monte Carlo follows the doubtful stages: a million rollouts with no failure at
     8e-33, the same answer.)"""
     out = tmp_path / "contact.parquet"
-    proc = run_cli(
-        "run",
-        "--margin",
-        "0",
-        "--seed",
-        "0",
-        "--plain-fallback",
-        "0",
-        "--no-record",
-        "--save-rollouts",
-        str(out),
-        "--json",
-        str(tmp_path / "result.json"),
-        cwd=tmp_path,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    argv = ["run", "--margin", "0", "--seed", "0", "--plain-fallback", "0", "--no-record", "--save-rollouts", str(out)]
+    assert main([*argv, "--json", str(tmp_path / "result.json")]) == 0  # in this process: the command, not its start
+    stdout = capsys.readouterr().out
     doc = json.loads((tmp_path / "result.json").read_text())
     log_mu, (lo, hi), exact = doc["estimate"]["log_p"], doc["estimate"]["log_ci95"], doc["exact"]["log_p"]
     assert exact == pytest.approx(np.log(8.0581e-33), abs=1e-4)
@@ -89,13 +75,12 @@ def test_a_run_that_targets_contact_is_right_and_its_file_re_estimates_to_it(tmp
     assert doc["estimate"]["interval"] == "lower_bound95" and hi is None
     assert abs(log_mu - exact) < np.log(1.5) and lo <= exact and lo == doc["estimate"]["log_lower_bound95"]
     # no stage's row claims more: stage 5 of seed 1 said reliable at x0.68 with the exact answer outside its interval
-    rows = [ln for ln in proc.stdout.splitlines() if re.match(r"\s+\d+\s+(pretrain|ce|final)\s", ln)]
+    rows = [ln for ln in stdout.splitlines() if re.match(r"\s+\d+\s+(pretrain|ce|final)\s", ln)]
     assert len(rows) == 12 and not any(re.search(r"\sreliable\s+[0-9.]+$", ln) for ln in rows), rows
-    assert "look-ahead: each rollout weighs up to the state" in proc.stdout
-    again = run_cli("estimate", str(out), "--no-record", cwd=tmp_path)
-    assert again.returncode == 0, again.stderr[-2000:]
-    line = next(ln for ln in again.stdout.splitlines() if ln.startswith("mu_hat = ") and "CI" in ln)
-    run_line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("mu_hat = ") and "CI" in ln)
+    assert "look-ahead: each rollout weighs up to the state" in stdout
+    assert main(["estimate", str(out), "--no-record"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("mu_hat = ") and "CI" in ln)
+    run_line = next(ln for ln in stdout.splitlines() if ln.startswith("mu_hat = ") and "CI" in ln)
     assert line.split(",")[0] == run_line.split(",")[0]
 
 
