@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-BROWSER_TESTS = ["tests/app/test_app.py"]
+BROWSER_TESTS = ["tests/app/test_app.py", "tests/app/test_app_explain.py"]
 BUSY = "while True: pass"
 
 
@@ -86,7 +86,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--first", type=int, default=1, help="number of the first run (to continue a streak)")
     ap.add_argument("--keep-going", action="store_true", help="go on after a failing run")
     ap.add_argument("--log-dir", type=Path, default=Path("/tmp/browser_streak"), help="pytest output per run")
-    ap.add_argument("tests", nargs="*", default=BROWSER_TESTS, help="test files (default: tests/app/test_app.py)")
+    ap.add_argument(
+        "tests",
+        nargs="*",
+        default=BROWSER_TESTS,
+        help="test files (default: tests/app/test_app.py and test_app_explain.py)",
+    )
     args = ap.parse_args(argv)
     args.log_dir.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "RERUN_ANALYTICS": "false"}

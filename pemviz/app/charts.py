@@ -128,16 +128,20 @@ def _stage_batch(record: PanelRun, stage: int) -> Any:
 
 
 def _view_stages(record: PanelRun) -> list[tuple[int, str, ProposalView]]:
-    """(stage, name, view) of the stages drawn by a sampler other than the PEM's pretraining, in order."""
+    """(stage, name, view) of the stages drawn by a sampler other than the PEM's pretraining, in order. Each name is
+    the chart's legend entry, so no two are alike: ``stage 3``, ``final batch``; a run whose stages ran once more (a
+    retry) has two final batches, each named with its stage (``final batch (stage 4)``, ``final batch (stage 9)``)."""
     with record.lock:
         views = dict(record.proposal_views)
-    out = []
-    for stage in sorted(views):
-        kind, view = views[stage]
-        if kind == "pretrain":
-            continue  # pretraining rollouts are the PEM's own: q = p
-        out.append((stage, "final batch" if kind == "final" else f"stage {stage}", view))
-    return out
+    drawn = [(stage, *views[stage]) for stage in sorted(views) if views[stage][0] != "pretrain"]  # pretraining: q = p
+    n_final = sum(kind == "final" for _, kind, _ in drawn)
+
+    def name(stage: int, kind: str) -> str:
+        if kind != "final":
+            return f"stage {stage}"
+        return "final batch" if n_final == 1 else f"final batch (stage {stage})"
+
+    return [(stage, name(stage, kind), view) for stage, kind, view in drawn]
 
 
 def marginal_note(record: PanelRun | None) -> str:

@@ -32,8 +32,10 @@ def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, brow
     for tab in open_tab(browser, app):
         assert "my-car" in tab.session.choices["scenario"].options
         tab.choose("scenario", "my-car")
-        record = tab.run(TINY, timeout=120)
-        assert record.config.scenario == "my-car"
+        # the stages alone, no retry and no plain Monte Carlo after them: the choice, the run and the exact answer
+        # beside its estimate are what this test checks, not the estimate (2.9e-5 is rarely hit in 170 rollouts)
+        record = tab.run({**TINY, "plain fallback": "0"}, timeout=120)
+        assert record.config.scenario == "my-car" and record.config.adaptive.plain_fallback == 0
         assert math.exp(record.exact_log_p) == pytest.approx(2.8576e-5, rel=1e-3)
         wait_until(
             lambda: ("exact answer 2.8576e-05" in tab.page.inner_text("body")),  # noqa: B023 (called within the iteration)
@@ -55,8 +57,8 @@ def test_the_panel_lists_and_runs_a_registered_method_of_ones_own(defensive_mc, 
         tab.choose("method", "defensive-mc")
         expect(tab.field("eps")).to_have_value("0.3")
         expect(tab.field("coin radius m")).to_have_value("")
-        record = tab.run({"N": "400", "eps": "0.2"}, timeout=120)
-        assert record.config.method == "defensive-mc" and record.config.n_per_stage == 400
+        record = tab.run({"N": "100", "eps": "0.2"}, timeout=120)
+        assert record.config.method == "defensive-mc" and record.config.n_per_stage == 100
         assert record.config.flat()["coin_share"] == 0.2 and "eps 0.2" in record.label  # its own setting, run
         tab.choose("method", "mc")  # another method: the fields go
         expect(tab.field("eps")).to_have_count(0)

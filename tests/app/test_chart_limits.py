@@ -393,3 +393,38 @@ def test_a_median_beyond_12_nats_is_drawn_at_the_edge_of_the_log_odds_chart():
     )
     line = odds.data[labels(odds).index("stage 1")]
     assert_drawn_in_place(view.q_log_odds, line, lo, hi)
+
+
+def test_a_run_with_a_retry_names_each_final_batch_once_in_the_legend():
+    """K 3 and a retry: stages 1-3 and the final batch 4, then the stages once more (6-8) and their final batch 9.
+    Each stage drawn is one legend entry of its own; the two final batches are told apart by their stage."""
+    gap = np.tile(np.linspace(9.0, 3.0, 60), (30, 1))
+    record, view = view_record(gap, np.full(gap.shape, 0.5))
+    record.proposal_views = {
+        0: ("pretrain", view),
+        **{k: ("ce", view) for k in (1, 2, 3, 6, 7, 8)},
+        4: ("final", view),
+        5: ("pretrain", view),
+        9: ("final", view),
+    }
+    m = {charts.PROB: handle(), charts.LOG_ODDS: handle()}
+    charts.fill_marginal_plots(m, record)
+    for plot in m.values():
+        names = labels(plot)
+        stages = [n for n in names if n.startswith(("stage ", "final batch")) and "%" not in n and "," not in n]
+        assert stages == [
+            "stage 1",
+            "stage 2",
+            "stage 3",
+            "final batch (stage 4)",
+            "stage 6",
+            "stage 7",
+            "stage 8",
+            "final batch (stage 9)",
+        ]
+        assert len(set(names)) == len(names), names  # no legend entry twice
+        assert "final batch (stage 9) 10 %" in names  # the newest stage's band
+    # a run without a retry keeps the one final batch's short name
+    record.proposal_views = {1: ("ce", view), 2: ("final", view)}
+    charts.fill_marginal_plots(m, record)
+    assert "final batch" in labels(m[charts.PROB]) and "final batch (stage 2)" not in labels(m[charts.PROB])

@@ -1,7 +1,7 @@
 """Every screenshot of the README and the user guide is made by a command of one table (``SCREENSHOTS`` in
 ``benchmarks/screenshots.py``, run by ``python benchmarks/docs_assets.py --screenshots``) and listed in
 ``assets/screenshots/MANIFEST.md`` with that command; the generation itself is checked, not the pixels: the cheapest
-panel and recording screenshots of the table are made into a temporary folder, small (about 40 s on 2 cores)."""
+panel and recording screenshots of the table are made into a temporary folder, small (two small runs)."""
 
 from __future__ import annotations
 
@@ -14,11 +14,16 @@ from conftest import REPO, load_script
 
 shots = load_script(REPO / "benchmarks" / "screenshots.py")
 CHEAPEST = {
-    "viser_panel.png": ("--width", "800", "--height", "500"),
-    "rerun_recording.png": ("--width", "800", "--height", "500", "--min-wait", "3", "--max-wait", "60"),
+    "viser_panel.png": ("--width", "800", "--height", "500", "--k", "2", "--set", "N=40", "--set", "N_e=60"),
+    "rerun_recording.png": ("--width", "800", "--height", "500", "--min-wait", "3", "--max-wait", "60", "--rrd"),
 }
 """The cheapest panel and recording screenshot of the table (one command each: a quick run; the recording's own tab,
-no blueprint), and what the check adds to its command: a small window, a short wait."""
+no blueprint), and what the check adds to its command: a small window, a short wait, a run of two small stages typed
+into the panel's form; the recording screenshot shows a small run's recording (``--rrd``, :data:`SMALL_RUN`, followed
+by its path) instead of recording ``pemviz run``'s defaults first."""
+SMALL_RUN = ("run", "--preset", "quick", "--k", "2", "--n", "30", "--n-final", "40", "--ce-epochs", "5", "--seed", "3")
+"""A recording of a second (``pemviz run`` ARGS ``--save PATH``, in-process): what the screenshot shows is the
+viewer drawing a pemviz recording, whatever its size."""
 REFERENCE = re.compile(r"(?:assets/)?screenshots/([\w.-]+\.png)")
 
 
@@ -56,6 +61,14 @@ def test_the_cheapest_screenshots_of_the_table_are_made(image, tmp_path) -> None
     pytest.importorskip("playwright.sync_api", reason="the Python playwright package is not installed")
     shot = shots.by_image()[image]
     assert shot.images == (image,) and len(shot.commands) == 1, "the check runs one command that makes one image"
-    (png,) = shots.run_shot(shot, out=tmp_path, extra=CHEAPEST[image], timeout=240, quiet=True)
+    extra = CHEAPEST[image]
+    if extra[-1] == "--rrd":
+        from pemviz import cli
+
+        small = tmp_path / "run" / "small.rrd"
+        small.parent.mkdir()
+        assert cli.main([*SMALL_RUN, "--save", str(small)]) == 0
+        extra = (*extra, str(small))
+    (png,) = shots.run_shot(shot, out=tmp_path, extra=extra, timeout=240, quiet=True)
     assert png == tmp_path / image and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     assert not list(tmp_path.glob("*.partial.png"))
