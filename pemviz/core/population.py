@@ -147,8 +147,8 @@ def failure_groups(shares: FailureShares, keys: Sequence[Hashable], labels: dict
         raise ValueError(f"failure_groups: {len(keys)} keys for {shares.n} failures")
     if not len(keys):
         return []
-    code_of: dict[Hashable, int] = {}  # each key's number, in the order of its first failure
-    codes = np.fromiter((code_of.setdefault(k, len(code_of)) for k in keys), dtype=np.intp, count=len(keys))
+    code_of = {k: i for i, k in enumerate(dict.fromkeys(keys))}  # each key's number, in the order of its first failure
+    codes = np.fromiter(map(code_of.__getitem__, keys), dtype=np.intp, count=len(keys))
     by_code = np.split(np.argsort(codes, kind="stable"), np.cumsum(np.bincount(codes, minlength=len(code_of)))[:-1])
     groups = [
         FailureGroup(
