@@ -396,7 +396,9 @@ def log_failures(stream: rr.RecordingStream, grouping: FailureGrouping, problem:
     stream.log(
         "failures", rr.TextDocument(population_markdown(grouping), media_type=rr.MediaType.MARKDOWN), static=True
     )
-    sev = failures_severity(f, list(grouping.found), problem)
+    sampled = {x[0].stage: x[0] for x in grouping.found if x is not None}
+    rows = np.array([-1 if x is None else x[1] for x in grouping.found], dtype=np.int64)
+    sev = failures_severity(f, sampled, problem, rows)
     aligned: dict[str, Any] = (
         {} if sev is None else {"min_distance": sev.min_distance, "impact_speed": sev.impact_speed}
     )
