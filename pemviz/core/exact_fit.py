@@ -72,6 +72,7 @@ def fit_exact(
     m_rows = h.shape[0]
     bits = exact.grid_bits(max(m_rows, 32))  # each operand's bits, for the products over 32 units and over M rows
     hi, sh = exact.to_grid(h, bits)  # the inputs are fixed: on their grid once
+    one_input, ones = h.shape[1] == 1, np.ones(m_rows)
     beta1, beta2, eps = 0.9, 0.999, 1e-8
     beta1_t = beta2_t = 1.0
     exp_avg, exp_avg_sq = np.zeros_like(flat), np.zeros_like(flat)
@@ -80,7 +81,7 @@ def fit_exact(
         if check is not None and epoch % check_every == 0:
             check()  # may raise to stop the run (a cancel token)
         w1i, s1 = exact.to_grid(w1.T, bits)
-        a1 = hi @ w1i
+        a1 = hi * w1i if one_input else hi @ w1i  # one input: the outer product, each entry one exact product
         a1 *= sh * s1
         a1 += b1
         np.maximum(a1, 0.0, out=a1)
@@ -109,13 +110,13 @@ def fit_exact(
         dz2i, sz2 = exact.to_grid(dz2, bits)
         sz2 *= sdd * sd
         g_w2[...] = (dz2i.T @ a1i) * (sz2 * sa1)
-        g_b2[...] = dz2i.sum(axis=0) * sz2
+        g_b2[...] = (ones @ dz2i) * sz2  # integers below 2^53: exact in any order
         dz1 = dz2i @ w2i
         dz1 *= a1 > 0
         dz1i, sz1 = exact.to_grid(dz1, bits)
         sz1 *= sz2 * s2
         g_w1[...] = (dz1i.T @ hi) * (sz1 * sh)
-        g_b1[...] = dz1i.sum(axis=0) * sz1
+        g_b1[...] = (ones @ dz1i) * sz1
         beta1_t *= beta1
         beta2_t *= beta2
         exp_avg *= beta1

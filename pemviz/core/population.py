@@ -145,17 +145,19 @@ def failure_groups(shares: FailureShares, keys: Sequence[Hashable], labels: dict
     """
     if len(keys) != shares.n:
         raise ValueError(f"failure_groups: {len(keys)} keys for {shares.n} failures")
-    members: dict[Hashable, list[int]] = {}
-    for rank, key in enumerate(keys):
-        members.setdefault(key, []).append(rank)
+    if not len(keys):
+        return []
+    code_of = {k: i for i, k in enumerate(dict.fromkeys(keys))}  # each key's number, in the order of its first failure
+    codes = np.fromiter(map(code_of.__getitem__, keys), dtype=np.intp, count=len(keys))
+    by_code = np.split(np.argsort(codes, kind="stable"), np.cumsum(np.bincount(codes, minlength=len(code_of)))[:-1])
     groups = [
         FailureGroup(
             key,
             (labels or {}).get(key, str(key)),
-            len(ranks),
+            int(ranks.size),
             float(np.exp(logsumexp(shares.log_share[ranks]))),
-            ranks[0],
+            int(ranks[0]),
         )
-        for key, ranks in members.items()
+        for key, ranks in zip(code_of, by_code, strict=True)
     ]
     return sorted(groups, key=lambda g: (-g.share, g.first))

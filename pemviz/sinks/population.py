@@ -71,32 +71,55 @@ class FailureGrouping:
         return self.labels.get(key, str(key))
 
 
-def locate(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]) -> list[tuple[RolloutsSampled, int] | None]:
-    """Per failure (in ``shares`` order), its stage's :class:`RolloutsSampled` and its row in the batch, or None where
-    the stage was not kept or kept only a sample without it (one dictionary per stage: linear in the failures)."""
-    rows_of: dict[int, dict[int, int]] = {}
-    for stage, event in sampled.items():
-        index = np.arange(event.batch.n) if event.index is None else np.asarray(event.index)
-        rows_of[stage] = dict(zip(index.tolist(), range(index.size), strict=False))
-    found: list[tuple[RolloutsSampled, int] | None] = []
-    for stage, index in zip(shares.stage.tolist(), shares.index.tolist(), strict=False):
-        row = rows_of.get(stage, {}).get(index)
-        found.append((sampled[stage], row) if row is not None else None)
-    return found
+def locate_rows(shares: FailureShares, sampled: Mapping[int, RolloutsSampled]) -> np.ndarray:
+    """int64 [F]: per failure (in ``shares`` order), its row in its stage's batch, -1 where the stage was not kept or
+    kept only a sample without it. One sort per stage: the rows' numbers sorted (stably: of a number kept twice, the
+    last row), each failure's number found by a binary search."""
+    row = np.full(shares.n, -1, dtype=np.int64)
+    stage, number = np.asarray(shares.stage), np.asarray(shares.index, dtype=np.int64)
+    for s, event in sampled.items():
+        mine = np.flatnonzero(stage == s)
+        if not mine.size:
+            continue
+        want = number[mine]
+        if event.index is None:  # the whole stage: rollout i is row i
+            ok = (want >= 0) & (want < event.batch.n)
+            row[mine[ok]] = want[ok]
+            continue
+        order = np.argsort(np.asarray(event.index, dtype=np.int64), kind="stable")
+        ranked = np.asarray(event.index, dtype=np.int64)[order]
+        at = np.searchsorted(ranked, want, side="right") - 1
+        ok = at >= 0
+        ok[ok] = ranked[at[ok]] == want[ok]
+        row[mine[ok]] = order[at[ok]]
+    return row
+
+
+def _stages_located(shares: FailureShares, rows: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """(stage, the ranks of its located failures, int [f]) per stage with one, in the order of their first failure."""
+    stage = np.asarray(shares.stage)[rows >= 0]
+    ranks = np.flatnonzero(rows >= 0)
+    if not ranks.size:
+        return []
+    kinds, first = np.unique(stage, return_index=True)
+    return [(int(s), ranks[stage == s]) for s in kinds[np.argsort(first, kind="stable")]]
 
 
 def failures_severity(
     shares: FailureShares,
-    found: list[tuple[RolloutsSampled, int] | None] | Mapping[int, RolloutsSampled],
+    sampled: Mapping[int, RolloutsSampled],
     problem: object,
+    rows: np.ndarray | None = None,
 ) -> FailureSeverity | None:
     """Each failure's min distance and impact speed (:func:`pemviz.core.severity.rollout_severity`, read from the
     rollout in its stage's batch) and their distribution by share of p.
 
     Args:
         shares: the final estimate's failures.
-        found: their rollouts (:func:`locate`), or stage -> :class:`RolloutsSampled` to locate them in.
+        sampled: stage -> :class:`RolloutsSampled` to locate them in.
         problem: the run's :class:`pemviz.core.problems.Problem`.
+        rows: int [F] their rows in their stages' batches, -1 where not located (:func:`locate_rows`; default: located
+            here).
     Returns:
         The distribution (failures not located are left out of it, their values NaN), or None where ``problem`` is
         None or has no severity scale.
@@ -106,20 +129,14 @@ def failures_severity(
     if problem is None or getattr(problem, "severity", None) is None:
         return None
     severe = cast(SeverityProblem, problem)  # a problem with a severity scale, as just checked
-    if isinstance(found, Mapping):
-        found = locate(shares, found)
+    if rows is None:
+        rows = locate_rows(shares, sampled)
     dist, speed = np.full(shares.n, np.nan), np.full(shares.n, np.nan)
-    by_stage: dict[int, tuple[RolloutsSampled, list[int], list[int]]] = {}
-    for rank, f in enumerate(found):
-        if f is not None:
-            by_stage.setdefault(f[0].stage, (f[0], [], []))[1].append(rank)
-            by_stage[f[0].stage][2].append(f[1])
-    for event, ranks, rows in by_stage.values():
-        dist[ranks], speed[ranks] = rollout_severity(severe, event.batch.select(np.asarray(rows)))
-    kept = np.array([f is not None for f in found], dtype=bool)
+    for stage, ranks in _stages_located(shares, rows):
+        dist[ranks], speed[ranks] = rollout_severity(severe, sampled[stage].batch.select(rows[ranks]))
     scale = severe.severity
     assert scale is not None  # checked above
-    return failure_severity(scale, contact_level(problem), shares.log_share, dist, speed, kept)
+    return failure_severity(scale, contact_level(problem), shares.log_share, dist, speed, rows >= 0)
 
 
 def group_failures(
@@ -145,32 +162,36 @@ def group_failures(
     Raises:
         ValueError: a failure in contact at its first step (:func:`failures_severity`).
     """
-    found = locate(shares, sampled)
+    rows = locate_rows(shares, sampled)
+    found = [(sampled[s], r) if r >= 0 else None for s, r in zip(shares.stage.tolist(), rows.tolist(), strict=False)]
     keys: list[Hashable] = [NOT_KEPT] * shares.n
-    located = {rank: f for rank, f in enumerate(found) if f is not None}
-    kept = list(located)
+    by_stage = _stages_located(shares, rows)
     labels: dict[Hashable, str] = {NOT_KEPT: "not kept (a streamed stage keeps a sample of its rollouts)"}
     basis = "nothing: this problem has no scene to replay"
     if not keys_wanted:
         basis = "nothing: not asked for"
     elif drawing is not None and hasattr(drawing, "failure_keys"):
-        rows = [located[r][0].batch.detected[located[r][1], :, 0] for r in kept]
-        detected = np.stack(rows) if rows else np.zeros((0, 0), dtype=bool)
+        kept = np.concatenate([ranks for _, ranks in by_stage]) if by_stage else np.zeros(0, np.intp)
+        if kept.size:  # each stage's rows taken at once, then put in rank order
+            parts = [sampled[s].batch.detected[rows[ranks], :, 0] for s, ranks in by_stage]
+            detected = np.concatenate(parts)[np.argsort(kept, kind="stable")]
+            kept = np.sort(kept)
+        else:
+            detected = np.zeros((0, 0), dtype=bool)
         basis, found_keys, found_labels = drawing.failure_keys(detected)
-        for rank, k in zip(kept, found_keys, strict=False):
+        for rank, k in zip(kept.tolist(), found_keys, strict=False):
             keys[rank] = k
-        labels.update({k: v for k, v in found_labels.items() if k in set(keys)})
+        present = set(keys)
+        labels.update({k: v for k, v in found_labels.items() if k in present})
     elif problem is not None:
         from pemviz.estimators.base import failure_steps
 
         basis = "the step at which the rollout fails"
-        steps: dict[int, np.ndarray] = {}
         try:
-            for rank in kept:
-                event, row = located[rank]
-                if event.stage not in steps:
-                    steps[event.stage] = failure_steps(cast("Problem", problem), event.batch)
-                keys[rank] = int(steps[event.stage][row])
+            for stage, ranks in by_stage:
+                steps = np.asarray(failure_steps(cast("Problem", problem), sampled[stage].batch))
+                for rank, k in zip(ranks.tolist(), steps[rows[ranks]].astype(np.int64).tolist(), strict=False):
+                    keys[rank] = k
             labels.update({k: f"fails at step {k}" for k in set(keys) if isinstance(k, int)})
         except ValueError:  # a formula whose failure step cannot be read: one group
             basis = "nothing: the failure step of this formula cannot be read"
@@ -184,7 +205,7 @@ def group_failures(
         tuple(keys),
         tuple(failure_groups(shares, keys, labels)),
         basis,
-        failures_severity(shares, found, problem),
+        failures_severity(shares, sampled, problem, rows),
     )
 
 
@@ -375,7 +396,9 @@ def log_failures(stream: rr.RecordingStream, grouping: FailureGrouping, problem:
     stream.log(
         "failures", rr.TextDocument(population_markdown(grouping), media_type=rr.MediaType.MARKDOWN), static=True
     )
-    sev = failures_severity(f, list(grouping.found), problem)
+    sampled = {x[0].stage: x[0] for x in grouping.found if x is not None}
+    rows = np.array([-1 if x is None else x[1] for x in grouping.found], dtype=np.int64)
+    sev = failures_severity(f, sampled, problem, rows)
     aligned: dict[str, Any] = (
         {} if sev is None else {"min_distance": sev.min_distance, "impact_speed": sev.impact_speed}
     )

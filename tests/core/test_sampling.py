@@ -489,3 +489,20 @@ def test_two_different_rows_of_one_key_are_not_taken_for_one():
     x = pair[np.arange(2 * DISTINCT_FROM) % 2]
     assert _distinct_rows(x) is None  # one key, two rows: no sharing
     assert _distinct_rows(np.ascontiguousarray(x[:, :1]))[0].size == 2  # the first column alone: two values
+
+
+@pytest.mark.parametrize("n, k", [(256, 1), (1000, 3), (8192, 2)])
+def test_distinct_rows_are_numpy_s_unique_rows(n, k):
+    from pemviz.core.sampling import _distinct_rows
+
+    rng = np.random.default_rng(n)
+    kinds = rng.normal(size=(n // 3, k)) * 50
+    kinds[1] = np.nextafter(kinds[0], np.inf)  # rows one ulp apart are two rows
+    x = np.ascontiguousarray(kinds[rng.integers(0, kinds.shape[0], n)])
+    x[:2] = kinds[:2]
+    first, inverse = _distinct_rows(x)
+    unique = np.unique(x.view(np.uint64), axis=0)
+    assert first.size == unique.shape[0] < 3 * n // 4
+    assert np.array_equal(x[first][inverse].view(np.uint64), x.view(np.uint64))
+    assert np.unique(x[first].view(np.uint64), axis=0).shape[0] == first.size  # each representative once
+    assert _distinct_rows(rng.normal(size=(n, k))) is None  # all distinct: declined
