@@ -20,7 +20,7 @@ from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / "tests")]  # this checkout's pemviz and the fuzz strategies
+sys.path[:0] = [str(REPO), str(REPO / "tests" / "stl")]  # this checkout's pemviz and the fuzz strategies
 GROUPS = {
     "test_signal_": "SIGINT / SIGTERM / SIGKILL at random points (run, estimate, --save-rollouts)",
     "test_disk_": "full disk / file too large",
@@ -41,10 +41,13 @@ def fault_cases(seeds: int) -> tuple[Counter, Counter]:
         text=True,
     )
     tried, passed = Counter(), Counter()
-    for m in re.finditer(r"^(PASSED|FAILED|ERROR|SKIPPED) tests/test_faults\.py::(\w+)", proc.stdout, re.M):
+    for m in re.finditer(r"^(PASSED|FAILED|ERROR|SKIPPED) tests/files/test_faults\.py::(\w+)", proc.stdout, re.M):
         group = next((g for p, g in GROUPS.items() if m.group(2).startswith(p)), "other")
         tried[group] += 1
         passed[group] += m.group(1) == "PASSED"
+    if not tried:  # a moved test file or a changed report format must not read as "nothing failed"
+        tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
+        raise SystemExit(f"hostile_cases.py: pytest reported no fault-injection case (exit {proc.returncode}): {tail}")
     return tried, passed
 
 

@@ -27,6 +27,15 @@ MAGIC = {".rrd": b"RRF", ".parquet": b"PAR1", ".pt": b"PK\x03\x04"}
 """Leading bytes of the files pemviz writes, by suffix: a file without them was not written by pemviz and is
 never replaced (rerun recording, Parquet table, ``torch.save`` zip archive)."""
 
+SIGNATURES = {
+    ".html": b"<title>pemviz report",
+    ".md": b"# pemviz report",
+    ".xml": b'<testsuites><testsuite name="pemviz"',
+}
+"""Text the text files pemviz writes under a name the user picks carry in their first 4 KiB, by suffix: the
+safety-case report (``--report``, ``pemviz report``), its Markdown twin and the JUnit test case (``--junit``). A file
+without it (a user's page, notes, a build's XML) is never replaced, ``--overwrite`` or not."""
+
 
 @contextlib.contextmanager
 def temp_file(path: str | os.PathLike[str]) -> Iterator[str]:
@@ -130,9 +139,9 @@ def write_rrd(
 
 
 def written_by_pemviz(path: Path) -> bool:
-    """Whether an existing file looks like one pemviz writes for its suffix (:data:`MAGIC`; a ``.json`` must be a
-    pemviz rollout sidecar or result document). Other suffixes (Markdown, CSV, LaTeX reports) cannot be told and count
-    as True."""
+    """Whether an existing file looks like one pemviz writes for its suffix (:data:`MAGIC`, :data:`SIGNATURES`; a
+    ``.json`` must be a pemviz rollout sidecar or result document). Other suffixes (CSV, LaTeX tables) cannot be told
+    and count as True."""
     try:
         with open(path, "rb") as f:
             head = f.read(4096)
@@ -140,6 +149,8 @@ def written_by_pemviz(path: Path) -> bool:
         return False
     if path.suffix in MAGIC:
         return head.startswith(MAGIC[path.suffix])
+    if path.suffix in SIGNATURES:
+        return SIGNATURES[path.suffix] in head
     if path.suffix == ".json":  # a rollout sidecar, a run's result (pemviz run --json) or an estimate's
         return any(b'"%s"' % tag in head for tag in (b"pemviz-rollouts", b"pemviz-result", b"pemviz-estimate"))
     return True

@@ -153,7 +153,8 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
     try:
         formula = stl.parse(meta.formula)
     except ValueError as exc:
-        raise RolloutFormatError(f"{name}: formula {meta.formula!r} is not valid STL: {exc}") from None
+        why = exc.brief if isinstance(exc, stl.STLSyntaxError) else exc
+        raise RolloutFormatError(f"{name}: formula {meta.formula!r} is not valid STL: {why}") from None
     return Problem(
         name,
         _no_simulator,

@@ -341,7 +341,8 @@ def _check_header(obj: Any, bad: Callable[[str], RolloutFormatError]) -> tuple[A
     try:
         stl.parse(formula)
     except ValueError as exc:
-        raise bad(f"formula {formula!r} is not valid STL: {exc}") from None
+        why = exc.brief if isinstance(exc, stl.STLSyntaxError) else exc
+        raise bad(f"formula {formula!r} is not valid STL: {why}") from None
     dt = obj["dt_s"]
     if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
         raise bad(f"dt_s must be a number of seconds > 0, got {dt!r}")

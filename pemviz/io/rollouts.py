@@ -46,6 +46,30 @@ def check_not_a_recording(path: Path) -> None:
         )
 
 
+WRITTEN_BY = "`pemviz run --save-rollouts NAME.parquet`"
+"""The command that writes rollout files, as the error messages name it."""
+
+
+def check_parquet_magic(path: Path) -> None:
+    """Refuse a file that does not start as a Parquet file does (``PAR1``; an empty one too), before its sidecar is
+    looked for: a text file or a CSV given by mistake is named as such, not as a rollout file without a sidecar.
+
+    Raises:
+        RolloutFormatError: the first four bytes are not ``PAR1``.
+    """
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError as exc:
+        raise RolloutFormatError(f"{path}: cannot be read ({exc.strerror})") from None
+    if head != b"PAR1":
+        found = "an empty file" if not head else f"it starts with {head!r}"
+        raise RolloutFormatError(
+            f"{path}: not a Parquet file ({found}); `pemviz estimate` reads the Parquet rollout file that {WRITTEN_BY} "
+            "writes"
+        )
+
+
 def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     """Read and validate a rollout file and its sidecar.
 
@@ -58,9 +82,12 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
             names the column and the rollout and step.
     """
     p = Path(path)
+    if p.is_dir():
+        raise RolloutFormatError(f"{p}: a folder, not a rollout file; give the NAME.parquet that {WRITTEN_BY} writes")
     if not p.is_file():
         raise FileNotFoundError(f"rollout file {p} not found")
     check_not_a_recording(p)
+    check_parquet_magic(p)
     meta = read_sidecar(p)
     try:
         table = pq.read_table(p)

@@ -45,6 +45,12 @@ class STLSyntaxError(ValueError):
         line = text.replace("\n", " ").replace("\t", " ")
         super().__init__(f"{message} at column {self.column}:\n  {line}\n  {' ' * position}^")
 
+    @property
+    def brief(self) -> str:
+        """The error in one line, without the text and its caret: ``MESSAGE at column N`` (for a message that quotes
+        the text itself, such as a command's one-line error)."""
+        return f"{self.message} at column {self.column}"
+
 
 @dataclass(frozen=True)
 class _Tok:

@@ -554,7 +554,7 @@ def test_writer_refuses_bad_rollouts_and_leaves_no_file(tmp_path, pem):
         rio.read_rollouts(tmp_path / "absent.parquet")
     Path(tmp_path / "junk.parquet").write_text("not parquet")
     Path(tmp_path / "junk.json").write_text(json.dumps({"formula": "G[0,99](d >= 2)", "dt_s": 0.05}))
-    with pytest.raises(rollout_format.RolloutFormatError, match="not a readable Parquet file"):
+    with pytest.raises(rollout_format.RolloutFormatError, match=r"not a Parquet file \(it starts with b'not '\)"):
         rio.read_rollouts(tmp_path / "junk.parquet")
 
 
