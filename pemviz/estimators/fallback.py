@@ -444,6 +444,16 @@ class PlainFallback(_Speaks):
         return self.answering
 
     @property
+    def decision(self) -> Any:
+        """The requirement's decision: plain Monte Carlo's where it decided one (its interval holds p whether or not
+        it saw a failure, so a met or violated requirement stands even where the answer is the stages'), else the
+        answering estimator's."""
+        plain = None if self.plain is None else extras(self.plain).decision
+        if plain is not None and plain.outcome != "undecided":
+            return plain
+        return extras(self.answering).decision
+
+    @property
     def prepared(self) -> str | None:
         return extras(self.inner).prepared
 

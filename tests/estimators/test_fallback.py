@@ -265,3 +265,26 @@ def test_pemviz_run_at_margin_0_draws_neither_retry_nor_plain_monte_carlo_and_sa
     assert "the stages not run once more" in stop[0] and "the scene caps every run of the stages at doubtful" in stop[0]
     assert "plain Monte Carlo not drawn" in stop[0] and "p = 8.058e-33 (the exact answer) expects" in stop[0]
     assert "0 failures in" not in out and "once more at N" not in out
+
+
+def test_plain_monte_carlo_s_decision_stands_where_the_answer_is_the_stages():
+    """A requirement plain Monte Carlo decided (its exact interval holds p with no failure seen) is the run's
+    decision, though its answer stays the stages' (``pemviz run --preset quick --k 1 --n 10 --require 'p < 0.5'``
+    printed ``requirement met`` and exited 3, undecided, before)."""
+    from types import SimpleNamespace
+
+    from pemviz.core.requirement import Decision
+    from pemviz.estimators.fallback import PlainFallback
+
+    met = Decision("met", 1, 0.9696, (-math.inf, math.log(4.19e-4)), "p < 0.5 holds on [0, 0.000419]")
+    undecided = Decision("undecided", 16, 0.9999, (math.log(1.7e-15), math.inf), "decides nothing")
+    run = object.__new__(PlainFallback)
+    run.inner, run.retry = SimpleNamespace(decision=undecided), None
+    no_failure = (SimpleNamespace(n_failures=0), ())
+    run.plain = SimpleNamespace(decision=met, result=lambda: no_failure)
+    assert run.answering is run.inner and run.decision is met
+    still = Decision("undecided", 1, 0.97, (-math.inf, 0.0), "no")
+    run.plain = SimpleNamespace(decision=still, result=lambda: no_failure)
+    assert run.decision is undecided
+    run.plain = None
+    assert run.decision is undecided
