@@ -171,6 +171,8 @@ class PrecisionTarget:
         cap = None
         if n <= 0:
             cap = f"--max-sims {self.max_sims:,} reached"
+            if self.config.stop.max_sims is None:  # the user gave none: say it is the default
+                cap = f"the default cap of {self.max_sims:,} simulations (--max-sims) reached"
         elif self.config.stop.max_time_s is not None:
             time_left = self.config.stop.max_time_s - elapsed
             rate = self.n_simulations / elapsed if elapsed > 0 else math.inf

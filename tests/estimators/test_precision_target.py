@@ -45,6 +45,17 @@ def test_a_cap_on_simulations_stops_the_run_and_says_so():
     assert done.final.stop.startswith("stopped at a cap, not at the target: --max-sims 5,000 reached")
 
 
+def test_the_default_cap_is_named_as_the_default(monkeypatch):
+    from pemviz.estimators import precision
+
+    monkeypatch.setattr(precision, "DEFAULT_MAX_SIMS", 5000)
+    _, done = run(method="mc", n_per_stage=1000, rel_error=0.01)
+    assert done.final.n_simulations == 5000
+    assert done.final.stop.startswith(
+        "stopped at a cap, not at the target: the default cap of 5,000 simulations (--max-sims) reached"
+    )
+
+
 def test_a_cap_on_time_stops_adding_batches():
     cfg = ExperimentConfig.of(method="mc", n_per_stage=1000, rel_error=0.01, max_time_s=10.0)
     problem = build_problem(TOY)
