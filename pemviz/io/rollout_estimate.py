@@ -16,7 +16,6 @@ from typing import Any, cast
 
 import numpy as np
 
-from pemviz import stl
 from pemviz.methods import MIXED_METHOD, NAIVE_METHOD
 from pemviz.settings import METRICS
 from pemviz.core.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
@@ -26,7 +25,14 @@ from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.weights import CONVENTIONS, MeanWeight, mean_weight
 from pemviz.estimators.base import SeenFailures, log_p_before_failure, log_weight, look_ahead_weights
 from pemviz.estimators.pooling import pool
-from pemviz.io.rollout_format import SALIENT_COLUMNS, SAMPLERS, RolloutFormatError, RolloutMeta, json_float
+from pemviz.io.rollout_format import (
+    SALIENT_COLUMNS,
+    SAMPLERS,
+    RolloutFormatError,
+    RolloutMeta,
+    json_float,
+    parse_formula,
+)
 from pemviz.io.rollout_table import RolloutData, braking_salient
 
 REESTIMATE_RTOL = 1e-9
@@ -150,11 +156,7 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
     Raises:
         RolloutFormatError: the sidecar's formula is not valid STL.
     """
-    try:
-        formula = stl.parse(meta.formula)
-    except ValueError as exc:
-        why = exc.brief if isinstance(exc, stl.STLSyntaxError) else exc
-        raise RolloutFormatError(f"{name}: formula {meta.formula!r} is not valid STL: {why}") from None
+    formula = parse_formula(meta.formula, lambda why: RolloutFormatError(f"{name}: {why}"))
     return Problem(
         name,
         _no_simulator,

@@ -319,6 +319,20 @@ class RolloutMeta:
         )
 
 
+def parse_formula(formula: str, bad: Callable[[str], Exception]) -> Any:
+    """The STL formula of a sidecar's ``formula`` text, parsed (:func:`pemviz.stl.parse`).
+
+    Raises:
+        ``bad(message)``: not valid STL, the message in one line (``formula 'G[0,99](d >= ' is not valid STL: ...
+            at column 12``).
+    """
+    try:
+        return stl.parse(formula)
+    except ValueError as exc:
+        why = exc.brief if isinstance(exc, stl.STLSyntaxError) else exc
+        raise bad(f"formula {formula!r} is not valid STL: {why}") from None
+
+
 def _check_header(obj: Any, bad: Callable[[str], RolloutFormatError]) -> tuple[Any, str, Any]:
     """A sidecar's format tag and version, and its two required fields (``formula``: valid STL, ``dt_s``: seconds
     > 0); ``bad`` makes the error to raise."""
@@ -338,11 +352,7 @@ def _check_header(obj: Any, bad: Callable[[str], RolloutFormatError]) -> tuple[A
     formula = obj["formula"]
     if not isinstance(formula, str):
         raise bad(f"formula must be STL text such as 'G[0,99](d >= 2)', got {formula!r}")
-    try:
-        stl.parse(formula)
-    except ValueError as exc:
-        why = exc.brief if isinstance(exc, stl.STLSyntaxError) else exc
-        raise bad(f"formula {formula!r} is not valid STL: {why}") from None
+    parse_formula(formula, bad)
     dt = obj["dt_s"]
     if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
         raise bad(f"dt_s must be a number of seconds > 0, got {dt!r}")

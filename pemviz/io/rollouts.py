@@ -19,6 +19,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pemviz.io.data import sha256_file
+from pemviz.io.files import MAGIC
 from pemviz.io.rollout_format import RolloutFormatError, existing_sidecar, read_sidecar
 from pemviz.io.rollout_table import RolloutData, _Table
 
@@ -51,8 +52,9 @@ WRITTEN_BY = "`pemviz run --save-rollouts NAME.parquet`"
 
 
 def check_parquet_magic(path: Path) -> None:
-    """Refuse a file that does not start as a Parquet file does (``PAR1``; an empty one too), before its sidecar is
-    looked for: a text file or a CSV given by mistake is named as such, not as a rollout file without a sidecar.
+    """Refuse a file that does not start as a Parquet file does (:data:`pemviz.io.files.MAGIC`: ``PAR1``; an empty one
+    too), before its sidecar is looked for: a text file or a CSV given by mistake is named as such, not as a rollout
+    file without a sidecar.
 
     Raises:
         RolloutFormatError: the first four bytes are not ``PAR1``.
@@ -62,7 +64,7 @@ def check_parquet_magic(path: Path) -> None:
             head = f.read(4)
     except OSError as exc:
         raise RolloutFormatError(f"{path}: cannot be read ({exc.strerror})") from None
-    if head != b"PAR1":
+    if head != MAGIC[".parquet"]:
         found = "an empty file" if not head else f"it starts with {head!r}"
         raise RolloutFormatError(
             f"{path}: not a Parquet file ({found}); `pemviz estimate` reads the Parquet rollout file that {WRITTEN_BY} "
