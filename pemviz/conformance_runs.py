@@ -13,7 +13,11 @@ from __future__ import annotations
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
+
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
+    from pemviz.core.problems import Problem
 
 
 class GuardedListener:
@@ -52,7 +56,7 @@ class KitRun:
     recording_error: str | None = None
 
 
-def run_engine(config: Any, problem: Any, listeners: tuple = ()) -> KitRun:
+def run_engine(config: ExperimentConfig, problem: Problem, listeners: tuple = ()) -> KitRun:
     """Run ``config`` on ``problem`` through the engine (:class:`pemviz.engine.experiment.Experiment`)."""
     from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import FinalEstimate, StageFinished
@@ -73,7 +77,7 @@ def run_engine(config: Any, problem: Any, listeners: tuple = ()) -> KitRun:
     return KitRun(finals[0], estimates)
 
 
-def run_with_files(config: Any, problem: Any, folder: Path, stem: str) -> KitRun:
+def run_with_files(config: ExperimentConfig, problem: Problem, folder: Path, stem: str) -> KitRun:
     """:func:`run_engine` with a rollout file (:class:`pemviz.sinks.rollouts.RolloutSink`) and a recording
     (:meth:`pemviz.sinks.recording.RerunSink.to_file`) written to ``folder``.
 

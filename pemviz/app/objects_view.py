@@ -12,13 +12,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from pemviz.app.drawing import objects_panel
 from pemviz.core.counterfactuals import MISS, Counterfactuals, counterfactuals
 from pemviz.core.problem_view import object_scene
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
+
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
 
 GREEN, ORANGE, UNSEEN, BLUE, RED, EGO, TRACK = (
     hex_colour(c) for c in (C.DETECTED, C.MISSED, C.IDLE, C.BLUE, C.RED, C.OBJECT, C.VIOLET)
@@ -92,7 +95,7 @@ class ObjectsExplanation:
         return set() if cf is None else {(i.obj, i.kind) for i in cf.decisive if i.step == step}
 
 
-def explain_objects(problem, view, batch, failed: bool) -> ObjectsExplanation:
+def explain_objects(problem: Problem | None, view, batch, failed: bool) -> ObjectsExplanation:
     """The :class:`ObjectsExplanation` of rollout 0 of ``batch`` (a batch of one rollout with object rows).
 
     Args:

@@ -318,7 +318,10 @@ class Population:
 
 
 def population_of(
-    shares: FailureShares | None, sampled: Mapping[int, RolloutsSampled], drawing: object, problem: object = None
+    shares: FailureShares | None,
+    sampled: Mapping[int, RolloutsSampled],
+    drawing: object,
+    problem: Problem | None = None,
 ) -> Population | None:
     """The panel's :class:`Population` of a run (arguments as :func:`pemviz.sinks.population.group_failures`): the
     :data:`MAX_POPULATION` failures with the largest shares as rollouts (every failure in the groups); None when

@@ -18,7 +18,7 @@ import shlex
 import sys
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from pemviz.io.rollouts import read_rollouts
 from pemviz.pem import load_pem
 from pemviz.sinks.colours import FAILED_ROLLOUT, NEUTRAL, rgba
 from pemviz.sinks.console import estimate_cells
+
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
 
 MAX_TRACES = 300
 """Rollouts whose traces go into the recording: the least robust ones (every failure first)."""
@@ -226,7 +229,7 @@ def run_problem(data: Any, failure: str, own: bool) -> Any:
         return None
 
 
-def known_answer(problem: Any) -> tuple[float | None, Any]:
+def known_answer(problem: Problem) -> tuple[float | None, Any]:
     """The exact log failure probability (nats) or the plain Monte Carlo reference that the run which wrote the file
     printed: those of its problem (:func:`run_problem`); ``(None, None)`` without one."""
     return (None, None) if problem is None else (problem.exact_log_p, problem.reference)

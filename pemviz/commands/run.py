@@ -34,6 +34,7 @@ from pemviz.settings import SCENARIOS, SETTINGS, rows_of
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
     from pemviz.engine.events import Listener
 
 # The parser needs only the light modules above: torch, rerun, the engine, the sinks and pyarrow are imported in
@@ -249,7 +250,7 @@ def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
 
 
 def result_lines(
-    cfg: ExperimentConfig, problem, final, why: str | None = None, failures: dict | None = None, severity=None
+    cfg: ExperimentConfig, problem: Problem, final, why: str | None = None, failures: dict | None = None, severity=None
 ) -> tuple[list[str], dict]:
     """The console's lines after the table and the result document of a finished run (its ``recording`` None:
     :func:`write_results` sets it), built before the recording is closed, so that they are made while the recording
@@ -376,7 +377,7 @@ def main(args: argparse.Namespace) -> int:
         raise
 
 
-def _run_experiment(args, cfg, target, outputs: RunOutputs, early, rollout_sink) -> int:
+def _run_experiment(args, cfg: ExperimentConfig, target, outputs: RunOutputs, early, rollout_sink) -> int:
     """The run itself, its listeners and its files (:func:`main`), written where ``outputs`` says
     (:func:`pemviz.commands.run_outputs.plan_outputs`); ``early``: the recording process started before the problem was
     built, or None."""

@@ -11,10 +11,13 @@ import argparse
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pemviz.commands import UsageError, check_save_path
 from pemviz.io.files import check_output_folder, check_output_path
+
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
 
 
 @dataclass(frozen=True)
@@ -83,7 +86,9 @@ class RunOutputs:
         return f"not written: {', '.join(names)}" if names else ""
 
 
-def plan_outputs(args: argparse.Namespace, cfg: Any, target: str, default_recording: Path | None) -> RunOutputs:
+def plan_outputs(
+    args: argparse.Namespace, cfg: ExperimentConfig, target: str, default_recording: Path | None
+) -> RunOutputs:
     """Every file the run of ``args`` will write, each checked before any work (nothing is created).
 
     Args:

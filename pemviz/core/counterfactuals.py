@@ -15,6 +15,8 @@ violating trace were necessary.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import math
 from dataclasses import dataclass
 
@@ -25,6 +27,9 @@ from pemviz.core.scored_target import ScoredTarget
 from pemviz.core.event_probs import batch_log_probs
 from pemviz.core.problem_view import object_label
 from pemviz.core.rollouts import RolloutBatch
+
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
 
 MISS = "miss"
 """An object missed at a step, flipped to a detection measured exactly."""
@@ -85,7 +90,9 @@ class Counterfactuals:
         return f"{head}; decisive alone: " + "; ".join(who(i) for i in self.decisive)
 
 
-def counterfactuals(problem, batch: RolloutBatch, index: int, *, max_interventions: int = 4096) -> Counterfactuals:
+def counterfactuals(
+    problem: Problem, batch: RolloutBatch, index: int, *, max_interventions: int = 4096
+) -> Counterfactuals:
     """Undo each perception error of rollout ``index`` of ``batch`` alone and replay it (module docstring).
 
     Args:

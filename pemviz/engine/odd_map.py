@@ -6,7 +6,7 @@ bins them (:func:`pemviz.core.odd.odd_map`); :class:`pemviz.engine.events.FinalE
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -14,12 +14,15 @@ from pemviz.core.odd import OddMap, odd_map
 from pemviz.core.odd_pair import pair_map
 from pemviz.engine.events import RolloutChunk
 
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
+
 
 class OddMapCollector:
     """The final stage's rollouts of a run over ``problem.odd`` (its last final stage: a precision target adds
     batches), kept as four arrays a chunk: parameters ``[n, D]``, log weights, failures, log p of the detections."""
 
-    def __init__(self, problem: Any) -> None:
+    def __init__(self, problem: Problem) -> None:
         self.problem, self.odd = problem, problem.odd
         self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self._stage: int | None = None

@@ -10,7 +10,7 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator
 
 from pemviz.config import ExperimentConfig
 
@@ -362,7 +362,7 @@ def load_slowdown(threads: int = 1, since: LoadWindow | None = None) -> float:
     return max(1.0, max(1.0, (float(load) + threads) / cpus) * speed)
 
 
-def cap_jobs(jobs: int, say=None) -> int:
+def cap_jobs(jobs: int, say: Callable[[str], object] | None = None) -> int:
     """``jobs`` worker processes, at most :func:`usable_cpus`; ``say(message)`` is told when capped."""
     cpus = usable_cpus()
     if jobs > cpus:

@@ -16,18 +16,22 @@ from pemviz.core.plan import RunPlan
 from pemviz.methods.adaptive import plain_fallback_most, retry_n
 from pemviz.settings import setting_of
 
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
+    from pemviz.core.problems import Problem
+
 if TYPE_CHECKING:  # light to import: a config's checks read these hooks
     from pemviz.estimators.base import Check, Estimator
 
 
-def adaptive(config: Any, problem: Any, check: Check | None = None) -> Estimator:
+def adaptive(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
     """Cross-entropy adaptive importance sampling (:class:`pemviz.estimators.cross_entropy.CrossEntropy`)."""
     from pemviz.estimators.cross_entropy import CrossEntropy
 
     return CrossEntropy(config, problem, check)
 
 
-def adaptive_then(estimator: Estimator, config: Any, problem: Any) -> Estimator:
+def adaptive_then(estimator: Estimator, config: ExperimentConfig, problem: Problem) -> Estimator:
     """After the cross-entropy stages: plain Monte Carlo where their weights back no interval
     (:func:`pemviz.estimators.fallback.with_plain_fallback`; ``plain_fallback`` = 0: nothing)."""
     from pemviz.estimators.fallback import with_plain_fallback
@@ -35,7 +39,7 @@ def adaptive_then(estimator: Estimator, config: Any, problem: Any) -> Estimator:
     return with_plain_fallback(estimator, config, problem)
 
 
-def adaptive_then_most(config: Any, simulations: int) -> tuple[int, str]:
+def adaptive_then_most(config: ExperimentConfig, simulations: int) -> tuple[int, str]:
     """The most rollouts :func:`adaptive_then` may draw after stages of ``simulations`` rollout-equivalents: the
     retry's (:func:`pemviz.methods.adaptive.retry_n`) and plain Monte Carlo's
     (:func:`pemviz.methods.adaptive.plain_fallback_most`); 0 with ``plain_fallback`` = 0 or over an operating design
@@ -44,13 +48,15 @@ def adaptive_then_most(config: Any, simulations: int) -> tuple[int, str]:
     return most, words
 
 
-def adaptive_then_plan(config: Any) -> RunPlan | None:
+def adaptive_then_plan(config: ExperimentConfig) -> RunPlan | None:
     """The stages :func:`adaptive_then` runs once more before plain Monte Carlo: the plan at the retry's N
     (:func:`pemviz.methods.adaptive.retry_n`), or None where the run has no retry (or no fallback at all)."""
     return _then(config, 0, None)[0]
 
 
-def adaptive_then_drawn(config: Any, simulations: int, problem: Any) -> tuple[RunPlan | None, int, str]:
+def adaptive_then_drawn(
+    config: ExperimentConfig, simulations: int, problem: Problem
+) -> tuple[RunPlan | None, int, str]:
     """What :func:`adaptive_then` may draw on ``problem`` after stages of ``simulations`` rollout-equivalents: as
     :func:`adaptive_then_plan` and :func:`adaptive_then_most`, less the retry where the scene refuses it
     (:func:`pemviz.estimators.fallback.retry_refused`) and the plain rollouts where they could decide nothing
@@ -59,7 +65,7 @@ def adaptive_then_drawn(config: Any, simulations: int, problem: Any) -> tuple[Ru
     return _then(config, simulations, problem)
 
 
-def _then(config: Any, simulations: int, problem: Any) -> tuple[RunPlan | None, int, str]:
+def _then(config: ExperimentConfig, simulations: int, problem: Problem | None) -> tuple[RunPlan | None, int, str]:
     """(the retry's plan or None, the most simulations after the stages, their words); ``problem`` None: whatever
     the scene."""
     if config.over_odd or config.adaptive.plain_fallback <= 0:
@@ -81,7 +87,7 @@ def _then(config: Any, simulations: int, problem: Any) -> tuple[RunPlan | None, 
     return plan, retry + most, f"rollouts {when} (their retry at N = {again:,}{then})"
 
 
-def adaptive_plan(config: Any) -> RunPlan:
+def adaptive_plan(config: ExperimentConfig) -> RunPlan:
     """The cross-entropy sampler's stages, from the config alone (:mod:`pemviz.estimators.ce_plan`: loads no
     sampler)."""
     from pemviz.estimators.ce_plan import adaptive_run_plan
@@ -89,42 +95,42 @@ def adaptive_plan(config: Any) -> RunPlan:
     return adaptive_run_plan(config)
 
 
-def mc(config: Any, problem: Any, check: Check | None = None) -> Estimator:
+def mc(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
     """Plain Monte Carlo: one batch drawn by the PEM itself (:func:`pemviz.estimators.fixed.monte_carlo`)."""
     from pemviz.estimators.fixed import monte_carlo
 
     return monte_carlo(problem, config.n_per_stage, config.weights_until_failure, config.seed)
 
 
-def naive50(config: Any, problem: Any, check: Check | None = None) -> Estimator:
+def naive50(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
     """One batch by a 50 % detector (:func:`pemviz.estimators.fixed.naive50`)."""
     from pemviz.estimators.fixed import naive50 as build
 
     return build(problem, config.n_per_stage, config.weights_until_failure, config.seed)
 
 
-def mixed50(config: Any, problem: Any, check: Check | None = None) -> Estimator:
+def mixed50(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
     """One batch by 50 % inside the window, the PEM outside (:func:`pemviz.estimators.fixed.mixed50`)."""
     from pemviz.estimators.fixed import mixed50 as build
 
     return build(problem, config.n_per_stage, config.weights_until_failure, config.seed)
 
 
-def ams(config: Any, problem: Any, check: Check | None = None) -> Estimator:
+def ams(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
     """Adaptive multilevel splitting (:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`)."""
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
 
     return AdaptiveMultilevelSplitting(config, problem, check)
 
 
-def ams_plan(config: Any) -> RunPlan:
+def ams_plan(config: ExperimentConfig) -> RunPlan:
     """Splitting's stages, from the config alone."""
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
 
     return AdaptiveMultilevelSplitting.run_plan(config)
 
 
-def tilt(config: Any, problem: Any, check: Check | None = None) -> Estimator:
+def tilt(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
     """The scenario's own tilted proposal (:class:`pemviz.estimators.tilt.CommittorTilt`)."""
     from pemviz.estimators.tilt import CommittorTilt
 
@@ -134,7 +140,7 @@ def tilt(config: Any, problem: Any, check: Check | None = None) -> Estimator:
 # -- the built-in methods' own settings, advice and words (pemviz.methods.Method's hooks) ----------------
 
 
-def adaptive_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
+def adaptive_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | None:
     """The cross-entropy sampler's settings against each other and the scene (:attr:`Method.validate
     <pemviz.methods.Method>`): a mixture over rollouts needs frozen weights that stop somewhere, the fit of
     whole elite rollouts one object a step, a stop rule a final batch to add to."""
@@ -157,7 +163,7 @@ def adaptive_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
     return None
 
 
-def state(config: Any, problem: Any, check: Check | None = None) -> Estimator:
+def state(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
     """The cross-entropy sampler whose proposal reads the state features
     (:class:`pemviz.estimators.state.StateCrossEntropy`); refuses a scene that reports none (ValueError)."""
     from pemviz.estimators.state import StateCrossEntropy
@@ -165,7 +171,7 @@ def state(config: Any, problem: Any, check: Check | None = None) -> Estimator:
     return StateCrossEntropy(config, problem, check)
 
 
-def state_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
+def state_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | None:
     """The state method's settings: the cross-entropy sampler's (:func:`adaptive_conflict`), and the PEM's share with
     the plain proposal's at most all of a stage."""
     if config.state.state_share + config.adaptive.plain_share > 1.0:
@@ -173,7 +179,7 @@ def state_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
     return adaptive_conflict(config, n_objects)
 
 
-def ams_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
+def ams_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | None:
     """Splitting's settings: k, the particles killed an iteration, below N."""
     from pemviz.settings import SETTINGS
 
@@ -183,7 +189,12 @@ def ams_conflict(config: Any, n_objects: int) -> tuple[str, str] | None:
 
 
 def adaptive_more_budget(
-    config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None, within_s: float | None, text: Any
+    config: ExperimentConfig,
+    n_simulations: int | None,
+    s_per: float | None,
+    wall_s: float | None,
+    within_s: float | None,
+    text: Any,
 ) -> str | None:
     """The cross-entropy sampler's route (:attr:`Method.more_budget <pemviz.methods.Method>`): a run at
     4 N (pretraining, K stages of 4 N and the final batch) or a precision target."""
@@ -196,7 +207,12 @@ def adaptive_more_budget(
 
 
 def tilt_more_budget(
-    config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None, within_s: float | None, text: Any
+    config: ExperimentConfig,
+    n_simulations: int | None,
+    s_per: float | None,
+    wall_s: float | None,
+    within_s: float | None,
+    text: Any,
 ) -> str | None:
     """The tilted proposal's route: more batches of it to a 20 % interval."""
     m = text.cap(config, n_simulations, s_per, within_s)
@@ -209,7 +225,12 @@ def tilt_more_budget(
 
 
 def ams_more_budget(
-    config: Any, n_simulations: int | None, s_per: float | None, wall_s: float | None, within_s: float | None, text: Any
+    config: ExperimentConfig,
+    n_simulations: int | None,
+    s_per: float | None,
+    wall_s: float | None,
+    within_s: float | None,
+    text: Any,
 ) -> str | None:
     """Splitting's route: no final batch to add to, so more particles (about 4 times the time), or a graded score the
     scene has: its learned committor (``text.committor``: the scene has one; None: not known), else the nominal

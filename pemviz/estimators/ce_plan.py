@@ -3,13 +3,16 @@ config can count its simulations (:attr:`pemviz.config.ExperimentConfig.n_simula
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from pemviz.config import has_final_batch
 from pemviz.core.plan import RunPlan
 
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
 
-def adaptive_run_plan(config: Any) -> RunPlan:
+
+def adaptive_run_plan(config: ExperimentConfig) -> RunPlan:
     """Stage 0 pretraining (``pretrain_rollouts``), 1..K cross-entropy stages of N, K+1 the final batch of N_e (none
     with ``final_estimate = "last-stage"``)."""
     final = [(config.adaptive.n_stages + 1, "final", config.adaptive.n_final)] if has_final_batch(config) else []

@@ -19,7 +19,7 @@ batch (:class:`pemviz.methods.state.StateSettings`), so those weights stay below
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -32,6 +32,9 @@ from pemviz.estimators.base import Check
 from pemviz.estimators.cross_entropy import CrossEntropy
 from pemviz.methods import CROSS_ENTROPY_METHOD, STATE_METHOD
 from pemviz.settings import settings_of
+
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
 
 
 class FirstColumns:
@@ -105,7 +108,7 @@ class StateCrossEntropy(CrossEntropy):
 
     SETTINGS = (*settings_of(CROSS_ENTROPY_METHOD), *settings_of(STATE_METHOD))
 
-    def __init__(self, config: Any, problem: Problem, check: Check | None = None) -> None:
+    def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         if not reports_state(problem):
             raise ValueError(no_features_refusal(problem))
         self._first = FirstColumns(problem.target)

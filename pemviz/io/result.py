@@ -20,10 +20,14 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from xml.etree import ElementTree as ET
 
 from pemviz.core.files import atomic_write
+
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
+    from pemviz.core.problems import Problem
 
 RESULT_FORMAT = "pemviz-result"
 RESULT_VERSION = 1
@@ -71,14 +75,14 @@ def estimate_fields(e: Any, sampling: str) -> dict[str, Any]:
 
 
 def result_document(
-    config: Any,
+    config: ExperimentConfig,
     final: Any,
     *,
     exact_log_p: float | None = None,
     reference: Any = None,
     recording: str | None = None,
     command: str | None = None,
-    problem: Any = None,
+    problem: Problem | None = None,
     console: list[str] | None = None,
     inputs: list[dict[str, str]] | None = None,
     failures: dict[str, Any] | None = None,
@@ -247,7 +251,7 @@ def estimate_document(
     }
 
 
-def _sampling(config: Any, e: Any) -> str:
+def _sampling(config: ExperimentConfig, e: Any) -> str:
     """How the estimate's rollouts were drawn (:data:`pemviz.core.verdict_checks.SAMPLINGS`): ``plain`` (plain Monte
     Carlo, a method's or the fallback's), ``importance`` (a weighted method) or ``splitting`` (AMS: no weights)."""
     if e.plain_mc:

@@ -7,11 +7,14 @@ Which one a run writes is :func:`pemviz.io.run_rollouts.run_meta`'s choice.
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 from pemviz.io.rollout_format import RolloutMeta
 from pemviz.scenarios.braking.problem import braking_formula
 from pemviz.scenarios.braking.simulator import BRAKING_SIGNAL_RANGES, BRAKING_SIGNALS, OBSERVATION_NAMES, BrakingParams
+
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
 
 SALIENT_UNITS = {
     "alpha": "rad",
@@ -61,7 +64,7 @@ def braking_meta(
 
 
 def problem_meta(
-    problem: Any,
+    problem: Problem,
     formula: str | None = None,
     *,
     pem: str | None = None,

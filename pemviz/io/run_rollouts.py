@@ -10,7 +10,7 @@ scenario's file at its defaults.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
@@ -20,8 +20,11 @@ from pemviz.io.rollout_format import RolloutMeta
 from pemviz.io.rollout_sidecars import braking_meta, problem_meta
 from pemviz.io.rollout_table import braking_salient
 
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
 
-def braking_file(problem: Any) -> bool:
+
+def braking_file(problem: Problem) -> bool:
     """Whether the rollouts of ``problem`` (a :class:`pemviz.core.problems.Problem`, or None: not known) go into a
     braking scenario's file: its problem (its drawing object is the braking scenario's), or none known."""
     from pemviz.scenarios.braking.drawing import BrakingDrawing
@@ -30,7 +33,7 @@ def braking_file(problem: Any) -> bool:
 
 
 def run_meta(
-    problem: Any,
+    problem: Problem,
     formula: str | None,
     *,
     pem: str | None = None,
@@ -48,7 +51,7 @@ def run_meta(
     return problem_meta(problem, formula, pem=pem, proposal=proposal, provenance=provenance)
 
 
-def run_salient(problem: Any, batch: RolloutBatch) -> np.ndarray | None:
+def run_salient(problem: Problem, batch: RolloutBatch) -> np.ndarray | None:
     """The PEM's salient variables the file holds for ``batch``'s rollouts: float64 [N, T, 11] of the car ahead at
     each gap for a braking file (:func:`pemviz.io.rollout_table.braking_salient`), else None.
 
@@ -58,7 +61,7 @@ def run_salient(problem: Any, batch: RolloutBatch) -> np.ndarray | None:
     return braking_salient(batch.signal("gap_m")) if braking_file(problem) else None
 
 
-def run_severity(problem: Any, batch: RolloutBatch) -> tuple[np.ndarray, np.ndarray] | None:
+def run_severity(problem: Problem, batch: RolloutBatch) -> tuple[np.ndarray, np.ndarray] | None:
     """Each rollout's min distance (metres) and impact speed (m/s, NaN: no contact), float64 [N] each, for the file's
     severity columns (:func:`pemviz.core.severity.rollout_severity`); without a problem, those of the braking
     scenario's gap at its defaults (contact gap, step) as its sidecar assumes; None for a problem without a severity

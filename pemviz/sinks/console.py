@@ -19,7 +19,15 @@ from pemviz.engine.cost import (
     run_cost,
     stage_cost,
 )
-from pemviz.engine.events import FinalEstimate, RunCancelled, RunStarted, StageFinished, StageResult, StageStarted
+from pemviz.engine.events import (
+    Event,
+    FinalEstimate,
+    RunCancelled,
+    RunStarted,
+    StageFinished,
+    StageResult,
+    StageStarted,
+)
 from pemviz.methods import PLAIN_METHOD
 from pemviz.plugins import resolve
 from pemviz.scenarios.registry import no_method_answers
@@ -142,7 +150,7 @@ MC_CAP_MARGIN = 1.2
 
 
 def plain_rollout_seconds(
-    config, s_per: float | None, n_simulations: int | None = None, n_steps: int | None = None
+    config: ExperimentConfig, s_per: float | None, n_simulations: int | None = None, n_steps: int | None = None
 ) -> float | None:
     """Seconds a plain Monte Carlo rollout takes on this machine, from a run of another method: the run's measured
     seconds ``s_per`` a simulation of its ``n_simulations`` (its reported count: a tilt's look-aheads and splitting's
@@ -196,12 +204,12 @@ class McRoute:
         cap) and a measured time, within it."""
         return self.n <= MC_AFFORDABLE and (max_time_s is None or self.seconds is None or self.seconds <= max_time_s)
 
-    def cap(self, config) -> int:
+    def cap(self, config: ExperimentConfig) -> int:
         """The ``--max-sims`` to give it: :attr:`n_floor` (:attr:`n` without a floor), at most :data:`MC_AFFORDABLE`
         but at least :attr:`n` and the config's ``--n`` (the run's planned rollouts, which ``--max-sims`` may not be
         below)."""
         floor = self.n_floor if self.log_floor is not None else self.n
-        return int(math.ceil(MC_CAP_MARGIN * max(self.n, min(floor, MC_AFFORDABLE), getattr(config, "n_per_stage", 0))))
+        return int(math.ceil(MC_CAP_MARGIN * max(self.n, min(floor, MC_AFFORDABLE), config.n_per_stage)))
 
     def command(self, cap: int) -> str:
         """``--method mc --rel-error 0.2 --max-sims 1108911``."""
@@ -287,7 +295,9 @@ class AdviceText:
         return f" --max-time {within_s:g}" if within_s is not None else ""
 
     @staticmethod
-    def cap(config, n_simulations: int | None, s_per: float | None, within_s: float | None) -> int | None:
+    def cap(
+        config: ExperimentConfig, n_simulations: int | None, s_per: float | None, within_s: float | None
+    ) -> int | None:
         """The ``--max-sims`` a precision target is given: four times the run's simulations rounded up, at least
         :data:`IS_MAX_SIMS`; with ``within_s`` what fits in it (None: not half as much again as the run)."""
         m = max(IS_MAX_SIMS, _round_up(4 * (n_simulations or 0)))
@@ -296,12 +306,17 @@ class AdviceText:
         if s_per is None:
             return None
         m = int(within_s / s_per)
-        if m <= 1.5 * (n_simulations or 0) or m < getattr(config, "n_simulations", 0):
+        if m <= 1.5 * (n_simulations or 0) or m < config.n_simulations:
             return None
         return int(float(f"{m:.2g}"))
 
     def importance_route(
-        self, config, n_simulations: int | None, s_per: float | None, within_s: float | None, sims: int | None = None
+        self,
+        config: ExperimentConfig,
+        n_simulations: int | None,
+        s_per: float | None,
+        within_s: float | None,
+        sims: int | None = None,
     ) -> str | None:
         """An importance sampler's route: a run at 4 N (``sims`` simulations; None: 4 N) or a precision target, each
         with its time at ``s_per`` seconds a simulation; with ``within_s`` the target alone, if it fits."""
@@ -314,7 +329,7 @@ class AdviceText:
         )
         if within_s is not None:
             return target
-        n = getattr(config, "n_per_stage", 100)
+        n = config.n_per_stage
         sims = 4 * n if sims is None else sims
         return f"more budget (--n {4 * n}: {sims:,} simulations{_time(sims, s_per)}) or {target}"
 
@@ -323,7 +338,12 @@ ADVICE_TEXT = AdviceText()
 
 
 def _more_budget(
-    config, n_simulations, s_per: float | None, wall_s: float | None, within_s: float | None = None, committor=None
+    config: ExperimentConfig,
+    n_simulations: int | None,
+    s_per: float | None,
+    wall_s: float | None,
+    within_s: float | None = None,
+    committor: bool | None = None,
 ) -> str | None:
     """The method's own route (:attr:`pemviz.methods.Method.more_budget`; an importance sampler's by
     default: a larger run or a precision target), with simulations and time at ``s_per`` seconds a simulation; with
@@ -336,7 +356,7 @@ def _more_budget(
 
 def next_step(
     e: Estimate,
-    config,
+    config: ExperimentConfig | None,
     exact_log_p: float | None = None,
     reference: Reference | None = None,
     n_simulations: int | None = None,
@@ -402,7 +422,7 @@ def next_step(
         )
     if route.upper and budget > (n_simulations or 0):  # p unknown, sized on an estimate that is usually too low:
         # capped at the budget, plain Monte Carlo stops early where p is larger and decides any p the cap resolves
-        cap = max(int(float(f"{budget:.2g}")), getattr(config, "n_per_stage", 0))
+        cap = max(int(float(f"{budget:.2g}")), config.n_per_stage)
         least = Z_95**2 / (MC_REL_ERROR**2 * cap + Z_95**2)  # the p at which mc_rollouts(p) = cap
         return (
             f"p is not known ({route.text(mc_s, rate, floor=False)}: an upper estimate, as {low}); plain Monte "
@@ -428,11 +448,13 @@ def next_step(
     return f"{why}; within it only {within} is left, with its verdict{heavy}"
 
 
-def _after_mc(e: Estimate, config, route: McRoute | None, s_per: float | None, max_time: float | None) -> str:
+def _after_mc(
+    e: Estimate, config: ExperimentConfig, route: McRoute | None, s_per: float | None, max_time: float | None
+) -> str:
     """:func:`next_step` after a plain Monte Carlo run: more rollouts sized for a 20 % interval, or where p is too
     rare for that or its time is past ``max_time`` (seconds), an importance-sampling method; with no failure and no
     known p, ten times the rollouts (and the rollouts a 20 % interval needs at least, from the rule-of-three bound)."""
-    n = getattr(config, "n_per_stage", e.n)
+    n = config.n_per_stage
     if route is None:
         hi = e.log_ci[1]
         floor = ""
@@ -462,10 +484,10 @@ def _after_mc(e: Estimate, config, route: McRoute | None, s_per: float | None, m
     return f"more rollouts: {command} samples until the interval is within {PERCENT} " f"({route.text(s_per, 'plain')})"
 
 
-def scenario_params_text(cfg) -> str:
+def scenario_params_text(cfg: ExperimentConfig) -> str:
     """The scenario's parameters that differ from its defaults, as the header line gives them after the scenario's
     name: e.g. `` (cut_in_gap_m=19.5 m)``; ``""``: none."""
-    pairs = getattr(cfg, "scenario_params", ())
+    pairs = cfg.scenario_params
     if not pairs:
         return ""
     from pemviz.scenarios.parameters import changed_parameters, parameters_text
@@ -476,7 +498,7 @@ def scenario_params_text(cfg) -> str:
 
 def final_lines(
     event: FinalEstimate,
-    config=None,
+    config: ExperimentConfig | None = None,
     exact_log_p: float | None = None,
     reference: Reference | None = None,
     failure_severity: FailureSeverity | None = None,
@@ -535,7 +557,7 @@ class ConsoleSink(Sink):
         (:class:`pemviz.sinks.population.FailureGroups`, run before it): its grouping's severity is printed
         (:func:`final_lines`); None: not printed."""
 
-    def __call__(self, event) -> None:
+    def __call__(self, event: Event) -> None:
         self.clock(event)
         super().__call__(event)
 

@@ -3,6 +3,8 @@ decided it (:mod:`pemviz.core.counterfactuals`)."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from pemviz.core.counterfactuals import LikelyFailure, LogPParts, counterfactuals, most_likely_failure
@@ -10,6 +12,9 @@ from pemviz.core.problem_view import object_label
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.events import RolloutsSampled
 from pemviz.sinks import Sink
+
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
 
 
 class MostLikelyFailure(Sink):
@@ -32,7 +37,7 @@ class MostLikelyFailure(Sink):
             self.best, self.batch = best, event.batch.select(np.array([best.row]))
             self.stage, self.rollout, self.log_p = best.stage, best.rollout, best.log_p
 
-    def parts(self, problem) -> LogPParts | None:
+    def parts(self, problem: Problem) -> LogPParts | None:
         """The most likely failure's log p split into the log-probability of its detections (nats, <= 0) and, where
         the PEM mislocates, the log-density of its measurement errors (nats), recomputed under ``problem.target``
         (:func:`pemviz.core.counterfactuals.failure_log_p_parts`); None before a failure."""
@@ -40,7 +45,7 @@ class MostLikelyFailure(Sink):
             return None
         return LogPParts.of(self.batch, 0, problem.target)
 
-    def why(self, problem) -> str | None:
+    def why(self, problem: Problem) -> str | None:
         """The console's line saying which perception errors decided the most likely failure
         (:func:`pemviz.core.counterfactuals.counterfactuals`, replayed through ``problem``); None before a failure or
         for rollouts without object rows. It states the failure's log p as its two parts (:meth:`parts`): the

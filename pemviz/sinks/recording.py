@@ -84,6 +84,7 @@ import math
 import os
 from datetime import timedelta
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import rerun as rr
@@ -124,6 +125,9 @@ from pemviz.sinks.rerun_views import (
     log_thresholds,
 )
 
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
+
 APP_ID = "pemviz"
 
 FILE_BATCHER = rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=3600), flush_num_bytes=8 << 20, flush_num_rows=4096)
@@ -160,7 +164,7 @@ class RerunSink(Sink):
         likely_per_stage: int = 3,
         scene_per_stage: int = 1,
         repetition: int | None = None,
-        problem: object = None,
+        problem: Problem | None = None,
     ) -> None:
         self.stream = stream
         self.problem = problem
@@ -222,7 +226,7 @@ class RerunSink(Sink):
 
     # -- constructors -------------------------------------------------------------------------------
     @classmethod
-    def to_file(cls, path: str | os.PathLike, *, overwrite: bool = False, **kw) -> "RerunSink":
+    def to_file(cls, path: str | os.PathLike, *, overwrite: bool = False, **kw: Any) -> "RerunSink":
         """A sink that saves to ``path`` when :meth:`close` commits it.
 
         The recording is encoded in memory (:meth:`rerun.RecordingStream.binary_stream`) and written by
@@ -238,7 +242,9 @@ class RerunSink(Sink):
         return sink
 
     @classmethod
-    def to_grpc(cls, url: str | None = None, *, serve: bool = False, grpc_port: int | None = None, **kw) -> "RerunSink":
+    def to_grpc(
+        cls, url: str | None = None, *, serve: bool = False, grpc_port: int | None = None, **kw: Any
+    ) -> "RerunSink":
         """A sink that streams to a running viewer (``url``) or serves a gRPC endpoint (``serve``, on
         ``grpc_port``, default 9876; its ``rerun+http://...`` address is in :attr:`serve_url`)."""
         stream = rr.RecordingStream(APP_ID)
@@ -252,7 +258,7 @@ class RerunSink(Sink):
         return sink
 
     @classmethod
-    def to_stdout(cls, **kw) -> "RerunSink":
+    def to_stdout(cls, **kw: Any) -> "RerunSink":
         """A sink that writes the recording to standard output (``pemviz run --stdout | rerun -``)."""
         stream = rr.RecordingStream(APP_ID)
         stream.stdout()

@@ -34,7 +34,7 @@ Entities (``step`` timeline unless static; ``<col>`` = the problem's first signa
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 import rerun as rr
@@ -85,7 +85,7 @@ def _series(
     stream: rr.RecordingStream,
     path: str,
     name: str,
-    rgba,
+    rgba: Sequence[int],
     values: np.ndarray,
     indexes: Indexes,
     steps: np.ndarray | None = None,
@@ -102,7 +102,7 @@ def _markers(
     stream: rr.RecordingStream,
     path: str,
     name: str,
-    rgba,
+    rgba: Sequence[int],
     marker: MarkerShapeLike,
     steps: np.ndarray,
     values: np.ndarray,

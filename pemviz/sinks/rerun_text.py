@@ -10,10 +10,13 @@ rerun.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pemviz.core.estimate import Estimate, Reference, error_text, format_probability
 from pemviz.engine.events import FinalEstimate, StageResult
+
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
 
 
 def description_markdown(intro: str, status: str, stage_rows: list[str], config: str) -> str:
@@ -29,7 +32,7 @@ def description_markdown(intro: str, status: str, stage_rows: list[str], config:
     return intro + status + table + config
 
 
-def config_markdown(cfg: object) -> str:
+def config_markdown(cfg: ExperimentConfig) -> str:
     """The ``description``'s table of the run's settings (every field of its config)."""
     rows = "\n".join(f"| {k} | `{v}` |" for k, v in vars(cfg).items())
     return f"\n## Config\n\n| setting | value |\n|---|---|\n{rows}\n"

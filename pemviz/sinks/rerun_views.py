@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import rerun as rr
@@ -291,7 +291,7 @@ def log_marginal_proposal(stream: rr.RecordingStream, pv: ProposalView, rgb: tup
     empty = pv.n_states == 0
     span = LOG_ODDS_SPAN_NATS
 
-    def bars(path: str, values: np.ndarray, x: np.ndarray, width: np.ndarray, colour) -> None:
+    def bars(path: str, values: np.ndarray, x: np.ndarray, width: np.ndarray, colour: Sequence[int]) -> None:
         v = np.where(empty, 0.0, np.nan_to_num(np.asarray(values, dtype=np.float64), nan=0.0))
         stream.log(path, rr.BarChart(v, abscissa=x, widths=width, color=colour))
 

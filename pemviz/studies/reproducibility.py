@@ -31,7 +31,10 @@ import math
 import os
 import subprocess
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from pemviz.config import ExperimentConfig
 
 
 def numpy_dispatch() -> tuple[list[str], list[str]]:
@@ -94,7 +97,7 @@ LOG_MU_RTOL = 1e-12
 """log mu_hat's relative tolerance across dispatch settings: the last bits of the weights' exp and log."""
 
 
-def fingerprint(config: Any) -> dict[str, Any]:
+def fingerprint(config: ExperimentConfig) -> dict[str, Any]:
     """Run ``config`` (an :class:`pemviz.config.ExperimentConfig`) and return what identifies the run: ``rollouts``
     (sha256 of every stage's detections and failures, in rollout order), ``stages`` ([stage, repr(gamma), elites,
     failures]), ``log_mu_hat`` (nats), ``failures``, ``n``, ``ess``, ``summary`` (the printed verdict line) and

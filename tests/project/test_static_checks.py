@@ -43,6 +43,19 @@ def test_mypy_flags_a_planted_fault_and_passes_the_package(tmp_path):
     assert checked == len(list((REPO / "pemviz").rglob("*.py"))) + 1, run.stdout  # every module and the planted file
 
 
+STRICT = ("pemviz.config", "pemviz.methods.*", "pemviz.engine.*", "pemviz.sinks.*")
+"""The packages mypy checks strictly: every function annotated (``disallow_untyped_defs``), its body checked."""
+
+
+def test_the_config_methods_engine_and_sinks_are_checked_strictly():
+    """pyproject.toml keeps the strict override over :data:`STRICT` that the mypy test above runs under."""
+    import tomllib
+
+    overrides = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["mypy"]["overrides"]
+    strict = [o for o in overrides if o.get("disallow_untyped_defs") and o.get("check_untyped_defs")]
+    assert strict and set(STRICT) <= set(strict[0]["module"]), overrides
+
+
 MAX_FMT_SKIPS = 20
 """The most ``# fmt: skip`` markers the tree may keep, each with its reason on the line before."""
 

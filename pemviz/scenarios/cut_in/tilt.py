@@ -23,7 +23,7 @@ import dataclasses
 import functools
 import hashlib
 import pickle
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -35,6 +35,9 @@ from pemviz.scenarios.cut_in.batched import BatchedCutIn
 from pemviz.scenarios.cut_in.committor import GRIDS, Grid, LevelChain, continuous_level, level
 from pemviz.scenarios.cut_in.lookahead import VISIBLE, CutInLookAhead, features, operand, p_detect_of
 from pemviz.scenarios.cut_in.scenario import CutInParams
+
+if TYPE_CHECKING:
+    from pemviz.core.problems import Problem
 
 TILT_WINDOW = (10, 32)
 """The steps (first, end) at which the cut-in car's events are tilted: the window must start by step 10 (a miss at
@@ -136,7 +139,7 @@ class CutInTilt(CutInLookAhead):
             _SOLVED[self.cache_key] = self
         return self.solve_steps
 
-    def splitting_score(self, problem: Any) -> Any:
+    def splitting_score(self, problem: Problem) -> Any:
         """This proposal's committor as the score of adaptive multilevel splitting, for ``problem`` (the cut-in
         problem of the same scene and PEMs): :class:`pemviz.scenarios.cut_in.splitting.CommittorScore`."""
         from pemviz.scenarios.cut_in.splitting import CommittorScore
