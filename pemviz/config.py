@@ -24,7 +24,7 @@ from pemviz.methods import DEFAULT_METHOD, Method, extensible_names, method_or_n
 from pemviz.methods.ams import AmsSettings
 from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.state import StateSettings
-from pemviz.settings import SETTINGS, ConfigError, check_settings
+from pemviz.settings import DEFAULT_SCENARIO, SETTINGS, ConfigError, check_settings
 
 
 def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
@@ -175,7 +175,7 @@ class ExperimentConfig:
     metric: str = "classic"
     seed: int = 0
     uniforms: str = "array-rqmc"
-    scenario: str = "braking"
+    scenario: str = DEFAULT_SCENARIO
     scenario_params: tuple[tuple[str, float | int | bool], ...] = ()
     sim: str = "batched"
     margin: float | None = None

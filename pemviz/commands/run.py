@@ -30,7 +30,7 @@ from pemviz.commands import (
 from pemviz.config import ConfigError, ExperimentConfig, scene_defaults
 from pemviz.engine.resources import check_run_memory
 from pemviz.methods import BUILTIN_METHODS, DEFAULT_METHOD
-from pemviz.settings import SCENARIOS, SETTINGS, rows_of
+from pemviz.settings import DEFAULT_SCENARIO, SCENARIOS, SETTINGS, rows_of
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
 if TYPE_CHECKING:
@@ -164,7 +164,7 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     if preset not in PRESETS:
         raise ConfigError(f"--preset {preset!r} is invalid: use one of {', '.join(PRESETS)}")
     fields = dict(PRESETS[preset])
-    scene = args.scenario or ExperimentConfig.of().scenario
+    scene = args.scenario or DEFAULT_SCENARIO
     params = None if args.scenario_params is None else scenario_params(scene, args.scenario_params)
     if args.method is None and args.preset is None:
         fields.update(scene_defaults(scene, params or ()))

@@ -193,7 +193,7 @@ def stage_cost(
     rollouts = n * (c.ams_rollouts if kind == AMS_STAGE else c.tilt_rollouts if tilt else 1.0)
     blocks = max(1, math.ceil(n / POOL_BLOCK))  # a large batch is simulated block by block, each its steps
     simulate = n_steps * (per_step * blocks + per_rollout * rollouts)
-    simulate /= pool_workers(cfg, n, simulate)  # worker processes share a large batch
+    simulate /= pool_workers(cfg.execution, n, simulate)  # worker processes share a large batch
     simulate += c.tilt_solve_s if tilt and stage == 1 else 0.0
     cap = math.inf if cfg.adaptive.fit_rows is None else float(cfg.adaptive.fit_rows)
     inputs = cfg.adaptive.proposal_inputs

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator
 
-from pemviz.config import ExperimentConfig
+from pemviz.config import Execution, ExperimentConfig
 
 if TYPE_CHECKING:
     from pemviz.core.plan import RunPlan
@@ -123,12 +123,11 @@ took 16.1 s of CPU in one process and 24.0 s with 2 workers started for them). O
 batch of two blocks or more."""
 
 
-def pool_workers(config: ExperimentConfig, n: int, seconds: float) -> int:
-    """The processes that simulate a batch of ``n`` rollouts of a run of ``config`` that takes ``seconds`` in one
-    process: its ``workers`` (None: every :func:`usable_cpus`) with executor ``local``, at least two blocks of
-    :data:`POOL_BLOCK` and at least :data:`POOL_PAYS_S` seconds, else 1 (this process; a Ray cluster's size is not
-    known before it starts)."""
-    run = config.execution
+def pool_workers(run: Execution, n: int, seconds: float) -> int:
+    """The processes that simulate a batch of ``n`` rollouts of a run whose execution settings are ``run`` (a config's
+    :attr:`~pemviz.config.ExperimentConfig.execution`) that takes ``seconds`` in one process: its ``workers`` (None:
+    every :func:`usable_cpus`) with executor ``local``, at least two blocks of :data:`POOL_BLOCK` and at least
+    :data:`POOL_PAYS_S` seconds, else 1 (this process; a Ray cluster's size is not known before it starts)."""
     if run.executor != "local" or n <= POOL_BLOCK or seconds < POOL_PAYS_S:
         return 1
     return run.workers if run.workers is not None else usable_cpus()

@@ -1,8 +1,8 @@
-"""The built-in methods' builders and plans, as :mod:`pemviz.methods` names them (each imported when a
-run first uses it): ``adaptive`` (:class:`pemviz.estimators.cross_entropy.CrossEntropy`), ``mc``, ``naive50``,
-``mixed50`` (:mod:`pemviz.estimators.fixed`), ``ams`` (:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`),
-``tilt`` (:class:`pemviz.estimators.tilt.CommittorTilt`) and ``state``
-(:class:`pemviz.estimators.state.StateCrossEntropy`).
+"""The built-in methods' hooks that are not their estimators' own, as :mod:`pemviz.methods` names them (each imported
+when a run first uses it): the builders of ``mc``, ``naive50``, ``mixed50`` (:mod:`pemviz.estimators.fixed`) and
+``tilt`` (:class:`pemviz.estimators.tilt.CommittorTilt`), and the methods' checks, budgets and advice. ``adaptive``,
+``ams`` and ``state`` are built by their classes (:class:`pemviz.estimators.cross_entropy.CrossEntropy`,
+:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`, :class:`pemviz.estimators.state.StateCrossEntropy`).
 
 Each builder is ``(config, problem, check) -> Estimator``: the baselines draw ``config.n_per_stage`` rollouts and stop
 their weights at the failure step with ``config.weights_until_failure``, like the adaptive sampler's.
@@ -24,24 +24,9 @@ if TYPE_CHECKING:  # light to import: a config's checks read these hooks
     from pemviz.estimators.base import Check, Estimator
 
 
-def adaptive(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
-    """Cross-entropy adaptive importance sampling (:class:`pemviz.estimators.cross_entropy.CrossEntropy`)."""
-    from pemviz.estimators.cross_entropy import CrossEntropy
-
-    return CrossEntropy(config, problem, check)
-
-
-def adaptive_then(estimator: Estimator, config: ExperimentConfig, problem: Problem) -> Estimator:
-    """After the cross-entropy stages: plain Monte Carlo where their weights back no interval
-    (:func:`pemviz.estimators.fallback.with_plain_fallback`; ``plain_fallback`` = 0: nothing)."""
-    from pemviz.estimators.fallback import with_plain_fallback
-
-    return with_plain_fallback(estimator, config, problem)
-
-
 def adaptive_then_most(config: ExperimentConfig, simulations: int) -> tuple[int, str]:
-    """The most rollouts :func:`adaptive_then` may draw after stages of ``simulations`` rollout-equivalents: the
-    retry's (:func:`pemviz.methods.adaptive.retry_n`) and plain Monte Carlo's
+    """The most rollouts the fallback (:func:`pemviz.estimators.fallback.with_plain_fallback`) may draw after stages of
+    ``simulations`` rollout-equivalents: the retry's (:func:`pemviz.methods.adaptive.retry_n`) and plain Monte Carlo's
     (:func:`pemviz.methods.adaptive.plain_fallback_most`); 0 with ``plain_fallback`` = 0 or over an operating design
     domain; and the cost line's words for them."""
     _, most, words = _then(config, simulations, None)
@@ -49,7 +34,8 @@ def adaptive_then_most(config: ExperimentConfig, simulations: int) -> tuple[int,
 
 
 def adaptive_then_plan(config: ExperimentConfig) -> RunPlan | None:
-    """The stages :func:`adaptive_then` runs once more before plain Monte Carlo: the plan at the retry's N
+    """The stages the fallback (:func:`pemviz.estimators.fallback.with_plain_fallback`) runs once more before plain
+    Monte Carlo: the plan at the retry's N
     (:func:`pemviz.methods.adaptive.retry_n`), or None where the run has no retry (or no fallback at all)."""
     return _then(config, 0, None)[0]
 
@@ -57,11 +43,11 @@ def adaptive_then_plan(config: ExperimentConfig) -> RunPlan | None:
 def adaptive_then_drawn(
     config: ExperimentConfig, simulations: int, problem: Problem
 ) -> tuple[RunPlan | None, int, str]:
-    """What :func:`adaptive_then` may draw on ``problem`` after stages of ``simulations`` rollout-equivalents: as
-    :func:`adaptive_then_plan` and :func:`adaptive_then_most`, less the retry where the scene refuses it
-    (:func:`pemviz.estimators.fallback.retry_refused`) and the plain rollouts where they could decide nothing
-    (:func:`pemviz.estimators.fallback.plain_cannot_decide` on their cap and the scene's stated p): the rules
-    :class:`pemviz.estimators.fallback.PlainFallback` draws by."""
+    """What the fallback (:func:`pemviz.estimators.fallback.with_plain_fallback`) may draw on ``problem`` after stages
+    of ``simulations`` rollout-equivalents: as :func:`adaptive_then_plan` and :func:`adaptive_then_most`, less the retry
+    where the scene refuses it (:func:`pemviz.estimators.fallback.retry_refused`) and the plain rollouts where they
+    could decide nothing (:func:`pemviz.estimators.fallback.plain_cannot_decide` on their cap and the scene's stated p):
+    the rules :class:`pemviz.estimators.fallback.PlainFallback` draws by."""
     return _then(config, simulations, problem)
 
 
@@ -70,12 +56,14 @@ def _then(config: ExperimentConfig, simulations: int, problem: Problem | None) -
     the scene."""
     if config.over_odd or config.adaptive.plain_fallback <= 0:
         return None, 0, ""
+    from pemviz.estimators.ce_plan import adaptive_run_plan
+
     again = retry_n(config)
     if problem is not None:
         from pemviz.estimators.fallback import plain_cannot_decide, retry_refused, stated_log_p
 
         again = None if retry_refused(problem) is not None else again
-    plan = None if again is None else adaptive_plan(config.replace(n_per_stage=again))
+    plan = None if again is None else adaptive_run_plan(config.replace(n_per_stage=again))
     retry = 0 if again is None else int(config.replace(n_per_stage=again).n_simulations)
     most = plain_fallback_most(config.adaptive.plain_fallback, simulations + retry, config.stop.max_sims)
     if problem is not None and plain_cannot_decide(most, stated_log_p(problem), config.stop.require) is not None:
@@ -85,14 +73,6 @@ def _then(config: ExperimentConfig, simulations: int, problem: Problem | None) -
         return None, most, f"plain rollouts {when}" if most else ""
     then = ", then plain Monte Carlo" if most else ""
     return plan, retry + most, f"rollouts {when} (their retry at N = {again:,}{then})"
-
-
-def adaptive_plan(config: ExperimentConfig) -> RunPlan:
-    """The cross-entropy sampler's stages, from the config alone (:mod:`pemviz.estimators.ce_plan`: loads no
-    sampler)."""
-    from pemviz.estimators.ce_plan import adaptive_run_plan
-
-    return adaptive_run_plan(config)
 
 
 def mc(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
@@ -114,20 +94,6 @@ def mixed50(config: ExperimentConfig, problem: Problem, check: Check | None = No
     from pemviz.estimators.fixed import mixed50 as build
 
     return build(problem, config.n_per_stage, config.weights_until_failure, config.seed)
-
-
-def ams(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
-    """Adaptive multilevel splitting (:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`)."""
-    from pemviz.estimators.ams import AdaptiveMultilevelSplitting
-
-    return AdaptiveMultilevelSplitting(config, problem, check)
-
-
-def ams_plan(config: ExperimentConfig) -> RunPlan:
-    """Splitting's stages, from the config alone."""
-    from pemviz.estimators.ams import AdaptiveMultilevelSplitting
-
-    return AdaptiveMultilevelSplitting.run_plan(config)
 
 
 def tilt(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
@@ -161,14 +127,6 @@ def adaptive_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, st
             "a stop rule adds final batches; final_estimate = 'last-stage' has none (use pooled " "or fresh)"
         )
     return None
-
-
-def state(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
-    """The cross-entropy sampler whose proposal reads the state features
-    (:class:`pemviz.estimators.state.StateCrossEntropy`); refuses a scene that reports none (ValueError)."""
-    from pemviz.estimators.state import StateCrossEntropy
-
-    return StateCrossEntropy(config, problem, check)
 
 
 def state_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | None:

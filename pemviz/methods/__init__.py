@@ -327,11 +327,11 @@ def _cross_entropy(name: str, description: str, build: str, **more: Any) -> Meth
         name,
         description,
         build,
-        plan="pemviz.estimators.builtin:adaptive_plan",
+        plan="pemviz.estimators.ce_plan:adaptive_run_plan",
         more_budget="pemviz.estimators.builtin:adaptive_more_budget",
         no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure",
         cost_model="proposal",
-        then="pemviz.estimators.builtin:adaptive_then",
+        then="pemviz.estimators.fallback:with_plain_fallback",
         then_most="pemviz.estimators.builtin:adaptive_then_most",
         then_plan="pemviz.estimators.builtin:adaptive_then_plan",
         **more,
@@ -342,7 +342,7 @@ for _record in (
     _cross_entropy(
         CROSS_ENTROPY_METHOD,
         "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
-        "pemviz.estimators.builtin:adaptive",
+        "pemviz.estimators.cross_entropy:CrossEntropy",
         validate="pemviz.estimators.builtin:adaptive_conflict",
         proposal_curves=True,
         then_drawn="pemviz.estimators.builtin:adaptive_then_drawn",
@@ -377,8 +377,8 @@ for _record in (
     Method(
         SPLITTING_METHOD,
         "adaptive multilevel splitting on the robustness, no importance weights",
-        "pemviz.estimators.builtin:ams",
-        plan="pemviz.estimators.builtin:ams_plan",
+        "pemviz.estimators.ams:AdaptiveMultilevelSplitting",
+        plan="pemviz.estimators.ams:AdaptiveMultilevelSplitting.run_plan",
         weighted=False,
         extensible=False,
         array_rqmc=False,
@@ -404,7 +404,7 @@ for _record in (
         "cross-entropy importance sampling of each detection (and with --state-fit-errors each error's location and "
         "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
         "report them",
-        "pemviz.estimators.builtin:state",
+        "pemviz.estimators.state:StateCrossEntropy",
         validate="pemviz.estimators.builtin:state_conflict",
         run_adds="plus the replay of each batch's state features",
         baseline=True,

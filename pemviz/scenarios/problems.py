@@ -32,7 +32,6 @@ from pemviz.scenarios.crowd.problem import crowd_problem
 from pemviz.scenarios.crowd.simulator import CrowdParams
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import ToyParams
-from pemviz.settings import setting_of
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
@@ -101,19 +100,20 @@ def problem_for(config: ExperimentConfig) -> Problem:
     return cast(Problem, registered(config))
 
 
-def braking_run_problem(config: ExperimentConfig, params: BrakingParams | None = None) -> Problem:
+def braking_run_problem(config: ExperimentConfig | None, params: BrakingParams | None = None) -> Problem:
     """The braking scenario's problem (the registry's factory of ``braking``) at ``params`` (None: the defaults), its
     crash gap ``config.margin`` where given, the PEM ``pem`` on the simulator ``config.sim`` (``config`` None:
     the shipped PEM on the batched twin), with the config's alternative targets (:func:`with_alternatives`)."""
-    margin = getattr(config, "margin", None)
+    margin = None if config is None else config.margin
     scene = params
     if margin is not None:
         scene = dataclasses.replace(scene or BrakingParams(), crash_gap_m=float(margin))
-    problem = braking_problem(load_pem(setting_of(config, "pem", None)), scene, sim=getattr(config, "sim", "batched"))
+    pem, sim = (None, "batched") if config is None else (config.value("pem"), config.sim)
+    problem = braking_problem(load_pem(pem), scene, sim=sim)
     return with_alternatives(problem, config) if config is not None else problem
 
 
-def cut_in_run_problem(config: ExperimentConfig, params: Any = None) -> Problem:
+def cut_in_run_problem(config: ExperimentConfig | None, params: Any = None) -> Problem:
     """A cut-in scenario's problem (the registry's factory of ``cut-in`` and ``cut-in-rare``) at ``params`` (a
     :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`; None: the ``moderate`` setting), named after
     ``config.scenario``, the PEMs ``pem`` (``config`` None: the shipped ones), with the plain Monte Carlo
@@ -124,8 +124,8 @@ def cut_in_run_problem(config: ExperimentConfig, params: Any = None) -> Problem:
 
     scene = params if params is not None else cut_in_params("moderate")
     assert isinstance(scene, CutInParams)  # a cut-in scenario's own dataclass
-    pem = setting_of(config, "pem", None)
-    problem = cut_in_problem(load_pem(pem), scene, name=getattr(config, "scenario", "cut-in"))
+    pem, name = (None, "cut-in") if config is None else (config.value("pem"), config.scenario)
+    problem = cut_in_problem(load_pem(pem), scene, name=name)
     own = [name for name in RARITY_SETTINGS if scene == cut_in_params(name)]  # the references hold for these only
     if pem in (None, DEFAULT_PEM_NAME) and own and own[0] in MONTE_CARLO_REFERENCE:
         failures, n = MONTE_CARLO_REFERENCE[own[0]]

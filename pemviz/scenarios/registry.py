@@ -363,17 +363,18 @@ def known(name: str) -> Scenario | None:
     return _REGISTRY.get(name)
 
 
-def no_method_answers(config: Any, est: Any) -> str | None:
-    """The ``next:`` line of a run of ``config`` (its ``scenario`` and ``scenario_params``) whose estimate ``est``
+def no_method_answers(scenario: str, params: Any, est: Any) -> str | None:
+    """The ``next:`` line of a run of the scenario named ``scenario`` with the parameters ``params`` (a config's
+    ``scenario_params``: (name, value) pairs) whose estimate ``est``
     (:class:`pemviz.core.estimate.Estimate`) is not ``reliable``, on a scene at its defaults at whose rarity no method
     shipped today answers (:attr:`Scenario.beyond`): that, why, and the bound the run has (plain Monte Carlo's
     Clopper-Pearson upper bound with no failure, an interval it backs, else its lower bound); None elsewhere."""
     from pemviz.core.estimate import format_probability
 
-    record = known(getattr(config, "scenario", "") or "")
+    record = known(scenario or "")
     if record is None or not record.beyond or est.verdict == "reliable":
         return None
-    if changed_parameters(record.name, getattr(config, "scenario_params", ())):
+    if changed_parameters(record.name, params or ()):
         return None  # another scene than the one the record speaks of
     if est.plain_mc and est.n_failures == 0:
         bound = f"p < {format_probability(est.log_ci[1], 2)} (95 %, {est.n:,} rollouts without a failure)"

@@ -32,7 +32,6 @@ from pemviz.methods import PLAIN_METHOD
 from pemviz.plugins import resolve
 from pemviz.scenarios.registry import no_method_answers
 from pemviz.sinks import Sink, StageClock
-from pemviz.settings import setting_of
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
@@ -391,14 +390,15 @@ def next_step(
     """
     if e.verdict == "reliable" or config is None:
         return None
-    beyond = no_method_answers(config, e)  # a scene at whose rarity no method shipped answers: that, and the bound
+    # a scene at whose rarity no method shipped answers: that, and the bound
+    beyond = no_method_answers(config.scenario, config.scenario_params, e)
     if beyond is not None:
         return beyond
     method = config.method_record
     s_per = wall_s / n_simulations if n_simulations and wall_s is not None and wall_s > 0 else None
     mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)
     rate = rate_source(method.plain, plain_s is not None)  # how mc_s was had, for the text
-    max_time = setting_of(config, "max_time_s", None)
+    max_time = config.stop.max_time_s
     route = mc_route(e, method.plain, exact_log_p, reference, mc_s)
     budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
     if max_time is not None and mc_s is not None:
@@ -484,16 +484,16 @@ def _after_mc(
     return f"more rollouts: {command} samples until the interval is within {PERCENT} " f"({route.text(s_per, 'plain')})"
 
 
-def scenario_params_text(cfg: ExperimentConfig) -> str:
-    """The scenario's parameters that differ from its defaults, as the header line gives them after the scenario's
-    name: e.g. `` (cut_in_gap_m=19.5 m)``; ``""``: none."""
-    pairs = cfg.scenario_params
+def scenario_params_text(scenario: str, pairs: tuple[tuple[str, float | int | bool], ...]) -> str:
+    """The parameters ``pairs`` ((name, value), a config's ``scenario_params``) of the scenario named ``scenario``
+    that differ from its defaults, as the header line gives them after the scenario's name: e.g.
+    `` (cut_in_gap_m=19.5 m)``; ``""``: none."""
     if not pairs:
         return ""
     from pemviz.scenarios.parameters import changed_parameters, parameters_text
 
-    changed = changed_parameters(cfg.scenario, pairs)
-    return f" ({parameters_text(cfg.scenario, changed)})" if changed else ""
+    changed = changed_parameters(scenario, pairs)
+    return f" ({parameters_text(scenario, changed)})" if changed else ""
 
 
 def final_lines(
@@ -565,8 +565,9 @@ class ConsoleSink(Sink):
         cfg = self.config = event.config
         self.exact_log_p, self.reference, self.plan = event.exact_log_p, event.reference, event.plan
         self.committor = getattr(event.problem, "committor", None)
+        params = scenario_params_text(cfg.scenario, cfg.scenario_params)
         print(
-            f"pemviz: {cfg.method} on the {event.problem.name} scenario{scenario_params_text(cfg)}, spec "
+            f"pemviz: {cfg.method} on the {event.problem.name} scenario{params}, spec "
             f"{event.formula}, metric {cfg.metric}, "
             + (
                 f"K={self.plan.n_ce} N={cfg.n_per_stage} N_e={cfg.adaptive.n_final} "

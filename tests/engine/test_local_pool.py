@@ -79,14 +79,14 @@ def test_the_first_time_estimate_divides_a_pooled_batch_s_simulation_by_the_work
     assert POOL_BLOCK == RQMC_BLOCK
     one = ExperimentConfig.of(method="mc", workers=1)
     two = ExperimentConfig.of(method="mc", workers=2)
-    assert [pool_workers(two, n, s) for n, s in ((2100, 99.0), (8192, 99.0), (8193, 19.9), (8193, 20.0))] == [
+    assert [pool_workers(two.execution, n, s) for n, s in ((2100, 99.0), (8192, 99.0), (8193, 19.9), (8193, 20.0))] == [
         1,
         1,
         1,
         2,
     ]
-    assert pool_workers(ExperimentConfig.of(executor="serial"), 10**6, 99.0) == 1
-    assert pool_workers(ExperimentConfig.of(), 10**6, 99.0) == usable_cpus()
+    assert pool_workers(ExperimentConfig.of(executor="serial").execution, 10**6, 99.0) == 1
+    assert pool_workers(ExperimentConfig.of().execution, 10**6, 99.0) == usable_cpus()
     a, b = (stage_cost(cfg, "final", 10**6, model="plain") for cfg in (one, two))
     assert b.simulate_s == pytest.approx(a.simulate_s / 2, rel=1e-12) and b.after_s == a.after_s
     small = [stage_cost(cfg, "final", 2100, model="plain").simulate_s for cfg in (one, two)]
