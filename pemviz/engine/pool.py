@@ -5,10 +5,11 @@ A batch is cut into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollo
 (:func:`pemviz.core.rng.block_bounds`) and each block is simulated from its slice of the serial uniform stream
 (:class:`pemviz.engine.executors.ChunkUniforms`), as the Ray executor does. The first block of a batch is simulated in
 this process and timed (CPU seconds); the pool starts when the blocks left would take at least
-:data:`pemviz.engine.resources.POOL_PAYS_S` seconds more (a worker's start costs about 1.5 s of CPU, each block
-about half its own simulation), and once started takes every batch of two blocks or more: a streamed stage's blocks at
+:data:`pemviz.engine.resources.POOL_PAYS_S` seconds more (a worker's start costs about 1 s of CPU: its imports and the
+problem's unpickling, once), and once started takes every batch of two blocks or more: a streamed stage's blocks at
 most two per worker ahead, handed back in order. A batch of one block (e.g. a braking default run's 2,100 rollouts)
-never starts it.
+never starts it. A worker hands its blocks' arrays back in shared-memory files (:mod:`pemviz.engine.handoff`), not
+through the pool's pipe.
 
 The pool is joblib's loky executor: processes started by fork + exec, so a parent with threads (the panel's) is safe;
 a broken worker is detected and replaced; idle workers exit after :data:`IDLE_S` seconds. Measured on a 2-core machine
