@@ -9,7 +9,8 @@ process maps that file copy-on-write and unpickles the arrays in place, with no 
 The values are the same bits either way.
 
 Where there is no such folder, or writing to it fails (e.g. a full ``/dev/shm``), the result travels through the pipe
-pickled whole, as before.
+pickled whole, as before. A pool's folder goes with the pool (the blocks it never read with it); one left by a run
+that was killed is removed when the next pool's folder is made.
 """
 
 from __future__ import annotations
@@ -33,13 +34,34 @@ Packed = tuple[bytes, "str | None", list[tuple[int, int]]]
 (offset, bytes) in that file)."""
 
 
+PREFIX = "pemviz-pool-"
+"""A hand-off folder's name: this prefix, the pid of the run's process, a dash and a random part."""
+
+
 def make_folder(root: str = SHARED_ROOT) -> str | None:
     """A new folder under ``root`` for one pool's hand-off files, or None where ``root`` is not a writable folder (the
-    results then travel through the pipe). Remove it with :func:`remove_folder`."""
+    results then travel through the pipe). Remove it with :func:`remove_folder`; the folders that runs killed
+    before they could (their pid gone) are removed here."""
+    with contextlib.suppress(OSError):
+        for name in os.listdir(root):
+            pid = name[len(PREFIX) :].split("-")[0]
+            if name.startswith(PREFIX) and pid.isdigit() and not _alive(int(pid)):
+                remove_folder(os.path.join(root, name))
     try:
-        return tempfile.mkdtemp(prefix="pemviz-pool-", dir=root)
+        return tempfile.mkdtemp(prefix=f"{PREFIX}{os.getpid()}-", dir=root)
     except OSError:
         return None
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (one of another user's counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
 
 
 def remove_folder(folder: str | None) -> None:

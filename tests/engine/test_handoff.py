@@ -4,6 +4,8 @@ array, the rows it rebuilds by replay, the draws counted; the file is gone once 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -79,3 +81,17 @@ def test_a_pool_s_folder_removed_at_close_takes_the_blocks_never_read(crossing_b
     assert len(os.listdir(folder)) == 1
     handoff.remove_folder(folder)
     assert not os.path.exists(folder)
+
+
+def test_a_new_pool_s_folder_removes_those_of_runs_killed_before_they_could(tmp_path):
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = tmp_path / f"{handoff.PREFIX}{int(dead.stdout)}-abc"  # a run killed with a block in flight
+    stale.mkdir()
+    (stale / "x.block").write_bytes(b"0" * 64)
+    live = tmp_path / f"{handoff.PREFIX}{os.getpid()}-def"  # a run still going (this one)
+    live.mkdir()
+    other = tmp_path / "pemviz-pool-notes"  # not a pool's folder
+    other.mkdir()
+    folder = handoff.make_folder(str(tmp_path))
+    assert folder is not None and os.path.basename(folder).startswith(f"{handoff.PREFIX}{os.getpid()}-")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, other.name, os.path.basename(folder)])
