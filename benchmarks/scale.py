@@ -36,7 +36,9 @@ braking's default run (2,100 rollouts: the pool never starts), and with ``--case
 streamed to a ``--save-rollouts`` file.
 Per run it prints wall and CPU seconds (the run's and its reaped workers', user + system), the run's first time
 estimate (its first ``run ~X left``), the peak resident memory (``VmHWM``) of the run's process and of its largest
-worker, and the load average; per case the wall ratio. Figures: docs/validation.md, "Every core".
+worker, and the load average; per case the wall ratio. ``--pays-s 1`` starts the pool after the first block whatever
+the blocks left cost (100,000 crossing rollouts, 12 blocks of about 1 s, stay in one process by default), to measure
+its CPU on a short run. Figures: docs/validation.md, "Every core".
 """
 
 from __future__ import annotations
@@ -168,15 +170,23 @@ def _peaks(pid: int, peaks: dict[int, float], done: threading.Event) -> None:
                 peaks[int(entry.name)] = max(peaks.get(int(entry.name), 0.0), int(hwm.group(1)) / 1024)
 
 
+_PAYS = (
+    "import sys; import pemviz.engine.resources as r; r.POOL_PAYS_S = %r; from pemviz import cli; "
+    "sys.exit(cli.main(sys.argv[1:]))"
+)
+"""``--pays-s``: ``pemviz run`` with the pool's threshold set first (``python -c ... run ARGS``)."""
+
+
 def _seconds(text: str) -> float:
     value, unit = text.split()
     return float(value) * {"s": 1.0, "min": 60.0, "h": 3600.0}[unit]
 
 
-def cores(cases: list[str], n: int, workers: str | None, once: bool = False) -> None:
+def cores(cases: list[str], n: int, workers: str | None, once: bool = False, pays_s: float | None = None) -> None:
     """Time each case with the default workers (or ``workers``) and (unless ``once``) with ``--workers 1``, in fresh
     processes: wall, CPU (the run's and its workers', user + system), the run's first time estimate, the peak memory of
-    the run's process and of its largest worker, the load."""
+    the run's process and of its largest worker, the load. ``pays_s``: the pool starts where the blocks left would
+    take that many CPU seconds (:data:`pemviz.engine.resources.POOL_PAYS_S`; None: its value)."""
     print(f"{len(os.sched_getaffinity(0))} usable cores; load average before: {os.getloadavg()[0]:.2f}")
     print(
         f"{'case':>17} {'workers':>8} {'wall s':>7} {'cpu s':>7} {'first est. s':>12} {'est/wall':>8} {'run MB':>7} "
@@ -188,7 +198,8 @@ def cores(cases: list[str], n: int, workers: str | None, once: bool = False) -> 
         for w in (workers or "default",) if once else (workers or "default", "1"):
             tmp = tempfile.TemporaryDirectory()
             saved = [str(Path(tmp.name) / "rollouts.parquet")] if args[-1:] == ["--save-rollouts"] else []
-            cmd = [sys.executable, "-m", "pemviz.cli", "run", "--no-record", *args, *saved]
+            cmd = [sys.executable, "-m", "pemviz.cli"] if pays_s is None else [sys.executable, "-c", _PAYS % pays_s]
+            cmd += ["run", "--no-record", *args, *saved]
             cmd += [] if w == "default" else ["--workers", w]
             peaks: dict[int, float] = {}
             done = threading.Event()
@@ -251,12 +262,15 @@ def main() -> int:
     ap.add_argument("--cores-n", type=int, default=200_000, help="--cores: plain Monte Carlo's rollouts")
     ap.add_argument("--workers", default=None, help="--cores: the workers compared with 1 (default: every core)")
     ap.add_argument("--once", action="store_true", help="--cores: only with --workers (or the default), not with 1")
+    ap.add_argument(
+        "--pays-s", type=float, default=None, help="--cores: start the pool where the blocks left take this CPU (s)"
+    )
     args = ap.parse_args()
     if args.child is not None:
         _child(args.child)
         return 0
     if args.cores:
-        cores(args.cases, args.cores_n, args.workers, args.once)
+        cores(args.cases, args.cores_n, args.workers, args.once, args.pays_s)
         return 0
     os.environ.setdefault("RERUN_ANALYTICS", "false")
     print(f"{os.cpu_count()} cores; times in seconds, per simulation in microseconds")

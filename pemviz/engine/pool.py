@@ -5,10 +5,11 @@ A batch is cut into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollo
 (:func:`pemviz.core.rng.block_bounds`) and each block is simulated from its slice of the serial uniform stream
 (:class:`pemviz.engine.executors.ChunkUniforms`), as the Ray executor does. The first block of a batch is simulated in
 this process and timed (CPU seconds); the pool starts when the blocks left would take at least
-:data:`pemviz.engine.resources.POOL_PAYS_S` seconds more (a worker's start costs about 1.5 s of CPU, each block
-about half its own simulation), and once started takes every batch of two blocks or more: a streamed stage's blocks at
+:data:`pemviz.engine.resources.POOL_PAYS_S` seconds more (a worker's start costs about 1 s of CPU: its imports and the
+problem's unpickling, once), and once started takes every batch of two blocks or more: a streamed stage's blocks at
 most two per worker ahead, handed back in order. A batch of one block (e.g. a braking default run's 2,100 rollouts)
-never starts it.
+never starts it. A worker hands its blocks' arrays back in shared-memory files (:mod:`pemviz.engine.handoff`), not
+through the pool's pipe.
 
 The pool is joblib's loky executor: processes started by fork + exec, so a parent with threads (the panel's) is safe;
 a broken worker is detected and replaced; idle workers exit after :data:`IDLE_S` seconds. Measured on a 2-core machine
@@ -35,7 +36,7 @@ import numpy as np
 from pemviz.core.detectors import Detector
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, block_bounds
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.engine import resources
+from pemviz.engine import handoff, resources
 from pemviz.engine.resources import ONE_THREAD_ENV, usable_cpus
 from pemviz.engine.executors import ChunkUniforms, check_draws, gather_chunks, simulate_blocks, simulate_chunk
 
@@ -82,9 +83,10 @@ def _task(
     state: Any,
     stream: bool,
     keep_rows: Any,
-) -> bytes:
-    """One worker's task: the blocks' rollouts, pickled by cloudpickle (a chunk's row replay is a closure)."""
-    import cloudpickle
+    folder: str | None,
+) -> handoff.Packed:
+    """One worker's task: the blocks' rollouts, pickled by cloudpickle (a chunk's row replay is a closure), their
+    arrays handed over in a file of ``folder`` (:func:`pemviz.engine.handoff.pack`)."""
     from threadpoolctl import threadpool_limits
 
     problem = _problem(digest, blob)
@@ -93,7 +95,7 @@ def _task(
             out = [_stream_block(problem, n, a, b, sampler, target, state, keep_rows) for a, b in blocks]
         else:
             out = simulate_blocks(problem, n, blocks, sampler, target, state)
-    return cloudpickle.dumps(out)
+    return handoff.pack(out, folder)
 
 
 def _worker_start(path: tuple[str, ...]) -> None:
@@ -123,6 +125,8 @@ class LocalExecutor:
         self.started = False
         """Whether a batch was big enough to start the pool."""
         self._pool: Any = None
+        self._folder: str | None = None
+        """The pool's hand-off folder (:mod:`pemviz.engine.handoff`), made with the pool."""
 
     def eligible(self, n: int, rng: np.random.Generator, problem: Any = None) -> bool:
         """Whether a batch of ``n`` rollouts of ``problem`` drawn from ``rng`` may go to the pool: two blocks or more,
@@ -146,6 +150,7 @@ class LocalExecutor:
 
         if self._pool is None:
             atexit.register(self.close)
+            self._folder = handoff.make_folder()
         self._pool = get_reusable_executor(  # a changed import path starts new workers (loky compares the arguments)
             max_workers=self.workers,
             timeout=IDLE_S,
@@ -180,15 +185,14 @@ class LocalExecutor:
         if not self._pays(len(blocks), block_s):
             rest = [simulate_chunk(problem, n, a, b, sampler, target, state) for a, b in blocks]
             return gather_chunks(problem, n, rng, first + rest)
-        import cloudpickle
-
         digest, blob = self._pickled(problem)
         pool = self._executor()
         k = -(-len(blocks) // self.workers)
         tasks = [blocks[i : i + k] for i in range(0, len(blocks), k)]
-        futures = [pool.submit(_task, digest, blob, n, part, sampler, target, state, False, None) for part in tasks]
+        args = (sampler, target, state, False, None, self._folder)
+        futures = [pool.submit(_task, digest, blob, n, part, *args) for part in tasks]
         try:
-            parts = [r for f in futures for r in cloudpickle.loads(f.result())]
+            parts = [r for f in futures for r in handoff.unpack(f.result())]
         finally:
             for f in futures:
                 f.cancel()
@@ -214,8 +218,6 @@ class LocalExecutor:
         if not self.eligible(n, rng, problem):
             yield from problem.stream(n, sampler, target, rng, **size)
             return
-        import cloudpickle
-
         state = rng.bit_generator.state
         todo = collections.deque(block_bounds(n))
         pending: collections.deque[Any] = collections.deque()
@@ -227,9 +229,10 @@ class LocalExecutor:
                     pool = self._executor()
                 while pool is not None and todo and len(pending) < 2 * self.workers:
                     block = [todo.popleft()]
-                    pending.append(pool.submit(_task, digest, blob, n, block, sampler, target, state, True, keep_rows))
+                    args = (sampler, target, state, True, keep_rows, self._folder)
+                    pending.append(pool.submit(_task, digest, blob, n, block, *args))
                 if pending:
-                    result = cloudpickle.loads(pending.popleft().result())
+                    result = handoff.unpack(pending.popleft().result())
                 else:  # in this process, timed: what the blocks left would cost
                     t0 = time.thread_time()
                     result = [_stream_block(problem, n, *todo.popleft(), sampler, target, state, keep_rows)]
@@ -249,3 +252,5 @@ class LocalExecutor:
         if self._pool is not None:
             self._pool.shutdown(wait=True, kill_workers=True)
             self._pool = None
+        handoff.remove_folder(self._folder)  # with the blocks cancelled before they were read
+        self._folder = None

@@ -118,9 +118,9 @@ POOL_BLOCK = 8192
 equal; this module imports no numpy)."""
 POOL_PAYS_S = 20.0
 """CPU seconds of simulation left in a batch from which the local executor starts its pool: the pool costs CPU, a
-worker's start (about 1.5 s) and each block's own stream and transfer (measured on 2 cores: 100,000 crossing rollouts
-took 16.1 s of CPU in one process and 24.0 s with 2 workers started for them). Once started, the pool takes every
-batch of two blocks or more."""
+worker's start (about 1 s: its imports and the problem's unpickling) and each block's hand-off (about 2 % of its
+simulation through shared memory; measured on 2 cores: 100,000 crossing rollouts took 17.1 s of CPU in one process
+and 18.0 s with 2 workers started for them). Once started, the pool takes every batch of two blocks or more."""
 
 
 def pool_workers(run: Execution, n: int, seconds: float) -> int:

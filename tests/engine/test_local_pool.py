@@ -111,6 +111,10 @@ def test_pooled_blocks_and_streamed_chunks_are_the_serial_rollouts_and_leave_the
         np.testing.assert_array_equal(getattr(a, name), getattr(streamed, name))
     assert serial_rng.random() == pooled_rng.random()
     assert ex.started
+    folder = ex._folder  # the blocks came through shared-memory files (pemviz.engine.handoff), each removed once read
+    assert folder is None or os.listdir(folder) == []
+    ex.close()
+    assert folder is None or not os.path.exists(folder)
 
 
 @functools.lru_cache(maxsize=None)
