@@ -49,12 +49,16 @@ def seconds(value: str, unit: str) -> float:
 
 def panel_range(argv: list[str]) -> tuple[float, float]:
     """The panel's cost line's seconds for the run ``argv`` (its settings as ``pemviz run`` reads them), now: as
-    planned, and with all that may follow."""
+    planned, and with all that may follow (or, where nothing may, the load's drift)."""
     from pemviz.app.form import run_cost
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
 
+    from pemviz.engine.cost import with_drift
+
     cost = run_cost(config_from_args(build_parser("run").parse_args(argv)))
+    if cost.then_simulations <= 0:  # nothing may follow: the range ends at the load's drift, as the panel says
+        return cost.seconds, with_drift(cost.seconds, cost.slowdown)
     return cost.seconds, cost.seconds + cost.then_seconds
 
 

@@ -89,8 +89,9 @@ class StopRule:
     require: None or a requirement ``"p < T"`` (``<``, ``<=``, ``>``, ``>=``; T in (0, 1)): after the planned
         stages the run adds final batches as for ``rel_error`` until the interval of an alpha-spending sequential
         test lies wholly on one side of T (:mod:`pemviz.core.requirement`) or a cap is hit.
-    max_sims: with ``rel_error``, the most simulations in all (None: :data:`DEFAULT_MAX_SIMS`); at least the
-        planned ones.
+    max_sims: with ``rel_error`` or ``require``, the most simulations in all, plain Monte Carlo after the stages
+        included (None: :data:`DEFAULT_MAX_SIMS`; :attr:`ExperimentConfig.most_simulations`); at least the planned
+        ones.
     max_time_s: with ``rel_error``, no batch is started after this many seconds of the run, and none is sized to
         end past it (None: no time cap); seconds.
     """
@@ -354,6 +355,17 @@ class ExperimentConfig:
         (:class:`pemviz.estimators.precision.PrecisionTarget`), else None."""
         stop = self.stop
         return "rel_error" if stop.rel_error is not None else "require" if stop.require is not None else None
+
+    @property
+    def most_simulations(self) -> int | None:
+        """The most simulations of the whole run (its stages, their added batches, a retry and plain Monte Carlo
+        after them): ``max_sims``, else :data:`~pemviz.settings.DEFAULT_MAX_SIMS` with a stop rule, else None (the
+        planned budget, and the fallback's own cap, :func:`pemviz.methods.adaptive.plain_fallback_most`)."""
+        from pemviz.settings import DEFAULT_MAX_SIMS
+
+        if self.stop.max_sims is not None:
+            return self.stop.max_sims
+        return DEFAULT_MAX_SIMS if self.stop_rule is not None else None
 
     @property
     def fits_whole_rollouts(self) -> bool:

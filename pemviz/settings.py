@@ -23,7 +23,8 @@ from pemviz.methods.adaptive import CrossEntropySettings
 
 
 DEFAULT_MAX_SIMS = 1_000_000
-"""The most simulations of a run with a target relative error (``rel_error``) and no ``max_sims``."""
+"""The most simulations of a run with a stop rule (``rel_error``, ``require``) and no ``max_sims``: its stages, their
+added batches, a retry and plain Monte Carlo after them together."""
 
 METRICS = ("classic", "agm", "smooth-cumulative")
 """Robustness semantics that rank rollouts and set the adaptive thresholds (Innes & Ramamoorthy 2022, Sec. IV)."""
@@ -363,8 +364,8 @@ SETTINGS: dict[str, Setting] = _settings(
             "shifted by D (log-odds): a camera that misses more (D < 0) or less often than the PEM says",
             lo=-10.0, hi=10.0, optional=True, owner=RUN, short="PEM shift", flags=("--pem-shift",)),
     Setting("max_sims", "the most simulations", "with a precision target (--rel-error) or a requirement (--require): "
-            "the run stops adding rollouts at this "
-            f"many simulations in all (None: {DEFAULT_MAX_SIMS:,})", kind="int", lo=1, optional=True, owner=RUN,
+            "the run stops adding rollouts at this many simulations in all, plain Monte Carlo after the stages "
+            f"included (None: {DEFAULT_MAX_SIMS:,})", kind="int", lo=1, optional=True, owner=RUN,
             short="max sims", flags=("--max-sims",), panel="advanced"),
     Setting("max_time_s", "the most wall-clock time", "with --rel-error or --require: no more rollouts once the run "
             "has taken this long; where the run stops then depends on the machine (None: no time cap)", unit="s",

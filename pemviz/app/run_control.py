@@ -25,7 +25,7 @@ from pemviz.app.runs_tab import RunsTab
 from pemviz.app.scene_view import SceneView
 from pemviz.scenarios.registry import problem_for
 from pemviz.engine import experiment
-from pemviz.engine.cost import range_text
+from pemviz.engine.cost import LOAD_WORDS, range_text
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.engine.resources import torch_threads
 from pemviz.sinks import Sink
@@ -256,7 +256,8 @@ class RunControl:
                 eta = f", about {stage_left:.1f} s left in it" if stage_left > 0.05 else ", nearly done"
             whole = ""
             if math.isfinite(run_left):
-                whole = f", {range_text(run_left, clock.run_most_s(), left=' left in all')}"
+                why = LOAD_WORDS if clock.follow is None else ""  # the upper end: the load's drift alone
+                whole = f", {range_text(run_left, clock.run_most_s(), left=' left in all', why=why)}"
             self.status(
                 f"{record.short_label} · {label}: {doing} · stage {clock.stage_elapsed_s():.1f} s{eta} · run "
                 f"{record.elapsed_s():.1f} s{whole}"

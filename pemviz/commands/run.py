@@ -377,6 +377,26 @@ def main(args: argparse.Namespace) -> int:
         raise
 
 
+def keep_interrupted(rollout_sink: Any) -> str:
+    """What an interrupted run's rollout file keeps (:meth:`pemviz.sinks.rollouts.RolloutSink.keep_finished`: its last
+    finished stage, whose estimate ``pemviz estimate`` gives back), in words; empty where it keeps nothing (no
+    rollout file asked for, no saved stage finished, or the file could not be committed: then none is left)."""
+    if rollout_sink is None:
+        return ""
+    try:
+        kept = rollout_sink.keep_finished()
+    except Exception:  # a file cut short is never left: the sink's close drops it
+        return ""
+    if kept is None:
+        return ""
+    path, stage, est = kept
+    shown = "no failure" if est.n_failures == 0 else f"mu_hat = {est.mu_hat:.4e}"
+    return (
+        f"rollouts {path} kept: stage {stage}, the last finished, {est.n:,} rollouts ({shown}, its row's "
+        "estimate; pemviz estimate gives it back)"
+    )
+
+
 def _run_experiment(args, cfg: ExperimentConfig, target, outputs: RunOutputs, early, rollout_sink) -> int:
     """The run itself, its listeners and its files (:func:`main`), written where ``outputs`` says
     (:func:`pemviz.commands.run_outputs.plan_outputs`); ``early``: the recording process started before the problem was
@@ -452,7 +472,9 @@ def _run_experiment(args, cfg: ExperimentConfig, target, outputs: RunOutputs, ea
         where = recorder.close() if recorder is not None else None
         stages = f"{len(experiment.stages)} stage(s) finished"
         said = [f"recording {where} (marked interrupted)"] if where else []
-        said += [lost] if (lost := outputs.unwritten()) else []
+        kept_stage = keep_interrupted(rollout_sink)
+        said += [kept_stage] if kept_stage else []
+        said += [lost] if (lost := outputs.unwritten(rollouts=not kept_stage)) else []
         raise interrupted(exc, "; ".join([stages, *(said or ["nothing written"])])) from None
     except BaseException:
         if recorder is not None:

@@ -74,12 +74,12 @@ class RunOutputs:
             named.append(("--report (its Markdown twin)", markdown_twin(self.report)))
         return named
 
-    def unwritten(self) -> str:
+    def unwritten(self, rollouts: bool = True) -> str:
         """``not written: r.parquet (--save-rollouts), r.json (--json)``: the outputs asked for that a run interrupted
-        in its stages does not write (a rollout file keeps only a finished run's rollouts); empty when none was
-        asked."""
+        in its stages does not write (the rollout file too, unless ``rollouts`` is False: it kept its last finished
+        stage); empty when none was asked."""
         asked = [
-            (self.rollouts, "--save-rollouts"),
+            (self.rollouts if rollouts else None, "--save-rollouts"),
             *zip(self.result_files, ("--json", "--junit", "--report"), strict=True),
         ]
         names = [f"{path} ({flag})" for path, flag in asked if path is not None]

@@ -341,14 +341,32 @@ def duration_text(seconds: float) -> str:
     return f"{years:,.0f} years" if years < 10_000 else f"{years:.1e} years"
 
 
-def range_text(low_s: float, high_s: float = math.nan, then: str = "", left: str = "") -> str:
+LOAD_DRIFT = 0.4
+"""How much longer than its first estimate a run on a loaded machine may take, nothing following its stages, as a
+share: the estimate is the model's seconds times the load read over a fraction of a second at the start
+(:func:`pemviz.engine.resources.load_slowdown`), whose CPU-speed probe drifts by 10-40 % within seconds, and whose
+sharing moves as the other sessions' jobs start and end. The cut-in's tilt run (one stage, nothing after it) took
+0.75-1.30 times its first estimate in 9 runs at load average 4-15 where its CPU seconds were the model's times the
+probe's reading (the Validation page, "Time estimates")."""
+LOAD_WORDS = "as the machine's load varies"
+"""What the upper end of a range says where it is the load's drift alone (:func:`with_drift`)."""
+
+
+def with_drift(seconds: float, slowdown: float) -> float:
+    """The most ``seconds`` (a run's, the model's times ``slowdown``, the load read at its start) may become as the
+    load varies: ``seconds`` times 1 + :data:`LOAD_DRIFT` on a loaded machine (``slowdown`` > 1), else ``seconds``."""
+    return seconds * (1.0 + LOAD_DRIFT) if slowdown > 1.0 else seconds
+
+
+def range_text(low_s: float, high_s: float = math.nan, then: str = "", left: str = "", why: str = "") -> str:
     """``~1.2 s left, up to ~6.5 min with 1,005,100 rollouts if ...``: a run's seconds from ``low_s`` (as planned) up
-    to ``high_s`` (with what may follow, ``then``: :meth:`FollowOn.text`; empty: not said), in the words of both the
-    console's progress line and the panel's cost line (``left``: after the first figure, e.g. `` left``). The upper
-    end is left out where it is not finite or reads as the lower."""
+    to ``high_s`` (with what may follow, ``then``: :meth:`FollowOn.text`; or, without it, ``why``, e.g.
+    :data:`LOAD_WORDS`; both empty: not said), in the words of both the console's progress line and the panel's cost
+    line (``left``: after the first figure, e.g. `` left``). The upper end is left out where it is not finite or
+    reads as the lower."""
     text = f"~{duration_text(low_s)}{left}"
     if math.isfinite(high_s) and duration_text(high_s) != duration_text(low_s):
-        text += f", up to ~{duration_text(high_s)}" + (f" with {then}" if then else "")
+        text += f", up to ~{duration_text(high_s)}" + (f" with {then}" if then else f" {why}" if why else "")
     return text
 
 
@@ -383,9 +401,10 @@ class RunCost:
         )
 
     def time_text(self, left: str = "") -> str:
-        """The run's seconds as a range (:func:`range_text`): as planned, up to the most that may follow."""
+        """The run's seconds as a range (:func:`range_text`): as planned, up to the most that may follow, or where
+        nothing may, up to the load's drift (:func:`with_drift`)."""
         if self.then_simulations <= 0:
-            return range_text(self.seconds, left=left)
+            return range_text(self.seconds, with_drift(self.seconds, self.slowdown), left=left, why=LOAD_WORDS)
         then = f"{self.then_simulations:,} {self.then_words}"
         return range_text(self.seconds, self.seconds + self.then_seconds, then, left)
 

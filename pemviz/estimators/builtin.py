@@ -65,7 +65,7 @@ def _then(config: ExperimentConfig, simulations: int, problem: Problem | None) -
         again = None if retry_refused(problem) is not None else again
     plan = None if again is None else adaptive_run_plan(config.replace(n_per_stage=again))
     retry = 0 if again is None else int(config.replace(n_per_stage=again).n_simulations)
-    most = plain_fallback_most(config.adaptive.plain_fallback, simulations + retry, config.stop.max_sims)
+    most = plain_fallback_most(config.adaptive.plain_fallback, simulations + retry, config.most_simulations)
     if problem is not None and plain_cannot_decide(most, stated_log_p(problem), config.stop.require) is not None:
         most = 0
     when = "if the stages' weights back no interval"

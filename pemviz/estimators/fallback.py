@@ -9,12 +9,13 @@ importance weight can say by how much. Plain Monte Carlo can, at its own cost, w
 rollouts one is willing to draw: :class:`PlainFallback` draws them after the method's stages when its verdict is not
 ``reliable``, to the run's precision target (``rel_error``, else :data:`REL_ERROR`) or requirement, at most
 ``plain_fallback`` times the simulations the method spent and never more than
-:data:`~pemviz.methods.adaptive.PLAIN_FALLBACK_MOST` nor than the run's own
-``max_sims`` allows (the default 500: a million after the default run's 2,100; a quick run of a few
-hundred gets a proportionate few) (:class:`pemviz.estimators.precision.PrecisionTarget` on
-:func:`pemviz.estimators.fixed.monte_carlo`), from a stream of their own (the method's rollouts are those of the run
-without it). Its answer is plain Monte Carlo's (Clopper-Pearson interval: exact, whatever the sampler before it)
-where those rollouts saw a failure; else the method's, with plain Monte Carlo's 95 % upper bound in the stop line.
+:data:`~pemviz.methods.adaptive.PLAIN_FALLBACK_MOST` nor than what the run's cap of simulations leaves
+(``max_sims``; with a precision target or a requirement, by default 1,000,000 for the whole run) (the default 500: a
+million after the default run's 2,100; a quick run of a few hundred gets a proportionate few)
+(:class:`pemviz.estimators.precision.PrecisionTarget` on :func:`pemviz.estimators.fixed.monte_carlo`), from a stream
+of their own (the method's rollouts are those of the run without it). Its answer is plain Monte Carlo's
+(Clopper-Pearson interval: exact, whatever the sampler before it) where those rollouts saw a failure; else the
+method's, with plain Monte Carlo's 95 % upper bound in the stop line.
 
 Plain Monte Carlo is drawn only where its cap can decide something (:func:`plain_cannot_decide`). Its cap is known
 before its first rollout; p is not, and no importance weight bounds it from above (a proposal that misses the failure
@@ -54,14 +55,14 @@ from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, format_probability
 from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
-from pemviz.core.requirement import parse_requirement
+from pemviz.core.requirement import alpha_at_look, parse_requirement
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import Estimator, StageOutcome, StagePlan
 from pemviz.estimators.extras import extras
 from pemviz.estimators.fixed import monte_carlo
-from pemviz.estimators.precision import PrecisionTarget
+from pemviz.estimators.precision import PrecisionTarget, default_cap_words
 from pemviz.methods import PLAIN_METHOD
-from pemviz.methods.adaptive import plain_fallback_most, retry_n
+from pemviz.methods.adaptive import PLAIN_FALLBACK_MOST, plain_fallback_most, retry_n
 
 REL_ERROR = 0.2
 """The relative half-width plain Monte Carlo is drawn to when the run has no precision target of its own."""
@@ -74,6 +75,8 @@ its rollouts chunk by chunk (or on another executor): a batch is then held whole
 :data:`pemviz.engine.experiment.STREAM_ABOVE`)."""
 STREAMED_BATCH = 200_000
 """The most plain rollouts of one batch on a problem that streams them: a stage's per-rollout numbers stay bounded."""
+MIN_PLAIN = 2
+"""The fewest plain rollouts the fallback draws (a run's least N): with fewer left in the run's cap it draws none."""
 STREAM = 0x706C61696E
 """Mixed into the seed of the fallback's own stream (``numpy.random.default_rng([seed, STREAM])``)."""
 RETRY = 0x7265747279
@@ -94,6 +97,25 @@ def rollouts_to_bound(threshold: float) -> int:
     ``threshold`` in (0, 1): ln 0.05 / ln(1 - threshold), about 3 / threshold (an int >= 1; Clopper & Pearson,
     Biometrika 26(4), 1934; the rule of three: Hanley & Lippman-Hand, JAMA 249(13), 1983)."""
     return max(1, math.ceil(math.log(CI_TAIL) / math.log1p(-threshold)))
+
+
+def rollouts_to_decide_below(threshold: float) -> int:
+    """The fewest plain rollouts whose first look (:func:`pemviz.core.requirement.decide`, level 1 - alpha_1) can
+    decide ``p < threshold`` with no failure: the two-sided Clopper-Pearson upper end 1 - (alpha_1 / 2)^(1/n) below
+    ``threshold`` in (0, 1) (an int >= 1)."""
+    tail = alpha_at_look(1) / 2.0
+    return max(1, math.floor(math.log(tail) / math.log1p(-threshold)) + 1)
+
+
+def more_budget(spent: int, require: str | None) -> str:
+    """What to type where the stages spent the run's whole cap of simulations (``spent``) and left plain Monte Carlo
+    none: for ``p < T`` (``<=``) the ``--max-sims`` that leaves it the rollouts which decide it with no failure
+    (:func:`rollouts_to_decide_below`), else a larger ``--max-sims``."""
+    req = None if require is None else parse_requirement(require)
+    if req is None or not req.upper:
+        return "a larger --max-sims leaves plain Monte Carlo some"
+    need = rollouts_to_decide_below(req.threshold)
+    return f"--max-sims {spent + need:,} leaves plain Monte Carlo the {need:,} rollouts that decide {req} if none fails"
 
 
 def stated_log_p(problem: Any) -> tuple[float, str] | None:
@@ -284,6 +306,8 @@ class PlainFallback(_Speaks):
         self.inner, self.config, self.problem, self.ratio, self.clock = inner, config, problem, int(ratio), clock
         self.cap = 0
         """The most plain rollouts: ``ratio`` times the method's simulations (set once its stages are done)."""
+        self.cap_words = "--plain-fallback"
+        """What bounds :attr:`cap`: ``--plain-fallback``, or what the run's cap of simulations leaves."""
         self.t0 = clock()
         self.retry: Shifted | None = None
         """The method's stages once more, once the first run's weights backed no interval."""
@@ -376,11 +400,17 @@ class PlainFallback(_Speaks):
             return None
         stop = self.config.stop
         spent = self._method_simulations()
-        self.cap = plain_fallback_most(self.ratio, spent, stop.max_sims)
-        if self.cap < 1:
-            return None
+        most = self.config.most_simulations
+        self.cap = plain_fallback_most(self.ratio, spent, most)
+        self.cap = 0 if self.cap < MIN_PLAIN else self.cap
+        self.cap_words = "--plain-fallback"
+        if most is not None and self.cap == most - spent < min(self.ratio * max(1, spent), PLAIN_FALLBACK_MOST):
+            whose = f"--max-sims {most:,}" if stop.max_sims is not None else default_cap_words(most)
+            self.cap_words = f"what {whose} leaves after the stages' {spent:,}"
         self.not_drawn = plain_cannot_decide(self.cap, stated_log_p(self.problem), stop.require)
         if self.not_drawn is not None:
+            if self.cap < 1 and most is not None:  # the stages spent the run's cap: say what would leave some
+                self.not_drawn += f" ({self.cap_words}); {more_budget(spent, stop.require)}"
             return None
         changes: dict[str, Any] = {"method": PLAIN_METHOD, "max_sims": self.cap}
         if stop.rel_error is None and stop.require is None:
@@ -390,13 +420,14 @@ class PlainFallback(_Speaks):
             if left <= 0:
                 return None
             changes["max_time_s"] = left
+        streams = self.problem.stream is not None and self.config.execution.executor != "ray"
+        batch = STREAMED_BATCH if streams else max(1, UNSTREAMED_BATCH // max(1, self.problem.n_objects))
+        first = max(MIN_PLAIN, min(FIRST_BATCH, self.cap, batch))
+        changes["n_per_stage"] = first  # a cap below the run's N must still hold that first batch
         config = self.config.replace(**changes)
-        streams = self.problem.stream is not None and config.execution.executor != "ray"
-        most = STREAMED_BATCH if streams else max(1, UNSTREAMED_BATCH // max(1, self.problem.n_objects))
-        first = min(FIRST_BATCH, self.cap, most)
         plain = monte_carlo(self.problem, first, self.config.weights_until_failure, first_stage=self._last_stage + 1)
         plain.rng = np.random.default_rng([self.config.seed, STREAM])
-        return PrecisionTarget(plain, config, self.clock, max_batch=most)
+        return PrecisionTarget(plain, config, self.clock, max_batch=batch, cap_words=self.cap_words)
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
         return self.drawing.observe(batch, failed, robustness)
@@ -487,7 +518,7 @@ class PlainFallback(_Speaks):
             est = self.plain.result()[0]
             said = (
                 f"plain Monte Carlo after the stages, whose weights backed no interval ({self.before.verdict}): "
-                f"{est.n_failures:,} failures in {est.n:,} rollouts (at most {self.cap:,}: --plain-fallback)"
+                f"{est.n_failures:,} failures in {est.n:,} rollouts (at most {self.cap:,}: {self.cap_words})"
             )
             if est.n_failures == 0:
                 upper = 1.0 - 0.05 ** (1.0 / max(1, est.n))  # one-sided Clopper-Pearson with no failure

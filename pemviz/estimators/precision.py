@@ -5,7 +5,10 @@ the relative half-width of the 95 % interval, (hi - lo) / (2 mu_hat) (:attr:`pem
 rel_half_width`), of an interval the run backs (:attr:`pemviz.core.estimate.Estimate.interval_backed`). After the
 estimator's planned stages, :class:`PrecisionTarget` asks it for more final batches
 (:meth:`Extensible.extend`: fresh rollouts from the same sampler, pooled with the first final batch, every rollout of
-the final batches alike) until the target holds or a cap (simulations, seconds) is hit, and says which.
+the final batches alike) until the target holds or a cap (simulations, seconds) is hit, and says which. Batches that
+cannot reach the target are not drawn: where the weights back no interval and more of them cannot
+(:func:`cannot_back`), the run stops at that look (and, for a requirement, only where the lower bound cannot decide
+it either), so that plain Monte Carlo after it (:mod:`pemviz.estimators.fallback`) has the budget.
 
 For plain Monte Carlo this is a sequential stop on the Clopper-Pearson interval; for importance sampling the
 final proposal is fixed before any added batch is drawn, so each added rollout is an unbiased term of the same mean.
@@ -23,11 +26,12 @@ import numpy as np
 
 from pemviz.settings import DEFAULT_MAX_SIMS
 from pemviz.config import ExperimentConfig
-from pemviz.core.estimate import Estimate
+from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, format_probability
 from pemviz.core.requirement import Decision, decide, parse_requirement
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan
+from pemviz.estimators.extras import extras
 
 GROWTH = 4.0
 """An added batch is at most this many times the final rollouts so far: the interval's width is itself noisy, so the
@@ -36,6 +40,36 @@ MARGIN = 1.2
 """An added batch aims at this many times the rollouts the 1 / sqrt(n) law says the target needs."""
 MIN_BATCH = 100
 """The fewest rollouts of an added batch."""
+HEAVY_LOOKS = 2
+"""Looks in a row at which the weights' Pareto k-hat exceeds :data:`~pemviz.core.estimate.KHAT_UNRELIABLE` before the
+run holds that more batches of the same sampler cannot back an interval (:func:`cannot_back`): one reading of k-hat
+is noisy, two from a growing pool are the tail's."""
+
+
+def default_cap_words(max_sims: int) -> str:
+    """The words for the default cap of ``max_sims`` simulations a run with a stop rule but no ``--max-sims`` has."""
+    return f"the default cap of {max_sims:,} simulations (--max-sims)"
+
+
+def cannot_back(est: Estimate, cap: tuple[str, str] | None, heavy_looks: int) -> str | None:
+    """Why more final batches from the sampler that drew ``est`` cannot back its interval, or None where they may.
+
+    An importance-sampling interval is backed by a ``reliable`` verdict only. Added batches come from the same fixed
+    proposal, so they cannot lift a verdict the sampler caps (``cap``: (verdict, reason), e.g. a proposal never fitted
+    to a failure), nor the weights' tail: with Pareto k-hat above :data:`~pemviz.core.estimate.KHAT_UNRELIABLE` the
+    variance of the weights is, in practice, infinite, and the rollouts a central limit needs grow without bound
+    (Vehtari, Simpson, Gelman, Yao, Gabry, "Pareto smoothed importance sampling", JMLR 25(72), 2024, Sec. 3);
+    ``heavy_looks``: the looks in a row with k-hat above it (at least :data:`HEAVY_LOOKS` count).
+    Returns one clause, e.g. ``k-hat above 0.7 at 2 looks running (2.54 now): ...``, or None.
+    """
+    if cap is not None and cap[0] != "reliable":
+        return f"the sampler caps their verdict at {cap[0]} ({cap[1]})"
+    if heavy_looks >= HEAVY_LOOKS:
+        return (
+            f"k-hat above {KHAT_UNRELIABLE} at {heavy_looks} looks running ({est.khat:.2f} now): their weights' tail "
+            "is heavy, and more weights of the same tail back no interval"
+        )
+    return None
 
 
 class Extensible(Protocol):
@@ -87,8 +121,11 @@ class PrecisionTarget:
     """Runs ``inner`` as planned, then adds final batches until the estimate's relative half-width is at most
     ``rel_error`` (a precision target) or a requirement ``require`` is decided
     (:func:`pemviz.core.requirement.decide`, one look after each batch), or ``max_sims`` simulations (default
-    :data:`pemviz.settings.DEFAULT_MAX_SIMS`) or ``max_time_s`` seconds are reached. :attr:`stop` says why it
-    stopped, in one line; :attr:`decision` is the last look's :class:`pemviz.core.requirement.Decision`.
+    :data:`pemviz.settings.DEFAULT_MAX_SIMS`: :attr:`pemviz.config.ExperimentConfig.most_simulations`) or
+    ``max_time_s`` seconds are reached, or no added batch can reach the target: the weights back no interval and
+    more of them cannot (:func:`cannot_back`), and, for a requirement, the estimate lies below the threshold (its lower
+    bound, the one side an unbacked estimate decides, cannot reach it). :attr:`stop` says why it stopped, in one line;
+    :attr:`decision` is the last look's :class:`pemviz.core.requirement.Decision`.
 
     Args:
         inner: the estimator (:class:`Extensible`).
@@ -96,6 +133,8 @@ class PrecisionTarget:
         clock: seconds, monotonic (tests pass their own).
         max_batch: the most rollouts of one added batch (None: as many as the target asks), e.g. for a problem that
             cannot stream its rollouts, which hold them all at once.
+        cap_words: what the stop line calls the simulations cap (None: ``--max-sims N``, or
+            :func:`default_cap_words` where the config gives none).
     Raises:
         ValueError: ``rel_error`` is None.
     """
@@ -106,12 +145,16 @@ class PrecisionTarget:
         config: ExperimentConfig,
         clock: Callable[[], float] = time.perf_counter,
         max_batch: int | None = None,
+        cap_words: str | None = None,
     ) -> None:
         if config.stop_rule is None:
             raise ValueError("PrecisionTarget: the config has neither rel_error nor require")
         self.inner, self.config, self.clock, self.max_batch = inner, config, clock, max_batch
         self.rng = inner.rng
-        self.max_sims = config.stop.max_sims if config.stop.max_sims is not None else DEFAULT_MAX_SIMS
+        self.max_sims = int(config.most_simulations or DEFAULT_MAX_SIMS)  # a stop rule's run has a cap
+        self.cap_words = cap_words or (
+            f"--max-sims {self.max_sims:,}" if config.stop.max_sims is not None else default_cap_words(self.max_sims)
+        )
         self.t0 = clock()
         self.n_simulations = 0
         """Rollouts drawn so far (rollout-equivalents where the inner estimator counts them: ``tilt``'s look-aheads)."""
@@ -121,6 +164,8 @@ class PrecisionTarget:
         """With a requirement: the last look's decision (None before the first look)."""
         self._planned = True
         self._current: StagePlan | None = None
+        self._heavy = 0
+        """Looks in a row at which the estimate backed no interval and its k-hat was above KHAT_UNRELIABLE."""
 
     def __getattr__(self, name: str):  # the inner estimator's other attributes (its proposal, its stages, pooling)
         if name == "inner":
@@ -143,6 +188,8 @@ class PrecisionTarget:
             return None
         est, _ = self.inner.result()
         elapsed = self.clock() - self.t0
+        self._heavy = self._heavy + 1 if not est.interval_backed and est.khat > KHAT_UNRELIABLE else 0
+        unbacked = None if est.interval_backed else cannot_back(est, extras(self.inner).verdict_cap, self._heavy)
         if self.requirement is not None:
             look = 1 if self.decision is None else self.decision.look + 1
             self.decision = decide(est, self.requirement, look, plain_mc=self.config.method_record.plain)
@@ -150,6 +197,14 @@ class PrecisionTarget:
                 self.stop = (
                     f"requirement {self.decision.outcome}: {self.decision.why}, after "
                     f"{self.n_simulations:,} simulations"
+                )
+                return None
+            if unbacked is not None and not est.log_mu_hat >= self.requirement.log_threshold:
+                # no interval to come, and a lower bound below the estimate: nothing these batches add decides it
+                self.stop = (
+                    f"requirement undecided: the stages cannot decide {self.requirement}: {unbacked}, and their "
+                    f"estimate {format_probability(est.log_mu_hat, 3)} lies below the threshold, so their lower "
+                    f"bound cannot reach it ({self.decision.why}, after {self.n_simulations:,} simulations)"
                 )
                 return None
             want = decision_batch_size(est, self.inner.final_rollouts(), self.requirement.log_threshold)
@@ -162,6 +217,12 @@ class PrecisionTarget:
                     f"{self.n_simulations:,} simulations"
                 )
                 return None
+            if unbacked is not None:
+                self.stop = (
+                    f"stopped short of the target: the stages cannot back an interval: {unbacked} (after "
+                    f"{self.n_simulations:,} simulations)"
+                )
+                return None
             want = added_batch_size(est, self.inner.final_rollouts(), target)
         if not est.interval_backed:  # a width the weights do not back: as many rollouts again
             want = max(want, self.inner.final_rollouts())
@@ -170,9 +231,7 @@ class PrecisionTarget:
         n = min(want, math.floor(left / per), self.max_batch or want)
         cap = None
         if n <= 0:
-            cap = f"--max-sims {self.max_sims:,} reached"
-            if self.config.stop.max_sims is None:  # the user gave none: say it is the default
-                cap = f"the default cap of {self.max_sims:,} simulations (--max-sims) reached"
+            cap = f"{self.cap_words} reached"
         elif self.config.stop.max_time_s is not None:
             time_left = self.config.stop.max_time_s - elapsed
             rate = self.n_simulations / elapsed if elapsed > 0 else math.inf

@@ -53,7 +53,8 @@ simulations below it: a large run of the stages gets no larger fallback)."""
 def plain_fallback_most(ratio: int, spent: int, max_sims: int | None = None) -> int:
     """The most plain rollouts the fallback (:class:`pemviz.estimators.fallback.PlainFallback`) draws after stages that
     simulated ``spent`` rollout-equivalents: ``ratio`` (``plain_fallback``) times ``spent`` (at least 1), at most
-    :data:`PLAIN_FALLBACK_MOST` and what the run's own ``max_sims`` leaves; 0 when ``ratio`` <= 0 or nothing is left.
+    :data:`PLAIN_FALLBACK_MOST` and what the run's cap ``max_sims`` leaves
+    (:attr:`pemviz.config.ExperimentConfig.most_simulations`); 0 when ``ratio`` <= 0 or nothing is left.
     """
     if ratio <= 0:
         return 0
@@ -168,9 +169,10 @@ class CrossEntropySettings:
         ``fit_rows`` steps runs every epoch; ``lbfgs`` stops at its own tolerance.
     plain_fallback: when the stages' weights back no interval (a verdict other than ``reliable``), plain Monte Carlo
         rollouts follow, at most this many times the stages' simulations (the default 500), never above 1,000,000
-        nor the run's ``max_sims``, to the run's precision target (``rel_error``, else a 20 % interval) or
-        requirement; the run's answer is then plain Monte Carlo's where it saw a failure
-        (:mod:`pemviz.estimators.fallback`). 0: none (the ``paper`` preset's). Not over an operating design domain.
+        nor what the run's cap of simulations leaves (``max_sims``; with a stop rule, by default 1,000,000 in all),
+        to the run's precision target (``rel_error``, else a 20 % interval) or requirement; the run's answer is
+        then plain Monte Carlo's where it saw a failure (:mod:`pemviz.estimators.fallback`). 0: none (the
+        ``paper`` preset's). Not over an operating design domain.
     retry_factor: before that plain Monte Carlo, the stages once more, with N this many times as large (the
         default 4: 5,100 simulations after the default 2,100), from a stream of their own; their answer is the run's
         where their weights back an interval. 0 or 1: no retry. Only with ``plain_fallback`` > 0 and no precision

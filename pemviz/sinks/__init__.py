@@ -12,6 +12,7 @@ import time
 from typing import TYPE_CHECKING, Callable
 
 from pemviz.engine.cost import COST, N_STEPS, CostConstants, FollowOn, StageCost, follow_on, mc_rollouts, stage_cost
+from pemviz.engine.cost import with_drift
 from pemviz.engine.events import Event, FinalEstimate, RolloutChunk, RolloutsSampled, RunCancelled, RunFinished
 from pemviz.engine.events import RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.core.plan import RunPlan
@@ -314,7 +315,9 @@ class StageClock(Sink):
         what :meth:`run_left_s` says, the retry's stages still to come and the plain rollouts up to their cap; as
         :meth:`run_left_s` where nothing may follow."""
         left = self.run_left_s()
-        if self.follow is None or not math.isfinite(left):
+        if self.follow is None:  # nothing may follow: what the load's drift may add (pemviz.engine.cost.with_drift)
+            return with_drift(left, self.load)
+        if not math.isfinite(left):
             return left
         at = self._at()
         phase = self.phase(at)

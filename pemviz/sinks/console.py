@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, TextIO
 from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_probability
 from pemviz.core.severity import FailureSeverity
 from pemviz.engine.cost import (
+    LOAD_WORDS,
     MC_REL_ERROR,
     N_STEPS,
     Z_95,
@@ -76,13 +77,14 @@ def progress_line(
     run_left_s: float = math.nan,
     run_most_s: float = math.nan,
     then: str = "",
+    why: str = "",
 ) -> str:
     """``CE stage 3/10: 1000 rollouts ... (elapsed 12.3 s, this stage ~1.2 s, run ~8.4 s left, up to ~6.5 min)``: the
     stage's expected seconds and the whole run's left, as planned and at most (:class:`pemviz.sinks.StageClock`; the
     range in the words of the panel's cost line, :func:`pemviz.engine.cost.range_text`, with ``then`` saying what may
-    follow), each left out where unknown."""
+    follow, or ``why`` the upper end where nothing may), each left out where unknown."""
     eta = f", this stage ~{expected_s:.1f} s" if math.isfinite(expected_s) else ""
-    left = f", run {range_text(run_left_s, run_most_s, then, ' left')}" if math.isfinite(run_left_s) else ""
+    left = f", run {range_text(run_left_s, run_most_s, then, ' left', why)}" if math.isfinite(run_left_s) else ""
     return f"{label}: {n_rollouts} rollouts ... (elapsed {elapsed_s:.1f} s{eta}{left})"
 
 
@@ -586,8 +588,9 @@ class ConsoleSink(Sink):
         clock = self.clock
         expected = clock.expected_s(event.kind, event.n_rollouts, event.stage)
         then = clock.follow.text() if clock.follow is not None and not clock.done else ""  # the first line says why
+        why = LOAD_WORDS if clock.follow is None and not clock.done else ""
         left, most = clock.run_left_s(), clock.run_most_s()
-        line = progress_line(label, event.n_rollouts, clock.elapsed_s(), expected, left, most, then)
+        line = progress_line(label, event.n_rollouts, clock.elapsed_s(), expected, left, most, then, why)
         print(f"  {line}", file=self.progress, flush=True)
 
     def on_stage_finished(self, event: StageFinished) -> None:

@@ -9,12 +9,14 @@ import copy
 import dataclasses
 import os
 import sys
+import types
 from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
 
-from pemviz.engine.events import RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished, StageStarted
+from pemviz.engine.events import FinalEstimate, RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished
+from pemviz.engine.events import StageStarted
 from pemviz.estimators.pooling import pool_stage_weights
 from pemviz.io.rollout_writer import RolloutWriter, check_rollouts_path
 from pemviz.io.run_rollouts import run_meta, run_salient, run_severity
@@ -61,7 +63,8 @@ class RolloutSink(Sink):
     as the engine simulates them (:class:`pemviz.engine.events.RolloutChunk`, Parquet row groups of a
     :class:`pemviz.io.rollout_writer.RolloutWriter`), with ``log_p`` and the salient variables, so memory stays that of
     a chunk whatever N is; the stages the estimate did not use are dropped and the unit is moved into place when the
-    run finishes, and nothing is left after a cancelled or failed run. If the file holds one stage drawn by a
+    run finishes, and nothing is left after a cancelled or failed run; an interrupted one keeps its last finished
+    stage (:meth:`keep_finished`). If the file holds one stage drawn by a
     proposal, a snapshot of it taken when the stage was sampled is saved as ``NAME.proposal.pt`` and named in the
     sidecar.
 
@@ -100,6 +103,8 @@ class RolloutSink(Sink):
         """(rollouts the run plans in the stages saved, the most it may add after them: a retry, plain Monte Carlo)."""
         self.size_said: str | None = None
         """The line :meth:`size_line` printed, or None."""
+        self._finished: dict[int, Any] = {}
+        """Each finished stage's own estimate (:class:`pemviz.core.estimate.Estimate`), as its row printed it."""
 
     def _saves(self, kind: str) -> bool:
         """Whether a stage of this kind can enter the run's estimate (pretraining never does), or all are saved."""
@@ -127,6 +132,7 @@ class RolloutSink(Sink):
 
     def on_stage_finished(self, event: StageFinished) -> None:
         self._results[event.result.stage] = _estimate_json(event.result.estimate)
+        self._finished[event.result.stage] = event.result.estimate
 
     def on_run_finished(self, event: RunFinished) -> None:
         if self._writer is not None:
@@ -233,6 +239,22 @@ class RolloutSink(Sink):
         finally:
             self._writer = None
         return self.written
+
+    def keep_finished(self) -> tuple[Path, int, Any] | None:
+        """After an interrupt (Ctrl-C, SIGTERM): commit the last finished stage this file saves, its rollouts whole,
+        as a run whose estimate is that stage's own (the one its row printed; :func:`pemviz.io.rollout_estimate`
+        re-estimates it from the file), with the finished stages before it where ``stages`` is ``all``; the stage
+        being drawn is dropped. Returns (the Parquet path, the stage, its estimate), or None where no saved stage
+        finished (nothing is written: :meth:`close`)."""
+        done = [k for k in self._finished if k in self._infos]
+        if self._writer is None or not done:
+            return None
+        stage, est = max(done), self._finished[max(done)]
+        for k in [k for k in self._infos if k not in self._finished]:  # the stage cut short: not a stage's rollouts
+            del self._infos[k]
+        cap = getattr(self.problem, "verdict_cap", None)
+        final = FinalEstimate(est, n_simulations=est.n, wall_s=0.0, stages_used=(stage,), verdict_cap=cap)
+        return self.write(types.SimpleNamespace(final=final)), stage, est
 
     def close(self) -> None:
         """Drop what was written and not committed (a cancelled or failed run leaves no file)."""

@@ -170,9 +170,11 @@ def test_a_run_answered_by_plain_monte_carlo_or_the_retry_re_estimates_to_its_nu
 
 
 def test_the_fallback_stays_within_the_run_s_max_sims_and_a_million():
-    # a precision target whose --max-sims the stages' added batches spend leaves nothing for plain Monte Carlo
+    # the stages (30 simulations, their verdict capped) stop at once; plain Monte Carlo's cap is what --max-sims
+    # leaves, 1,000 (not 500 x 30 = 15,000), whose failures the exact answer 1e-21 does not expect: none drawn
     done, _ = run(seed=0, rel_error=0.2, max_sims=1030)
-    assert done.final.n_simulations <= 1030 and "--plain-fallback" not in (done.final.stop or "")
+    assert done.final.n_simulations == 30
+    assert "expects 1e-18 failures in 1,000 rollouts: it would end with no interval" in done.final.stop
     from pemviz.methods.adaptive import PLAIN_FALLBACK_MOST as MOST
 
     assert MOST == 1_000_000
@@ -288,3 +290,38 @@ def test_plain_monte_carlo_s_decision_stands_where_the_answer_is_the_stages():
     assert run.decision is undecided
     run.plain = None
     assert run.decision is undecided
+
+
+def test_the_default_cap_bounds_the_stages_and_plain_monte_carlo_together(monkeypatch):
+    """A precision target with no --max-sims has the default cap (here 5,000): it bounds the whole run. The stages
+    (30 simulations, their verdict capped: they stop at once) leave plain Monte Carlo 4,970, not the 15,000 that
+    --plain-fallback 500 allows (the run drew 15,030 before), and the stop line names the cap that bound it."""
+    from pemviz import settings
+
+    monkeypatch.setattr(settings, "DEFAULT_MAX_SIMS", 5000)
+    done, _ = unstated(rel_error=0.2, seed=0)
+    final = done.final
+    assert final.n_simulations == 5000, final.stop
+    assert "0 failures in 4,970 rollouts (at most 4,970: what the default cap of 5,000 simulations (--max-sims) " in (
+        final.stop
+    )
+    assert final.stop.endswith(
+        "stopped at a cap, not at the target: what the default cap of 5,000 simulations (--max-sims) leaves after "
+        "the stages' 30 reached (no failure yet after 4,970 simulations)"
+    )
+
+
+def test_stages_that_spent_the_cap_say_the_max_sims_that_lets_plain_monte_carlo_decide():
+    """--max-sims 30 is spent by the stages: plain Monte Carlo is not drawn, and the stop line says what to type. The
+    two-sided Clopper-Pearson upper end at the first look's level 1 - 0.05 x 6 / pi^2 with no failure in n rollouts,
+    1 - 0.0152^(1/n), is below 0.5 from n = 7 (0.450; 0.502 at 6): --max-sims 37 decides p < 0.5, 36 does not."""
+    done, _ = unstated(require="p < 0.5", max_sims=30, seed=0)
+    assert done.final.decision.outcome == "undecided" and done.final.n_simulations == 30
+    assert (
+        "no plain rollout is left in the run's budget (what --max-sims 30 leaves after the stages' 30); --max-sims 37 "
+        "leaves plain Monte Carlo the 7 rollouts that decide p < 0.5 if none fails"
+    ) in done.final.stop
+    assert 1 - (0.05 * 3 / math.pi**2) ** (1 / 7) < 0.5 < 1 - (0.05 * 3 / math.pi**2) ** (1 / 6)
+    for most, outcome in ((37, "met"), (36, "undecided")):
+        done, _ = unstated(require="p < 0.5", max_sims=most, seed=0)
+        assert done.final.decision.outcome == outcome and done.final.n_simulations == most, done.final.stop

@@ -46,9 +46,9 @@ def test_a_cap_on_simulations_stops_the_run_and_says_so():
 
 
 def test_the_default_cap_is_named_as_the_default(monkeypatch):
-    from pemviz.estimators import precision
+    from pemviz import settings
 
-    monkeypatch.setattr(precision, "DEFAULT_MAX_SIMS", 5000)
+    monkeypatch.setattr(settings, "DEFAULT_MAX_SIMS", 5000)
     _, done = run(method="mc", n_per_stage=1000, rel_error=0.01)
     assert done.final.n_simulations == 5000
     assert done.final.stop.startswith(
@@ -140,17 +140,102 @@ def test_pool_of_equal_shares_is_the_pool_of_every_rollout_alike():
     assert shared.log_mu_hat == pytest.approx(alike.log_mu_hat, rel=1e-13)
 
 
-def test_while_the_weights_back_no_interval_the_added_batches_double():
-    """A requirement the estimate cannot decide (its weights back no upper bound) used to add batches of
-    ``MIN_BATCH`` (its relative width looked small enough): 189 looks to 20,000 simulations. Each added batch is now
-    at least as many rollouts again as the final ones so far, so the budget is spent in a few looks."""
+def test_a_requirement_no_batch_can_decide_stops_at_the_first_look():
+    """``p < 1e-9`` on braking (p = 1.98e-15) with a proposal never fitted to a failure: its verdict is capped, so no
+    added batch backs an upper bound, and mu_hat ~ 2e-15 keeps the lower bound far below 1e-9. The run stops after
+    its planned 1,250 simulations, undecided, and says why (it drew batches to its 20,000 cap before); plain Monte
+    Carlo, which would need 3 x 10^9 rollouts, is not drawn."""
     from pemviz.presets import PRESETS
     from pemviz.scenarios.problems import problem_for
 
     cfg = ExperimentConfig.of(**{**PRESETS["quick"], "n_stages": 2, "require": "p < 1e-9", "max_sims": 20_000})
-    done = Experiment(cfg, problem=problem_for(cfg)).run()
-    final = done.final
+    final = Experiment(cfg, problem=problem_for(cfg)).run().final
     assert final.decision is not None and final.decision.outcome == "undecided"
-    assert not final.estimate.interval_backed
-    assert final.decision.look <= 10, final.stop
-    assert 10_000 < final.n_simulations <= 20_000
+    assert not final.estimate.interval_backed and final.n_simulations == cfg.n_simulations == 1250
+    assert final.stop.startswith("requirement undecided: the stages cannot decide p < 1e-09: the sampler caps")
+    assert "plain Monte Carlo not drawn after the stages" in final.stop
+
+
+class _Heavy:
+    """An extensible estimator whose pooled estimate is ``doubtful`` with k-hat ``khat`` at every look: mu_hat 1e-6
+    from 50 failures, no interval backed (what a proposal with a heavy weight tail gives, whatever N)."""
+
+    rng = np.random.default_rng(0)
+
+    def __init__(self, khat: float) -> None:
+        self.khat, self.n, self.extended = khat, 100, 0
+
+    def plan(self):
+        from pemviz.core.plan import RunPlan
+
+        return RunPlan(())
+
+    def next_stage(self):
+        return None
+
+    def result(self):
+        est = Estimate(self.n, 50, math.log(1e-6), 1.0, 1.0, 30.0, khat=self.khat, verdict="doubtful")
+        return est, (1,)
+
+    def extend(self, n: int):
+        from pemviz.estimators.base import StagePlan
+
+        self.extended += 1
+        self.n += n
+        return StagePlan(1 + self.extended, "final", n, None)
+
+    def final_rollouts(self) -> int:
+        return self.n
+
+    def simulations_counted(self):
+        return None
+
+    def finish(self):
+        return None
+
+
+def looks_until_stop(khat: float, **stop) -> tuple[int, str]:
+    """Drive :class:`PrecisionTarget` over :class:`_Heavy` until it stops: (batches added, its stop line)."""
+    inner = _Heavy(khat)
+    target = PrecisionTarget(inner, ExperimentConfig.of(method="adaptive", **stop))
+    while (plan := target.next_stage()) is not None:
+        target._current = plan
+        target.finish()
+    return inner.extended, target.stop
+
+
+def test_a_heavy_weight_tail_at_two_looks_running_stops_the_added_batches():
+    """k-hat 1.5 > 0.7 at every look: more batches of the same proposal back no interval, so a requirement the lower
+    bound cannot reach (mu_hat 1e-6 < 1e-3) and a precision target stop at the second look, not at the 10^6 cap."""
+    added, stop = looks_until_stop(1.5, require="p < 1e-3")
+    assert added == 1, stop
+    assert stop.startswith("requirement undecided: the stages cannot decide p < 0.001: k-hat above 0.7 at 2 looks")
+    assert "their estimate 1.000e-06 lies below the threshold" in stop
+    added, stop = looks_until_stop(1.5, rel_error=0.1)
+    assert added == 1 and stop.startswith("stopped short of the target: the stages cannot back an interval: k-hat")
+
+
+def test_a_requirement_the_lower_bound_may_reach_or_a_light_tail_keeps_adding_batches():
+    """mu_hat 1e-6 above p < 1e-7's threshold: the lower bound may yet violate it; k-hat 0.5: more rollouts may back
+    an interval. Both run on to the cap, each added batch at least as many rollouts again as the final ones so far
+    while no interval is backed: 100 -> 10,000 in at most 7 looks."""
+    for khat, require in ((1.5, "p < 1e-7"), (0.5, "p < 1e-3")):
+        added, stop = looks_until_stop(khat, require=require, max_sims=10_000)
+        assert 2 <= added <= 7 and "--max-sims 10,000 reached" in stop, stop
+
+
+def test_a_requirement_the_stages_cannot_decide_goes_to_plain_monte_carlo_at_once():
+    """Braking with a proposal never fitted to a failure (its verdict capped at doubtful): p < 0.5 can be decided by
+    neither its interval nor its lower bound (mu_hat ~ 1e-15). The stages stop at their first look and plain Monte
+    Carlo decides it in its first batch; the stages used to draw batches to the cap (here 100,000), leaving plain
+    Monte Carlo nothing: undecided."""
+    from pemviz.presets import PRESETS
+    from pemviz.scenarios.problems import problem_for
+
+    fields = {**PRESETS["quick"], "n_stages": 1, "n_per_stage": 10, "n_final": 10, "ce_epochs": 1}
+    cfg = ExperimentConfig.of(**fields, require="p < 0.5", max_sims=100_000, seed=0)
+    final = Experiment(cfg, problem=problem_for(cfg)).run().final
+    assert final.decision.outcome == "met", final.stop
+    assert "the stages cannot decide p < 0.5: the sampler caps their verdict at doubtful" in final.stop
+    assert "after 70 simulations); plain Monte Carlo after the stages" in final.stop
+    assert final.n_simulations == 70 + 10_000  # the stages' 70, then plain Monte Carlo's first batch decides

@@ -173,9 +173,9 @@ def test_signal_at_a_random_point_of_estimate_keeps_the_old_recording_or_writes_
         assert leftovers(tmp_path) == []
 
 
-def terminate_after_stage_1(monkeypatch) -> None:
+def terminate_after_stage_1(monkeypatch, stage: int = 1) -> None:
     """The engine of the next run raises :class:`pemviz.commands.Terminated` (as the SIGTERM handler does) once its
-    stage 1 has finished."""
+    stage 1 (or ``stage``) has finished."""
     from pemviz.commands import Terminated
     from pemviz.engine import experiment as engine
     from pemviz.engine.events import StageFinished
@@ -183,7 +183,7 @@ def terminate_after_stage_1(monkeypatch) -> None:
     class TerminatedAfterStage1(engine.Experiment):
         def __init__(self, config, listeners=(), cancel=None, *, problem):
             def term(event):
-                if isinstance(event, StageFinished) and event.result.stage == 1:
+                if isinstance(event, StageFinished) and event.result.stage == stage:
                     raise Terminated
 
             super().__init__(config, [*listeners, term], cancel, problem=problem)
@@ -205,9 +205,13 @@ def test_signal_sigterm_mid_run_finishes_the_recording_in_process(tmp_path, caps
     verify_rrd(tmp_path / "t.rrd")
 
 
-def test_sigterm_mid_run_names_the_outputs_it_did_not_write(tmp_path, capsys, monkeypatch):
-    """SIGTERM inside the stages of a run asked for a rollout file and result files: the line names each one not
-    written, with its flag, and none of them exists."""
+def test_sigterm_mid_run_keeps_the_finished_stage_s_rollouts_and_names_the_outputs_it_did_not_write(
+    tmp_path, capsys, monkeypatch
+):
+    """SIGTERM inside the stages of a run asked for a rollout file and result files: the rollout file keeps the last
+    finished stage (CE stage 1; pretraining is never saved), whole and committed, and ``pemviz estimate`` gives back
+    the estimate its row printed; the line says so, and names each result file not written, with its flag, none of
+    which exists (a run interrupted there used to keep no rollouts at all)."""
     terminate_after_stage_1(monkeypatch)
     monkeypatch.chdir(tmp_path)
     code, err = cli_line(
@@ -224,11 +228,31 @@ def test_sigterm_mid_run_names_the_outputs_it_did_not_write(tmp_path, capsys, mo
         "r.html",
     )
     assert code == 143
-    assert err.splitlines()[-1] == (
-        "pemviz run: interrupted (SIGTERM); 2 stage(s) finished; not written: r.parquet "
-        "(--save-rollouts), r.json (--json), r.html (--report)"
+    last = err.splitlines()[-1]
+    assert last.startswith("pemviz run: interrupted (SIGTERM); 2 stage(s) finished; rollouts r.parquet kept: stage 1, ")
+    assert last.endswith(
+        "its row's estimate; pemviz estimate gives it back); not written: r.json (--json), r.html (--report)"
     )
-    assert leftovers(tmp_path) == [] and not any(tmp_path.iterdir())
+    assert leftovers(tmp_path) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.parquet", "r.rollouts.json"]
+    assert "stage 1, the last finished, 10 rollouts (no failure, its row's estimate" in last
+    assert cli.main(["estimate", "r.parquet", "--no-record"]) == 0
+    assert "final                0/10           0 " in capsys.readouterr().out  # stage 1's 10 rollouts, no failure
+
+
+def test_an_interrupted_run_s_rollout_file_re_estimates_to_the_kept_stage_s_row(tmp_path, capsys, monkeypatch):
+    """SIGTERM once the final batch (stage 2 of --k 1, seed 0: 1 failure in 10) has finished, before the run's
+    estimate: the file keeps that batch, and pemviz estimate gives the mu_hat its row printed, 4.4978e-15."""
+    terminate_after_stage_1(monkeypatch, stage=2)
+    monkeypatch.chdir(tmp_path)
+    code, err = cli_line(capsys, *SMALL_RUN, "--seed", "0", "--no-record", "--save-rollouts", "r.parquet")
+    assert code == 143
+    assert err.splitlines()[-1] == (
+        "pemviz run: interrupted (SIGTERM); 3 stage(s) finished; rollouts r.parquet kept: stage 2, the last "
+        "finished, 10 rollouts (mu_hat = 4.4978e-15, its row's estimate; pemviz estimate gives it back)"
+    )
+    assert cli.main(["estimate", "r.parquet", "--no-record"]) == 0
+    assert "mu_hat = 4.4978e-15 (log mu_hat = -33.0352 nats)" in capsys.readouterr().out
 
 
 # ------------------------------------------------------------------------------------------------ full disk

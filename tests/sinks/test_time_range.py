@@ -162,3 +162,34 @@ def test_the_duration_and_plain_rollout_helpers_have_one_import_path():
         if pattern.search(path.read_text(encoding="utf-8"))
     ]
     assert found == []
+
+
+def test_where_nothing_may_follow_a_loaded_machine_s_range_ends_at_the_load_s_drift():
+    """Braking at --margin 0 (no retry, no plain Monte Carlo): on a machine read as 3 times slower than the model, the
+    first line and the cost line both say the planned seconds up to 1.4 times them, "as the machine's load varies"
+    (a cut-in run read at 28 s took 36 s, beyond a one-figure range); on an idle machine, one figure."""
+    from pemviz.engine.cost import LOAD_DRIFT
+
+    cfg = ExperimentConfig.of(margin=0.0)
+    stated = {"verdict_cap": ("doubtful", "capped"), "exact_log_p": math.log(8.06e-33)}  # as braking's scene says
+    idle = run_cost(cfg, slowdown=1.0)
+    assert idle.then_simulations == 0 and "up to" not in idle.text()
+    loaded = run_cost(cfg, slowdown=3.0)
+    assert loaded.seconds == pytest.approx(3.0 * idle.seconds, rel=1e-12) and loaded.then_simulations == 0
+    said = f"~{duration_text(loaded.seconds)}, up to ~{duration_text(loaded.seconds * (1 + LOAD_DRIFT))}"
+    assert loaded.text().endswith(f"{said} as the machine's load varies")
+    for load in (3.0, 1.0):
+        progress = io.StringIO()
+        sink = ConsoleSink(io.StringIO(), progress)
+        sink.clock = StageClock(lambda: 0.0, COST, lambda load=load: load)
+        sink(dataclasses.replace(run_started(), config=cfg, plan=run_plan(cfg), **stated))
+        sink(StageStarted(0, "pretrain", 100))
+        line = progress.getvalue().splitlines()[0]
+        left = sink.clock.run_left_s()
+        assert sink.clock.follow is None and left > 0
+        if load > 1.0:
+            assert sink.clock.run_most_s() == pytest.approx((1 + LOAD_DRIFT) * left, rel=1e-12)
+            said = f"~{duration_text(left)} left, up to ~{duration_text((1 + LOAD_DRIFT) * left)}"
+            assert line.endswith(f", run {said} as the machine's load varies)")
+        else:
+            assert sink.clock.run_most_s() == left and "up to" not in line
