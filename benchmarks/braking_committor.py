@@ -22,14 +22,13 @@ import argparse
 import time
 
 import numpy as np
-from scipy.special import logsumexp
-
 from pemviz.core.detectors import PEMDetector
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
 from pemviz.scenarios.braking.tilt import BrakingTilt, BrakingTiltDetector, draw_tilted, solve_committor
 from pemviz.scenarios.braking.truth import BrakingStart, braking_exact, branching_start, exact_bound
 from pemviz.scenarios.braking.truth_known import known_log_failure_probability
+from scipy.special import logsumexp
 
 LN10 = np.log(10.0)
 

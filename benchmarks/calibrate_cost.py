@@ -36,12 +36,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.app.runs import PanelRun  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
-from pemviz.scenarios.problems import problem_for  # noqa: E402
-from pemviz.engine.resources import torch_threads  # noqa: E402
 from pemviz.engine import cost  # noqa: E402
 from pemviz.engine import experiment as engine  # noqa: E402
+from pemviz.engine.resources import torch_threads  # noqa: E402
 from pemviz.estimators import ce_fit, run_plan  # noqa: E402
 from pemviz.presets import PRESETS  # noqa: E402
+from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz.sinks import Sink  # noqa: E402
 
 CONFIGS: dict[str, tuple[str, dict]] = {

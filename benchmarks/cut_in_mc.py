@@ -30,8 +30,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pemviz.scenarios.cut_in.scenario import CutInParams  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn, cached_trajectory  # noqa: E402
+from pemviz.scenarios.cut_in.scenario import CutInParams  # noqa: E402
 
 
 def load() -> str:
@@ -49,7 +49,6 @@ def chunk_failures(problem, n: int, seed: int) -> int:
 def monte_carlo(params: list[str], n: int, chunk: int, seed: int) -> None:
     """``n`` rollouts in chunks of ``chunk``, chunk ``k`` from seed ``seed + k``; a line per chunk, then the pool."""
     import threadpoolctl
-
     from pemviz.commands.run import scenario_params
     from pemviz.config import ExperimentConfig
     from pemviz.core.confidence import clopper_pearson

@@ -247,9 +247,9 @@ def heaviest_failures(seed: int, n: int, k: int) -> None:
     zero-variance proposal each step's log p / q is log V - log Q, and every failure's log weight log p."""
     from pemviz.core import exact
     from pemviz.pem import load_pem
+    from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
     from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE
     from pemviz.scenarios.cut_in.tilt import CutInTilt
-    from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
 
     class Traced(CutInTilt):
         def branch_log_q(self, sim, t, idx, u, rows, prefix_min, sfeat, p0):  # noqa: ANN001, ANN202

@@ -119,11 +119,10 @@ def default_config(scene: str, seed: int, flags: tuple[str, ...] = ()):  # noqa:
 
 def one_run(scene: str, method: str, seed: int) -> Outcome:
     """``pemviz run --scenario SCENE --method METHOD --seed SEED`` (no recording) and what it printed."""
-    from threadpoolctl import threadpool_limits
-
-    from pemviz.estimators import check_runnable
     from pemviz.engine.experiment import Experiment
+    from pemviz.estimators import check_runnable
     from pemviz.scenarios.registry import problem_for
+    from threadpoolctl import threadpool_limits
 
     with threadpool_limits(1):
         try:
@@ -232,11 +231,10 @@ def follow_advice(scene: str, seed: int) -> tuple[str, str]:
     the reference, its wall time)."""
     import re
 
-    from threadpoolctl import threadpool_limits
-
     from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.registry import problem_for
     from pemviz.sinks.console import next_step
+    from threadpoolctl import threadpool_limits
 
     with threadpool_limits(1):
         cfg = default_config(scene, seed, ("--method", "adaptive"))

@@ -61,9 +61,9 @@ def config(scene: str, seed: int, preset: str | None = None, method: str | None 
 def one(job: dict) -> dict:
     """One run of ``job`` (``scene``, ``seed``, optional ``preset`` / ``method`` / config fields), summarised."""
     from pemviz.config import ConfigError
-    from pemviz.scenarios.problems import problem_for
     from pemviz.engine.experiment import Experiment
     from pemviz.engine.resources import torch_threads
+    from pemviz.scenarios.problems import problem_for
 
     spec = {k: v for k, v in job.items() if k not in ("part", "label")}
     try:

@@ -73,14 +73,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.special import log_expit, ndtr
-
 from pemviz.core.detectors import action_log_prob
 from pemviz.core.problems import Problem
-from pemviz.scenarios.problems import build_problem
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking.batched import BatchedBraking
 from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams
+from pemviz.scenarios.problems import build_problem
+from scipy.special import log_expit, ndtr
 
 T = 100
 """Steps of a rollout: the dimension of the input u."""
@@ -282,9 +281,9 @@ def run_isolated(method: str, budget: int, seed: int, timeout_s: float, eval_cap
 def run_pemviz(seed: int) -> Run:
     """pemviz's default sampler (``ExperimentConfig.of(seed=seed)``) on the braking job."""
     from pemviz.config import ExperimentConfig
-    from pemviz.scenarios.problems import problem_for
-    from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import RunFinished
+    from pemviz.engine.experiment import Experiment
+    from pemviz.scenarios.problems import problem_for
 
     cfg = ExperimentConfig.of(seed=seed)
     t0 = time.perf_counter()

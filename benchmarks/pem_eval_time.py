@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import time
+
 from pemviz.io.data import load_salient_data
 from pemviz.studies.pem_eval import EvalConfig, evaluate_pems, summary_lines
 

@@ -13,7 +13,6 @@ import timeit
 
 import numpy as np
 import torch
-
 from pemviz.pem import PEM, braking_salient_inputs, load_pem
 
 BUDGET_US = 200.0

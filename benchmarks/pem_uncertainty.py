@@ -17,15 +17,14 @@ import math
 import time
 
 import numpy as np
-
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.problems import PEM_SHIFTS, problem_for
-from pemviz.scenarios.braking.truth import braking_exact, branching_start, miss_bound
-from pemviz.scenarios.braking.truth_known import pem_fingerprint
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
 from pemviz.pem.ensemble import ensemble_path, load_ensemble
 from pemviz.scenarios.braking.simulator import BrakingParams
+from pemviz.scenarios.braking.truth import braking_exact, branching_start, miss_bound
+from pemviz.scenarios.braking.truth_known import pem_fingerprint
+from pemviz.scenarios.problems import PEM_SHIFTS, problem_for
 
 
 def exact_answers(only: tuple[str, ...] = ()) -> None:

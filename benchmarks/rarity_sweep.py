@@ -39,32 +39,32 @@ import math
 import multiprocessing as mp
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from functools import cache
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
-
-from pemviz.scenarios.braking import truth, truth_known, truth_latched
-from pemviz.methods import BUILTIN_METHODS as CONFIG_METHODS
 from pemviz.config import ExperimentConfig
-from pemviz.core.detectors import Detector
-from pemviz.engine.experiment import Experiment
 from pemviz.core.confidence import clopper_pearson
+from pemviz.core.detectors import Detector
 from pemviz.core.estimate import relative_error
-from pemviz.engine.events import RunFinished
-from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.core.files import atomic_write
-from pemviz.presets import PRESETS
 from pemviz.core.problems import Problem, ShiftedPEM
-from pemviz.scenarios.braking.problem import braking_problem
-from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
-from pemviz.scenarios.toy.problem import toy_problem
+from pemviz.engine.events import RunFinished
+from pemviz.engine.experiment import Experiment
 from pemviz.engine.resources import torch_threads
+from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
+from pemviz.methods import BUILTIN_METHODS as CONFIG_METHODS
+from pemviz.presets import PRESETS
+from pemviz.scenarios.braking import truth, truth_known, truth_latched
+from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.scenarios.braking.simulator import BrakingParams
+from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
 from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE
 from pemviz.scenarios.toy import ToyParams, ToyValue
+from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import toy_log_failure_probability
 from pemviz.studies.validation import all_fields, ams_fields
 

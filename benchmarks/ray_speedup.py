@@ -24,8 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's 
 
 def run(config, problem):
     import pemviz.engine.executors as executors
-    from pemviz.engine.resources import torch_threads
     from pemviz.engine.experiment import Experiment
+    from pemviz.engine.resources import torch_threads
 
     spent = [0.0]
     ex = executors.get_executor(config.execution.executor, config.execution.ray_address)
@@ -53,10 +53,9 @@ def main() -> int:
     args = ap.parse_args()
     os.environ.setdefault("RERUN_ANALYTICS", "false")
     import ray
-
     from pemviz.config import ExperimentConfig
-    from pemviz.scenarios.problems import problem_for
     from pemviz.engine.executors import close_executors
+    from pemviz.scenarios.problems import problem_for
 
     base = ExperimentConfig.of(
         sim="highway-env", n_stages=args.k, n_per_stage=args.n, n_final=args.n, pretrain_rollouts=args.n, seed=0
@@ -66,7 +65,6 @@ def main() -> int:
     ray.init(num_cpus=args.workers, include_dashboard=False, log_to_driver=False)
     try:  # start the workers (a process each, importing pemviz, torch and highway-env) before timing
         import numpy as np
-
         from pemviz.engine.executors import get_executor
 
         t0 = time.perf_counter()

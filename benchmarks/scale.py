@@ -46,13 +46,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import subprocess
 import sys
 import tempfile
-import time
-import re
 import threading
+import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -64,8 +64,8 @@ def _child(argv: list[str]) -> None:
     """Run one ``pemviz run`` in this process with timing hooks; print one JSON line of figures."""
     sys.path.insert(0, str(REPO))  # this checkout's pemviz, as ``python -m pemviz.cli`` from the repository root
     import pemviz.engine.experiment as engine
-    import pemviz.scenarios.problems as problems
     import pemviz.estimators.ce_fit as ce_fit
+    import pemviz.scenarios.problems as problems
     from pemviz.cli import main
 
     spent = {"simulation": 0.0, "fit": 0.0, "run": 0.0, "simulation_cpu": 0.0, "fit_cpu": 0.0, "run_cpu": 0.0}
@@ -125,9 +125,8 @@ def _pure_twin_us(n: int) -> tuple[float, float]:
     """Microseconds per rollout of the pure batched twin, wall and CPU: ``min(n, 20,000)`` braking rollouts drawn
     i.i.d. from the shipped PEM (sampler and target the same detector), the best of three."""
     import numpy as np
-
-    from pemviz.pem import load_pem
     from pemviz.core.detectors import PEMDetector
+    from pemviz.pem import load_pem
     from pemviz.scenarios.braking.batched import simulate_batched
 
     m, pem = min(n, 20_000), PEMDetector(load_pem())

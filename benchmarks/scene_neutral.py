@@ -103,9 +103,8 @@ def one_run(scene: str, variant: str, seed: int, scored_steps: int | None = None
     """``pemviz run SCENE-FLAGS VARIANT-FLAGS --seed SEED`` (no recording) and what it printed; ``scored_steps``: the
     look-ahead scores about this many steps of a rollout (None:
     :data:`pemviz.estimators.lookahead_score.SCORED_STEPS`)."""
-    from threadpoolctl import threadpool_limits
-
     import pemviz.estimators.lookahead_score as lookahead_score
+    from threadpoolctl import threadpool_limits
 
     if scored_steps is not None:
         lookahead_score.SCORED_STEPS = scored_steps

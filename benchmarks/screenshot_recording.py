@@ -177,10 +177,9 @@ def tab_recording(
     ``--step`` can place the cursor), saved as ``folder/TAB.rbl``."""
     if tab == "stages":
         return rrd, None
-    from rerun.chunk import RrdReader
-
     from pemviz.sinks.recording import APP_ID
     from pemviz.sinks.rerun_blueprint import default_blueprint
+    from rerun.chunk import RrdReader
 
     data = folder / "data.rrd"
     if not data.exists():

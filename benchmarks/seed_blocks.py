@@ -20,7 +20,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
 from pemviz.core.estimate import relative_error
 from pemviz.studies.exact_answers import exact_answer
 from pemviz.studies.validation import RUNS_FILE, read_records

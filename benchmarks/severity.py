@@ -23,10 +23,9 @@ import math
 import time
 
 import numpy as np
-
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.problems import problem_for
 from pemviz.engine.experiment import Experiment
+from pemviz.scenarios.problems import problem_for
 
 TARGET_RATIO = 1.5
 """Every point a run reports lies within this factor of the exact answer (and its interval holds it)."""
@@ -81,9 +80,9 @@ def main() -> None:
     )
     a = ap.parse_args()
     if a.exact:
-        from pemviz.scenarios.braking.truth import braking_truth
         from pemviz.pem import load_pem
         from pemviz.scenarios.braking.simulator import BrakingParams
+        from pemviz.scenarios.braking.truth import braking_truth
 
         pem = load_pem()
         for m in (1.5, 1.0, 0.5, 0.0):

@@ -130,9 +130,9 @@ def peak_rss_gib() -> float:
 
 def million_child(n: int, seed: int) -> None:
     """Child process: stream n PEM rollouts, print seconds, failures and peak RSS as JSON."""
-    from pemviz.scenarios.braking.problem import braking_problem
     from pemviz.pem import load_pem
     from pemviz.scenarios.braking.batched import summarise_batched
+    from pemviz.scenarios.braking.problem import braking_problem
 
     problem = braking_problem(load_pem())
     pem = problem.target

@@ -53,7 +53,6 @@ def panel_range(argv: list[str]) -> tuple[float, float]:
     from pemviz.app.form import run_cost
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
-
     from pemviz.engine.cost import with_drift
 
     cost = run_cost(config_from_args(build_parser("run").parse_args(argv)))

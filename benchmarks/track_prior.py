@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-
 from pemviz.stack import camera, tracker
 from pemviz.stack.detector import VISIBLE, camera_detector, perceive
 

@@ -20,16 +20,15 @@ import argparse
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
-from scipy.special import log_expit
-
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
 from pemviz.scenarios.braking.truth import BrakingStart, braking_truth, branching_start
 from pemviz.scenarios.braking.truth_latched import LogitFn, latched_log_failure_probability
+from scipy.special import log_expit
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,8 @@ from typing import Any, cast
 
 from pemviz.core.requirement import RequirementError, parse_requirement
 from pemviz.methods import DEFAULT_METHOD, Method, extensible_names, method_or_none
-from pemviz.methods.ams import AmsSettings
 from pemviz.methods.adaptive import CrossEntropySettings
+from pemviz.methods.ams import AmsSettings
 from pemviz.methods.state import StateSettings
 from pemviz.settings import DEFAULT_SCENARIO, SETTINGS, ConfigError, check_settings
 
@@ -190,7 +190,7 @@ class ExperimentConfig:
     method_settings: Any = None
 
     @classmethod
-    def of(cls, **settings: Any) -> "ExperimentConfig":
+    def of(cls, **settings: Any) -> ExperimentConfig:
         """A config from settings by their flat names (:data:`pemviz.settings.SETTINGS`: ``n_stages=3``,
         ``executor="ray"``), groups (``adaptive=CrossEntropySettings(...)``) or both (a flat name then changes its
         group's value), validated.
@@ -337,7 +337,7 @@ class ExperimentConfig:
         assert method is not None, self.method  # checked in __post_init__: a registered name
         return method
 
-    def replace(self, **changes: Any) -> "ExperimentConfig":
+    def replace(self, **changes: Any) -> ExperimentConfig:
         """A copy with some settings changed (flat names or groups, as :meth:`of` takes them), validated again."""
         return ExperimentConfig.of(**{**{f.name: getattr(self, f.name) for f in dataclasses.fields(self)}, **changes})
 

@@ -11,9 +11,10 @@ Importing this module imports no simulator, PEM, recording library or torch; a r
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
@@ -58,8 +59,8 @@ class KitRun:
 
 def run_engine(config: ExperimentConfig, problem: Problem, listeners: tuple = ()) -> KitRun:
     """Run ``config`` on ``problem`` through the engine (:class:`pemviz.engine.experiment.Experiment`)."""
-    from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import FinalEstimate, StageFinished
+    from pemviz.engine.experiment import Experiment
 
     finals: list[Any] = []
     estimates: list[Any] = []

@@ -10,7 +10,8 @@ import functools
 import importlib
 import os
 import sys
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 Ref = Any
 """An object, or the text ``"package.module:name"`` that names it (imported when first used)."""

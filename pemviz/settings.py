@@ -21,7 +21,6 @@ from pemviz.methods import BUILTIN_METHODS, CROSS_ENTROPY_METHOD, ROW, SPLITTING
 from pemviz.methods import setting as setting  # a method's settings field and its row: here for the plugins' import
 from pemviz.methods.adaptive import CrossEntropySettings
 
-
 DEFAULT_MAX_SIMS = 1_000_000
 """The most simulations of a run with a stop rule (``rel_error``, ``require``) and no ``max_sims``: its stages, their
 added batches, a retry and plain Monte Carlo after them together."""

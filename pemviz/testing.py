@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Mapping, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -465,7 +466,6 @@ def _scenario_configs(sc: Any, params: Mapping[str, object] | None, seed: int) -
     """The runs whose files :func:`check_scenario` checks: ``naive50``, then a small adaptive run where it sees no
     failure (a round trip of no failure weighs nothing), with no retry and plain Monte Carlo (up to 1e6 rollouts)."""
     from pemviz.config import ExperimentConfig
-
     from pemviz.methods import CROSS_ENTROPY_METHOD, NAIVE_METHOD
 
     base = ExperimentConfig.of(method=NAIVE_METHOD, n_per_stage=RUN_ROLLOUTS, seed=seed)

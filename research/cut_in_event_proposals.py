@@ -60,10 +60,10 @@ from scipy.ndimage import convolve1d
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.core.estimate import estimate  # noqa: E402
-from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noqa: E402
 from pemviz.core.lockstep import run_batched  # noqa: E402
-from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
+from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noqa: E402
+from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 
@@ -196,7 +196,6 @@ class Study:
 
     def __init__(self) -> None:
         import torch
-
         from pemviz.pem import load_pem
 
         torch.set_num_threads(1)

@@ -156,7 +156,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.core.estimate import estimate  # noqa: E402
 from pemviz.core.lockstep import run_batched  # noqa: E402
-from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
 from pemviz.scenarios.cut_in.committor import GRIDS, LMAX, LevelChain, continuous_level, level  # noqa: E402
 from pemviz.scenarios.cut_in.lookahead import (
@@ -167,8 +166,9 @@ from pemviz.scenarios.cut_in.lookahead import (
     VY_ERROR,  # noqa: E402
     features,
 )
-from pemviz.scenarios.cut_in.tilt import CutInTilt  # noqa: E402
 from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noqa: E402
+from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE  # noqa: E402
+from pemviz.scenarios.cut_in.tilt import CutInTilt  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 
@@ -307,7 +307,7 @@ class LookAheadTilt(CutInTilt):
         self.v_table = self.model = self.q_model = None
         self.traces: list = []
 
-    def solve_dp(self, h: float = 0.01, gmax: float = LMAX) -> "LevelChain":
+    def solve_dp(self, h: float = 0.01, gmax: float = LMAX) -> LevelChain:
         """The committor as a function of the continuous level and the track's regime, U_t(G, k), solved on the
         nominal path (no pilot): at each step of the window, the states that every sequence of :data:`DP_DEPTH`
         events (none, a miss, a range error low or high at the grid edge nearest ``--dp-mass``: beyond the tracker's

@@ -74,9 +74,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pemviz.core.estimate import estimate  # noqa: E402
 from pemviz.core.lockstep import run_batched  # noqa: E402
-from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
 from pemviz.scenarios.cut_in.batched import BatchedCutIn  # noqa: E402
 from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noqa: E402
+from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, OBJECT_NAMES  # noqa: E402
 
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 VISIBLE = OBJECT_NAMES.index("visible")

@@ -35,11 +35,10 @@ SPEED = (12.8, 13.0)
 
 def quadrature(n: int, gap: tuple[float, float] = GAP, speed: tuple[float, float] = SPEED) -> tuple[float, np.ndarray]:
     """log p_ODD (nats) by the midpoint rule on an n x n grid, and log p on the grid [speed, gap]."""
-    from scipy.special import logsumexp
-
     from pemviz.pem import load_pem
     from pemviz.scenarios.braking.simulator import BrakingParams
     from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
+    from scipy.special import logsumexp
 
     pem = load_pem()
     gaps = gap[0] + (np.arange(n) + 0.5) * (gap[1] - gap[0]) / n

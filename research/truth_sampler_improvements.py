@@ -17,7 +17,6 @@ import os
 import time
 
 import numpy as np
-
 from pemviz.core.estimate import relative_error
 from pemviz.studies.exact_answers import exact_answer
 from pemviz.studies.validation import Job, run_jobs

@@ -65,8 +65,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -218,10 +219,9 @@ def smc(n: int, times: tuple[int, ...], lam: float, seed: int) -> tuple[float, i
     S_before)) and continued from that step by the PEMs. Unbiased for any potential: p_hat = prod_k mean(G_k) x
     mean(1[fail] / prod_k G_k). Returns (log p_hat in nats, failures at the end, cost in rollout-equivalents: the
     rollouts, every continuation's and look-ahead's steps after its branching step, over T)."""
-    from scipy.special import logsumexp
-
     from pemviz.core.problems import step_robustness
     from pemviz.estimators.lookahead_score import MedianUniforms
+    from scipy.special import logsumexp
 
     problem, _, n_steps, _ = crossing_setup()
     rng = np.random.default_rng(seed)

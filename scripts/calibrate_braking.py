@@ -24,7 +24,6 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-
 from pemviz.scenarios.braking.simulator import BrakingParams, ego_acceleration, initial_controller_state
 
 DEFAULT_CSV = Path(__file__).resolve().parents[1].parent / "shared" / "spec" / "carla_calibration_rollouts.csv"

@@ -53,9 +53,8 @@ def fault_cases(seeds: int) -> tuple[Counter, Counter]:
 
 def stl_cases(n: int) -> tuple[int, int, Counter]:
     """``n`` strings over the three strategies; returns (tried, passed, outcome counts)."""
-    from hypothesis import HealthCheck, given, settings
-
     import test_stl_fuzz as fuzz
+    from hypothesis import HealthCheck, given, settings
 
     outcomes: Counter = Counter()
     per = -(-n // 3)

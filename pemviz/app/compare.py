@@ -26,8 +26,8 @@ import numpy as np
 import viser
 import viser.uplot as up
 
-from pemviz.app.form import settings_of, setting_value
 from pemviz.app.captions import add_chart
+from pemviz.app.form import setting_value, settings_of
 from pemviz.app.html import TABLE_STYLE
 from pemviz.app.plots import axes, finite_or_dash, run_colour
 from pemviz.app.runs import PanelRun

@@ -18,12 +18,12 @@ from pemviz.app.html import field_error
 from pemviz.app.params_form import MethodSettingsForm, ScenarioParamsForm
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.config import ExperimentConfig, scene_defaults
-from pemviz.settings import SETTINGS, SIMULATORS
-from pemviz.pem.recipes import DEFAULT_PEM_NAME
-from pemviz.pem import shipped_pems
-from pemviz.presets import preset_help
 from pemviz.methods import method_names
+from pemviz.pem import shipped_pems
+from pemviz.pem.recipes import DEFAULT_PEM_NAME
+from pemviz.presets import preset_help
 from pemviz.scenarios.registry import registered, scenario_hint
+from pemviz.settings import SETTINGS, SIMULATORS
 
 
 class ExperimentTab:

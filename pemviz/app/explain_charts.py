@@ -16,8 +16,8 @@ import numpy as np
 import viser
 import viser.uplot as up
 
-from pemviz.app.drawing import LaneExplanation
 from pemviz.app.captions import add_chart, set_chart, show_chart
+from pemviz.app.drawing import LaneExplanation
 from pemviz.app.plots import LEGEND, _points, _ring, axes, off_scale_series, robust_range
 from pemviz.sinks.colours import BLACK, BLUE, BRAKE_ZONE, CRASH, EGO_SPEED, GREY, MISSED, VIOLET, css, hex_colour
 

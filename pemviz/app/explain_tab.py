@@ -12,8 +12,8 @@ import html
 import viser
 
 from pemviz.app import explain_charts, plots
-from pemviz.app.captions import show_chart
 from pemviz.app import objects_view as OV
+from pemviz.app.captions import show_chart
 from pemviz.app.drawing import LaneExplanation, LanePanel
 from pemviz.app.html import GREEN, GREY, RED, TABLE_STYLE, box, explanation_html
 from pemviz.app.objects_view import ObjectsExplanation, explain_objects, objects_summary

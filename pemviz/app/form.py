@@ -15,18 +15,18 @@ from __future__ import annotations
 import dataclasses
 import time
 import types
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Mapping
+from typing import Any
 
-from pemviz.settings import PANEL_PLACES, SETTINGS, Setting, rows_of
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import cost
 from pemviz.engine.cost import N_STEPS, RunCost
 from pemviz.methods import method_or_none
-from pemviz.scenarios.parameters import Parameter, ParameterError, PairValue, Value, check_pairs, parse_assignment
 from pemviz.scenarios.odd import is_odd
+from pemviz.scenarios.parameters import PairValue, Parameter, ParameterError, Value, check_pairs, parse_assignment
 from pemviz.scenarios.registry import get
-
+from pemviz.settings import PANEL_PLACES, SETTINGS, Setting, rows_of
 
 NUMBERS = ("int", "real")
 """The kinds of setting the form types as a number (a text field); a ``choice`` is a dropdown."""

@@ -6,7 +6,6 @@ from __future__ import annotations
 import html
 from pathlib import Path
 
-
 from pemviz.app import plots
 from pemviz.app.captions import LOG_W_CAPTION
 from pemviz.app.drawing import LaneExplanation
@@ -16,7 +15,6 @@ from pemviz.engine.events import FinalEstimate
 from pemviz.methods import Method
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
-
 
 NO_ROLLOUT = "(choose a rollout)"
 """The rollout dropdown's entry before a rollout is chosen."""

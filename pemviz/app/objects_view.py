@@ -8,11 +8,11 @@ returning HTML with inline SVG; no viser.
 from __future__ import annotations
 
 import html
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-
-from typing import TYPE_CHECKING, Any, Callable
 
 from pemviz.app.drawing import objects_panel
 from pemviz.core.counterfactuals import MISS, Counterfactuals, counterfactuals

@@ -17,12 +17,12 @@ from pathlib import Path
 
 import viser
 
+from pemviz.app.drawing import LanePanel, lane_panel, scenario_drawing
 from pemviz.app.runs import PANEL_PRESETS
 from pemviz.app.session import Session
 from pemviz.config import ExperimentConfig
 from pemviz.engine import experiment
 from pemviz.presets import DEFAULT_PRESET
-from pemviz.app.drawing import LanePanel, lane_panel, scenario_drawing
 from pemviz.scenarios import registry
 from pemviz.scenarios.problems import problem_for
 from pemviz.sinks.colours import BLUE

@@ -16,8 +16,8 @@ from pemviz.app.form import format_number, format_param, own_rows, param_key
 from pemviz.app.html import field_error
 from pemviz.config import ExperimentConfig
 from pemviz.methods import method_or_none
-from pemviz.scenarios.parameters import KINDS, Parameter
 from pemviz.scenarios.odd import is_odd
+from pemviz.scenarios.parameters import KINDS, Parameter
 from pemviz.scenarios.registry import get
 
 Field = tuple[str, str, str, str]

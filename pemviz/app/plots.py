@@ -11,26 +11,27 @@ few words, the explanation is below the chart). Colours come from :mod:`pemviz.s
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, TypedDict
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 import viser
 import viser.uplot as up
 
 from pemviz.app.captions import LOG_W_CAPTION, add_chart, set_chart
-from pemviz.scenarios.panel_data import CurveAxis, Series
 from pemviz.app.drawing import LaneExplanation
 from pemviz.app.runs import PanelRun
+from pemviz.scenarios.panel_data import CurveAxis, Series
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import (
     BRAKE_ZONE,
     CRASH,
     DETECTED,
     EGO_SPEED,
-    OBJECT_SPEED,
     LOG_WEIGHT,
     MISSED,
+    OBJECT_SPEED,
     PROPOSAL,
     css,
     hex_colour,

@@ -16,7 +16,6 @@ from pemviz.app.runs import MAX_POPULATION, PanelRun, Population, Trajectory
 from pemviz.app.scene_view import SceneView
 from pemviz.core.drawing import Drawing, Severity
 
-
 ROLLOUT_ORDERS = ("importance weight", "robustness", "log p", "severity")
 """How the Rollouts tab orders its rollouts: least robust, most probable under the PEM, or worst outcome first."""
 

@@ -23,11 +23,11 @@ from pemviz.app.rollouts_tab import RolloutsTab
 from pemviz.app.runs import PanelRun
 from pemviz.app.runs_tab import RunsTab
 from pemviz.app.scene_view import SceneView
-from pemviz.scenarios.registry import problem_for
 from pemviz.engine import experiment
 from pemviz.engine.cost import LOAD_WORDS, range_text
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunFinished, RunStarted, StageFinished, StageStarted
 from pemviz.engine.resources import torch_threads
+from pemviz.scenarios.registry import problem_for
 from pemviz.sinks import Sink
 
 

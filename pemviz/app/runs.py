@@ -32,10 +32,20 @@ from pemviz.core.counterfactuals import most_likely_failure as pick_most_likely
 from pemviz.core.estimate import Reference
 from pemviz.core.population import FailureShares
 from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities, proposal_view
-from pemviz.engine.events import Event, FinalEstimate, RolloutChunk, RolloutsSampled, RunCancelled, RunFinished
-from pemviz.engine.events import RunStarted, StageFinished, StageResult, StageStarted
-from pemviz.presets import PRESETS
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.engine.events import (
+    Event,
+    FinalEstimate,
+    RolloutChunk,
+    RolloutsSampled,
+    RunCancelled,
+    RunFinished,
+    RunStarted,
+    StageFinished,
+    StageResult,
+    StageStarted,
+)
+from pemviz.presets import PRESETS
 from pemviz.scenarios.panel_data import ViewAxis
 from pemviz.sinks import Sink, StageClock
 from pemviz.sinks.population import FailureGrouping, group_failures
@@ -128,7 +138,7 @@ PANEL_PRESETS: dict[str, dict[str, Any]] = PRESETS
 _EXPORT_NAME_OK = re.compile(r"[^A-Za-z0-9._-]")
 
 
-def keep_runs(runs: list["PanelRun"], new: "PanelRun", max_runs: int = MAX_RUNS) -> list["PanelRun"]:
+def keep_runs(runs: list[PanelRun], new: PanelRun, max_runs: int = MAX_RUNS) -> list[PanelRun]:
     """The runs kept once ``new`` starts: at most ``max_runs``, oldest first.
 
     Pinned runs and the running one are never dropped. Room is made by dropping, oldest first, unpinned

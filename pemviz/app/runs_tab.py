@@ -9,9 +9,9 @@ from pathlib import Path
 
 import viser
 
-from pemviz.app._viser_compat import set_value
 from pemviz.app import plots
-from pemviz.app.form import NOT_HELD, default_settings, settings_of, setting_value
+from pemviz.app._viser_compat import set_value
+from pemviz.app.form import NOT_HELD, default_settings, setting_value, settings_of
 from pemviz.app.host import PanelHost
 from pemviz.app.html import GREEN, GREY, RED, TABLE_STYLE, box, display_path
 from pemviz.app.plots_panel import PlotsPanel

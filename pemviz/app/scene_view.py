@@ -17,12 +17,11 @@ import threading
 import numpy as np
 import viser
 
-from pemviz.app._viser_compat import set_value
 from pemviz.app import objects_view as OV
+from pemviz.app._viser_compat import set_value
+from pemviz.app.drawing import LanePanel, lane_panel, panel_scene, scenario_drawing
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.html import BLUE, GREY, RED, box
-from pemviz.app.drawing import LanePanel, lane_panel, panel_scene, scenario_drawing
-from pemviz.scenarios.panel_data import LaneScene, ObjectsScene
 from pemviz.app.runs import PanelRun, Trajectory
 from pemviz.app.scene_layout import (
     CAR_HEIGHT_M,
@@ -38,6 +37,7 @@ from pemviz.app.scene_layout import (
     ruler_segments,
 )
 from pemviz.core.problem_view import object_label
+from pemviz.scenarios.panel_data import LaneScene, ObjectsScene
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import CRASH, DETECTED, IDLE, MISSED, OBJECT
 

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import viser
 
-from pemviz.app.experiment_tab import ExperimentTab
 from pemviz.app.drawing import LaneExplanation
+from pemviz.app.experiment_tab import ExperimentTab
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.host import PanelHost
 from pemviz.app.objects_view import ObjectsExplanation

@@ -10,13 +10,13 @@ import argparse
 import functools
 import sys
 import tempfile
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Callable, Iterable, cast
+from typing import Any, cast
 
-from pemviz.settings import SETTINGS, Setting
 from pemviz.config import ConfigError, ExperimentConfig, default_of
 from pemviz.io.files import check_output_path, write_text_atomic
-
+from pemviz.settings import SETTINGS, Setting
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("pemviz.commands.run", "estimate a scenario's failure probability and record the run"),

@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from pemviz.commands import UsageError, add_command
 from pemviz.io import data
-from pemviz.commands import add_command, UsageError
-
 
 DESCRIPTION = """
 The KITTI salient files are never shipped: fetch them or show where pemviz finds them.

@@ -24,7 +24,6 @@ import numpy as np
 
 import pemviz
 from pemviz.commands import UsageError, add_command, add_setting, check_save_path, pem_argument
-from pemviz.settings import SETTINGS
 from pemviz.config import ExperimentConfig, default_of
 from pemviz.core.estimate import format_probability
 from pemviz.core.sampling import load_proposal
@@ -35,6 +34,7 @@ from pemviz.io.rollout_estimate import detector_log_prob, estimate_rollouts, pem
 from pemviz.io.rollout_format import SAMPLERS, RolloutFormatError
 from pemviz.io.rollouts import read_rollouts
 from pemviz.pem import load_pem
+from pemviz.settings import SETTINGS
 from pemviz.sinks.colours import FAILED_ROLLOUT, NEUTRAL, rgba
 from pemviz.sinks.console import estimate_cells
 
@@ -217,8 +217,8 @@ def run_problem(data: Any, failure: str, own: bool) -> Any:
     if not own or failure != "crash" or not isinstance(config, dict) or "scenario" not in config:
         return None
     from pemviz.config import ConfigError
-    from pemviz.scenarios.registry import problem_for
     from pemviz.scenarios.parameters import as_pairs
+    from pemviz.scenarios.registry import problem_for
 
     try:
         fields = {k: config[k] for k in ("scenario", "pem", "margin", "sim") if k in config}
@@ -305,10 +305,10 @@ def pem_spread_lines(
     """
     from pemviz.core.detectors import PEMDetector
     from pemviz.core.reweight import Alternative, PemSpread, ShiftedDetector
-    from pemviz.scenarios.braking.truth_known import known_log_failure_probability
     from pemviz.pem.ensemble import ensemble_for, load_ensemble
-    from pemviz.scenarios.problems import PEM_SHIFTS
     from pemviz.scenarios.braking.problem import braking_formula
+    from pemviz.scenarios.braking.truth_known import known_log_failure_probability
+    from pemviz.scenarios.problems import PEM_SHIFTS
 
     if data.n_objects > 1 or data.noise is not None:
         raise UsageError(

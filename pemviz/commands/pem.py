@@ -5,19 +5,20 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from pemviz.commands import UsageError, add_command, output_folder
 from pemviz.io.data import DataError, load_salient_data, sha256_file
 from pemviz.io.files import check_output_folder, check_output_path, write_text_atomic
-from pemviz.pem.recipes import NOISE_RECIPES, PEM_RECIPES
-from pemviz.pem.encoding import bce_from_logits
 from pemviz.pem import fit_norm_stats, save_pem
-from pemviz.pem.store import load_reference_pem, noise_pem_path, pem_path, save_noise_pem
+from pemviz.pem.encoding import bce_from_logits
 from pemviz.pem.noise import nll, noise_training_data
+from pemviz.pem.recipes import NOISE_RECIPES, PEM_RECIPES
+from pemviz.pem.store import load_reference_pem, noise_pem_path, pem_path, save_noise_pem
 from pemviz.studies import noise_eval
 from pemviz.studies.pem_eval import (
     MODEL_NAMES,

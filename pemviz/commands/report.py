@@ -13,9 +13,9 @@ import json
 import sys
 from pathlib import Path
 
-from pemviz.commands import add_command, UsageError
-from pemviz.sinks.report import check_report_paths, write_report
+from pemviz.commands import UsageError, add_command
 from pemviz.io.result import RESULT_BESIDE_SUFFIX, RESULT_FORMAT, result_beside
+from pemviz.sinks.report import check_report_paths, write_report
 
 REQUIRED = ("format", "scenario", "method", "seed", "estimate", "n_simulations")
 """The fields a result document must have for a report (the rest is shown where present)."""

@@ -10,14 +10,6 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pemviz.commands.run_outputs import RunOutputs, plan_outputs
-from pemviz.commands.run_recording import (
-    add_recording_args,
-    default_recording_path,
-    probe_viewer,
-    recording_target,
-    serve,
-)
 from pemviz.commands import (
     COMMANDS,
     UsageError,
@@ -27,11 +19,19 @@ from pemviz.commands import (
     pem_argument,
     setting_error,
 )
+from pemviz.commands.run_outputs import RunOutputs, plan_outputs
+from pemviz.commands.run_recording import (
+    add_recording_args,
+    default_recording_path,
+    probe_viewer,
+    recording_target,
+    serve,
+)
 from pemviz.config import ConfigError, ExperimentConfig, scene_defaults
 from pemviz.engine.resources import check_run_memory
 from pemviz.methods import BUILTIN_METHODS, DEFAULT_METHOD
-from pemviz.settings import DEFAULT_SCENARIO, SCENARIOS, SETTINGS, rows_of
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
+from pemviz.settings import DEFAULT_SCENARIO, SCENARIOS, SETTINGS, rows_of
 
 if TYPE_CHECKING:
     from pemviz.core.problems import Problem
@@ -402,13 +402,13 @@ def _run_experiment(args, cfg: ExperimentConfig, target, outputs: RunOutputs, ea
     (:func:`pemviz.commands.run_outputs.plan_outputs`); ``early``: the recording process started before the problem was
     built, or None."""
     save_path, asks_results = outputs.recording, outputs.asks_results
-    from pemviz.sinks.most_likely import MostLikelyFailure
     from pemviz.engine.cost import N_STEPS
-    from pemviz.engine.resources import open_load_window, torch_threads
     from pemviz.engine.experiment import Experiment, stream_above
+    from pemviz.engine.resources import open_load_window, torch_threads
     from pemviz.estimators import check_runnable
     from pemviz.scenarios.registry import problem_for  # any registered scenario: the built-in ones and plugins
     from pemviz.sinks.console import ConsoleSink
+    from pemviz.sinks.most_likely import MostLikelyFailure
     from pemviz.sinks.population import FailureGroups, grouping_document
 
     serial = cfg.execution.executor != "ray"  # streams large stages (engine.experiment.streams_locally)

@@ -12,7 +12,6 @@ from typing import cast
 from pemviz.commands import UsageError, add_command, add_setting, pem_argument
 from pemviz.presets import DEFAULT_PRESET, PRESETS, preset_help
 
-
 DESCRIPTION = """
 Serve the pemviz panel: set metric, alpha, sigma, K, N, N_e, seed and PEM (--pem: the one it starts with), run the
 adaptive sampler, watch the proposal adapt, replay the least-robust rollouts in 3D, compare up to 4 runs and export

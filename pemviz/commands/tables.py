@@ -21,18 +21,32 @@ import argparse
 import math
 import time
 
-from pemviz.commands import UsageError, add_command, add_study_arguments, base_fields, output_folder, say
-from pemviz.commands import split_choices, write_study
+from pemviz.commands import (
+    UsageError,
+    add_command,
+    add_study_arguments,
+    base_fields,
+    output_folder,
+    say,
+    split_choices,
+    write_study,
+)
 from pemviz.core.estimate import format_probability
 from pemviz.engine.resources import cap_jobs
 from pemviz.io.files import check_output_folder
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import PROBLEMS, build_problem
-from pemviz.studies.paper_tables import records_by_row, report, row_specs, rows_csv, table_jobs, tables_rows
-from pemviz.studies.paper_tables import write_recording
 from pemviz.studies.exact_answers import ExactAnswer, exact_answer
+from pemviz.studies.paper_tables import (
+    records_by_row,
+    report,
+    row_specs,
+    rows_csv,
+    table_jobs,
+    tables_rows,
+    write_recording,
+)
 from pemviz.studies.validation import RUNS_FILE, RunRecord, run_jobs
-
 
 DESCRIPTION = """
 Table II (MC, naive-50, adaptive) and Table III (robustness metrics) with repetitions, mean +- standard error,

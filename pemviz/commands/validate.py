@@ -17,17 +17,34 @@ import math
 import time
 from pathlib import Path
 
-from pemviz.commands import UsageError, add_command, add_study_arguments, base_fields, output_folder, say
-from pemviz.commands import split_choices, write_study
+from pemviz.commands import (
+    UsageError,
+    add_command,
+    add_study_arguments,
+    base_fields,
+    output_folder,
+    say,
+    split_choices,
+    write_study,
+)
 from pemviz.core.estimate import format_probability, relative_error
 from pemviz.engine.resources import cap_jobs, usable_cpus
 from pemviz.io.files import check_output_folder
 from pemviz.presets import DEFAULT_PRESET, PRESETS
 from pemviz.scenarios.problems import PROBLEMS
 from pemviz.studies.exact_answers import ExactAnswer, exact_answer, problem_description, validation_problems
-from pemviz.studies.validation import BASELINES, DEFAULT_PROBLEMS, RUNS_FILE, RunRecord, methods_for, report
-from pemviz.studies.validation import run_jobs, study_jobs, summaries_csv, summarise
-
+from pemviz.studies.validation import (
+    BASELINES,
+    DEFAULT_PROBLEMS,
+    RUNS_FILE,
+    RunRecord,
+    methods_for,
+    report,
+    run_jobs,
+    study_jobs,
+    summaries_csv,
+    summarise,
+)
 
 DESCRIPTION = """
 Run the adaptive sampler (one or more presets), MC, naive-50 and AMS on problems with exact answers for several

@@ -10,14 +10,15 @@ wrong otherwise. Both are cheap (one or two short runs) and meant for a user's o
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
-from pemviz.settings import METRICS
 from pemviz.core.estimate import VERDICTS, Estimate
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.settings import METRICS
 
 
 class CheckError(ValueError):

@@ -103,7 +103,7 @@ class BettingEvidence:
     n: int
 
     @classmethod
-    def of(cls, log_terms: np.ndarray) -> "BettingEvidence":
+    def of(cls, log_terms: np.ndarray) -> BettingEvidence:
         """From the log terms log X_i float64 [N] (nats; -inf for X_i = 0, a rollout that did not fail)."""
         log_terms = np.asarray(log_terms, dtype=np.float64)
         finite = log_terms[np.isfinite(log_terms)]

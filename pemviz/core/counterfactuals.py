@@ -15,18 +15,17 @@ violating trace were necessary.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pemviz.core.detectors import SamplerView
-from pemviz.core.scored_target import ScoredTarget
 from pemviz.core.event_probs import batch_log_probs
 from pemviz.core.problem_view import object_label
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.core.scored_target import ScoredTarget
 
 if TYPE_CHECKING:
     from pemviz.core.problems import Problem
@@ -272,7 +271,7 @@ class LogPParts:
     errors: float | None = None
 
     @staticmethod
-    def of(batch: RolloutBatch, row: int, target: object | None) -> "LogPParts":
+    def of(batch: RolloutBatch, row: int, target: object | None) -> LogPParts:
         """Rollout ``row`` of ``batch`` split under ``target`` (:func:`failure_log_p_parts`)."""
         one = batch.select(np.array([int(row)]))
         detections, errors = failure_log_p_parts(one, target)

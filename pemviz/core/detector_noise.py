@@ -16,7 +16,6 @@ from pemviz.core import exact
 from pemviz.core.exact import row_sum
 from pemviz.core.t_quantile import student_t_quantile
 
-
 NOISE_FAMILIES = ("normal", "laplace", "student-t")
 """The location-scale families of measurement errors."""
 

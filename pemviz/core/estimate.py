@@ -9,8 +9,8 @@ far below float64's range.
 
 from __future__ import annotations
 
-import math
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -94,7 +94,7 @@ class Estimate:
     verdict: str = "unreliable"
     reason: str = ""
     plain_mc: bool = False
-    evidence: "BettingEvidence | None" = field(default=None, compare=False, repr=False)
+    evidence: BettingEvidence | None = field(default=None, compare=False, repr=False)
     markov_logs: tuple[float, ...] = ()
 
     @property
@@ -196,7 +196,7 @@ class Estimate:
             "weights' tail), no upper bound from this run"
         )
 
-    def below_seen(self, log_p_seen: float | None) -> "Estimate":
+    def below_seen(self, log_p_seen: float | None) -> Estimate:
         """This estimate, or, when mu_hat is below ``log_p_seen`` (nats: the probability of the distinct failures the
         run has drawn, a lower bound of p: :class:`pemviz.estimators.base.SeenFailures`), the same numbers with the
         verdict ``unreliable``: mu_hat is then certainly too low, whatever its weights look like (a proposal collapsed
@@ -209,7 +209,7 @@ class Estimate:
         )
         return dataclasses.replace(self, verdict="unreliable", reason=reason)
 
-    def at_most(self, cap: tuple[str, str] | None) -> "Estimate":
+    def at_most(self, cap: tuple[str, str] | None) -> Estimate:
         """This estimate with its verdict no better than ``cap`` = (verdict, reason): what the sampler knows and the
         weights cannot show (e.g. a proposal never fitted to a failure). None, or a verdict already as bad: unchanged.
         """
@@ -217,7 +217,7 @@ class Estimate:
             return self
         return dataclasses.replace(self, verdict=cap[0], reason=cap[1])
 
-    def summary(self, exact_log_p: float | None = None, reference: "Reference | None" = None) -> str:
+    def summary(self, exact_log_p: float | None = None, reference: Reference | None = None) -> str:
         """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, the exact answer if known, else the
         reference answer if one is given (:meth:`Reference.comparison`).
 

@@ -4,7 +4,8 @@ bit, on every CPU, whatever its vector unit or BLAS kernel and however the rollo
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 

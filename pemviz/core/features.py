@@ -17,8 +17,9 @@ replayed twice and the same at any chunk size.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Protocol, Sequence, TypeGuard
+from typing import Protocol, TypeGuard
 
 import numpy as np
 

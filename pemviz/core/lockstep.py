@@ -13,15 +13,16 @@ simulator's rollouts in chunks (:func:`uniform_chunks`: the same rollouts, bit f
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import replace
-from typing import Callable, Iterable, Iterator, Sequence, cast
+from typing import cast
 
 import numpy as np
 
-from pemviz.core.detectors import Detector, draw_step, reads_state
-from pemviz.core.features import reports_features
 from pemviz.core.detector_noise import noise_names_of
+from pemviz.core.detectors import Detector, draw_step, reads_state
 from pemviz.core.exact import row_sum
+from pemviz.core.features import reports_features
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
 from pemviz.core.rollouts import (
     BatchedObjectsSimulator,

@@ -7,8 +7,8 @@ the simulation count from here instead of working them out from the settings. No
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 from pemviz.methods.ams import AMS_STAGE
 
@@ -61,7 +61,7 @@ class RunPlan:
     open_ended: bool = False
 
     @classmethod
-    def of(cls, stages: Iterable[tuple[int, str, int]], open_ended: bool = False) -> "RunPlan":
+    def of(cls, stages: Iterable[tuple[int, str, int]], open_ended: bool = False) -> RunPlan:
         """The plan of ``(stage, kind, rollouts)`` triples, each labelled by :func:`pemviz.core.plan.stage_label`."""
         stages = tuple(stages)
         k = sum(kind == "ce" for _, kind, _ in stages)

@@ -16,8 +16,9 @@ to no scenario's. The built-in scenarios' problems (the named ``PROBLEMS`` of ``
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator, Mapping, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from scipy.special import expit
@@ -137,7 +138,7 @@ class Problem:
     name: str
     simulate: SimulateFn
     target: Detector
-    formula: "stl.Formula"
+    formula: stl.Formula
     signals: Mapping[str, str]
     signal_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     h_scale: float = 12.0

@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
-
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -167,7 +166,7 @@ def decide(est: Estimate, req: Requirement, look: int, plain_mc: bool, alpha: fl
     return Decision(outcome, look, level, (lo, hi), f"{req} {side} on the {shown}")
 
 
-def _decide_on_bound(est: "Estimate", req: Requirement, look: int, level: float) -> Decision:
+def _decide_on_bound(est: Estimate, req: Requirement, look: int, level: float) -> Decision:
     """A look at an importance-sampling estimate whose verdict backs no interval: only its lower bound at ``level``
     (:meth:`pemviz.core.estimate.Estimate.lower_bound`, whatever the weights' tail) may decide, and only one way: a
     bound at or above the threshold violates ``p < t`` (``p <= t``: above it) and meets ``p >= t`` (``p > t``: above

@@ -10,7 +10,8 @@ space-efficient statistically good algorithms for random number generation"); ot
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Mapping, cast
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 

@@ -16,13 +16,14 @@ and the sampling detector; :mod:`pemviz.core.lockstep` simulates them.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Protocol, Sequence, TypeGuard
+from typing import Any, Protocol, TypeGuard
 
 import numpy as np
 
-from pemviz.core.detectors import Detector
 from pemviz.core.detector_noise import noise_names_of
+from pemviz.core.detectors import Detector
 
 
 class Simulator(Protocol):
@@ -179,14 +180,14 @@ class RolloutBatch:
         """Whether the object rows were not kept and would be rebuilt by replay when read (:attr:`replay`)."""
         return object.__getattribute__(self, "objects") is None and self.replay is not None
 
-    def with_changes(self, **changes: Any) -> "RolloutBatch":
+    def with_changes(self, **changes: Any) -> RolloutBatch:
         """``dataclasses.replace(self, **changes)``, except that object rows not kept stay so (``replace`` reads every
         field, and reading ``objects`` rebuilds them: :attr:`rows_elided`)."""
         if self.rows_elided and "objects" not in changes:
             changes = {"objects": None, "replay": self.replay, **changes}
         return replace(self, **changes)
 
-    def with_rows(self) -> "RolloutBatch":
+    def with_rows(self) -> RolloutBatch:
         """This batch with its object rows held (rebuilt by replay where they were not kept: :attr:`rows_elided`)."""
         return replace(self, objects=self.objects, replay=None) if self.rows_elided else self
 
@@ -260,7 +261,7 @@ class RolloutBatch:
         k = self.n_steps - 1 if n_factors is None else n_factors
         return self.log_p[:, :k].sum(axis=1)
 
-    def select(self, rows: np.ndarray | slice) -> "RolloutBatch":
+    def select(self, rows: np.ndarray | slice) -> RolloutBatch:
         """The rollouts ``rows`` (bool [N] mask, int indices or a slice), copied: a batch of its own, in their
         order."""
 
@@ -282,7 +283,7 @@ class RolloutBatch:
         )
 
     @staticmethod
-    def concatenate(batches: Sequence["RolloutBatch"]) -> "RolloutBatch":
+    def concatenate(batches: Sequence[RolloutBatch]) -> RolloutBatch:
         """Stack batches of equal T along N (``log_q_parts`` too where every batch has them)."""
 
         def cat(field: str) -> np.ndarray:

@@ -11,17 +11,18 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pemviz.methods.adaptive import FITS
 from pemviz.core import exact, torch_use
-from pemviz.core.exact_fit import fit_exact
-from pemviz.core.fit_settings import CHECK_EVERY, EXACT, PLATEAU_EPOCHS, Objective
 from pemviz.core.detectors import GAP_COLUMN
+from pemviz.core.exact_fit import fit_exact
 from pemviz.core.files import atomic_write, load_tagged
+from pemviz.core.fit_settings import CHECK_EVERY, EXACT, PLATEAU_EPOCHS, Objective
+from pemviz.methods.adaptive import FITS
 
 if TYPE_CHECKING:
     import torch

@@ -21,8 +21,9 @@ The weights are formed in float64 log space throughout (sums of log-probabilitie
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.special import logsumexp

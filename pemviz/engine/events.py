@@ -12,8 +12,9 @@ tested on hand-made events.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Mapping, Union
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,9 +25,9 @@ if TYPE_CHECKING:  # annotations only: the modules behind them import torch
     from pemviz.core.detectors import Detector
     from pemviz.core.estimate import Estimate, Reference
     from pemviz.core.odd import OddMap
+    from pemviz.core.population import FailureShares
     from pemviz.core.problem_view import ProblemView
     from pemviz.core.requirement import Decision
-    from pemviz.core.population import FailureShares
     from pemviz.core.reweight import PemSpread
     from pemviz.core.rollouts import RolloutBatch
     from pemviz.core.severity import SeverityCurve
@@ -210,7 +211,14 @@ class RunCancelled:
     reason: str
 
 
-Event = Union[
-    RunStarted, StageStarted, RolloutChunk, RolloutsSampled, StageFinished, FinalEstimate, RunFinished, RunCancelled
-]
+Event = (
+    RunStarted
+    | StageStarted
+    | RolloutChunk
+    | RolloutsSampled
+    | StageFinished
+    | FinalEstimate
+    | RunFinished
+    | RunCancelled
+)
 Listener = Callable[[Event], None]

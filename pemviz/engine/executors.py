@@ -34,14 +34,15 @@ and :func:`pemviz.core.lockstep.simulate` do; anything else raises a RuntimeErro
 from __future__ import annotations
 
 import socket
-from typing import Any, Iterator, Mapping, Protocol
+from collections.abc import Iterator, Mapping
+from typing import Any, Protocol
 
 import numpy as np
 
-from pemviz.settings import EXECUTORS
 from pemviz.core.detectors import Detector
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at, block_bounds
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.settings import EXECUTORS
 
 
 class Executor(Protocol):
@@ -230,7 +231,7 @@ def probe_ray_address(address: str | None, timeout_s: float = RAY_PROBE_TIMEOUT_
         raise ValueError(f"--ray-address {address!r}: use HOST:PORT or ray://HOST:PORT (or auto)")
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
-    except socket.timeout:
+    except TimeoutError:
         raise ValueError(f"--ray-address {address}: no answer within {timeout_s:g} s; is the Ray cluster up?") from None
     except OSError as exc:
         raise ValueError(

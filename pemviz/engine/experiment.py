@@ -24,17 +24,16 @@ from __future__ import annotations
 import itertools
 import threading
 import time
-from typing import Any, Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 
-from pemviz.settings import METRICS
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, Detector
 from pemviz.core.estimate import Estimate
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.engine.odd_map import OddMapCollector
 from pemviz.engine.events import (
     Event,
     FinalEstimate,
@@ -49,10 +48,12 @@ from pemviz.engine.events import (
     StageStarted,
 )
 from pemviz.engine.executors import get_executor
+from pemviz.engine.odd_map import OddMapCollector
+from pemviz.estimators import build_estimator
 from pemviz.estimators.base import Estimator, SeenFailures, StagePlan
 from pemviz.estimators.extras import extras, needs_chunk_rows
-from pemviz.estimators import build_estimator
 from pemviz.estimators.pooling import failure_population, pem_spread, severity_curve
+from pemviz.settings import METRICS
 
 
 class Cancelled(Exception):

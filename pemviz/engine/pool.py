@@ -29,7 +29,8 @@ import hashlib
 import signal
 import sys
 import time
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 
@@ -37,8 +38,8 @@ from pemviz.core.detectors import Detector
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, block_bounds
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine import handoff, resources
-from pemviz.engine.resources import ONE_THREAD_ENV, usable_cpus
 from pemviz.engine.executors import ChunkUniforms, check_draws, gather_chunks, simulate_blocks, simulate_chunk
+from pemviz.engine.resources import ONE_THREAD_ENV, usable_cpus
 
 IDLE_S = 120
 """Seconds an idle worker waits for work before it exits (a new one starts when work comes)."""

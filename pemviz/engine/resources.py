@@ -9,8 +9,9 @@ import dataclasses
 import math
 import os
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterator
+from typing import TYPE_CHECKING
 
 from pemviz.config import Execution, ExperimentConfig
 

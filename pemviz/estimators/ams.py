@@ -38,7 +38,6 @@ Replayed prefixes are not counted: a snapshot restores them without simulation.
 from __future__ import annotations
 
 import dataclasses
-
 import math
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -48,16 +47,15 @@ from scipy.special import logsumexp, ndtri
 
 from pemviz import stl
 from pemviz.config import ExperimentConfig
+from pemviz.core.confidence import CI_LEVEL
+from pemviz.core.estimate import MIN_FAILURES, Estimate
+from pemviz.core.plan import RunPlan
+from pemviz.core.problems import Problem, no_branch_message, step_robustness
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.estimators.base import Check, OwnsSettings, StageOutcome, StagePlan, log_p_before_failure
 from pemviz.methods import SPLITTING_METHOD
 from pemviz.methods.ams import AMS_STAGE
 from pemviz.settings import settings_of
-from pemviz.core.confidence import CI_LEVEL
-from pemviz.core.estimate import MIN_FAILURES, Estimate
-from pemviz.core.rollouts import RolloutBatch
-from pemviz.estimators.base import Check, OwnsSettings, StageOutcome, StagePlan, log_p_before_failure
-from pemviz.core.plan import RunPlan
-from pemviz.core.problems import Problem, no_branch_message, step_robustness
-
 
 SCORE_FLOOR = 1e-12
 """The least graded score of a prefix that has not failed: a state whose committor rounds to 1 stays above the failure

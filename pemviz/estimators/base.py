@@ -10,10 +10,10 @@ shown each batch's rollouts (:meth:`Estimator.observe`, possibly chunk by chunk)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Protocol
-
 import weakref
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 from scipy.special import logsumexp
@@ -22,9 +22,9 @@ from pemviz import stl
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import Detector
 from pemviz.core.estimate import Estimate, estimate
-from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.pooling import pool
 
 Check = Callable[[], None]

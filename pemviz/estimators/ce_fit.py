@@ -6,12 +6,13 @@ chunk. :class:`pemviz.estimators.cross_entropy.CrossEntropy` runs the stages aro
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable, Literal
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.fit_settings import FitOptions
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import Proposal, StateProposal, fit_proposal
 from pemviz.estimators.base import elite_count, elite_counts
 

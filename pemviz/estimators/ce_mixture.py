@@ -12,17 +12,17 @@ from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
+from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.detectors import (
     Detector,
     NoisyDetector,
     action_log_prob,
     errors_log_density,
 )
-from pemviz.core.detector_noise import noise_names_of
-from pemviz.core.scored_target import ScoredTarget
 from pemviz.core.odd_proposal import parameter_log_ratio
 from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.core.scored_target import ScoredTarget
 from pemviz.estimators.base import StagePlan, masked_log_weight, mixture_log_weight, weighted_steps_mask
 
 if TYPE_CHECKING:

@@ -21,8 +21,7 @@ from typing import cast
 import numpy as np
 
 from pemviz.config import ExperimentConfig, whole_rollout_fit_refusal
-from pemviz.methods import CROSS_ENTROPY_METHOD
-from pemviz.settings import settings_of
+from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.detectors import (
     Detector,
     NoisyDetector,
@@ -31,14 +30,13 @@ from pemviz.core.detectors import (
     defensive_logit,
     logit,
 )
-from pemviz.core.detector_noise import noise_names_of
-from pemviz.core.scored_target import ScoredTarget
 from pemviz.core.estimate import Estimate, estimate
+from pemviz.core.fit_settings import EXACT, FitOptions
+from pemviz.core.plan import RunPlan
+from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.estimators.ce_fit import EliteSteps, WeightMode, break_ties, ce_update, new_proposal, pretrain_proposal
-from pemviz.estimators.ce_mixture import MixtureWeights
-from pemviz.estimators.ce_odd import ParameterFit
-from pemviz.estimators.ce_plan import adaptive_run_plan
+from pemviz.core.sampling import Proposal
+from pemviz.core.scored_target import ScoredTarget
 from pemviz.estimators.base import (
     Check,
     EliteCandidates,
@@ -53,11 +51,13 @@ from pemviz.estimators.base import (
     pooled_estimate,
     weighted_steps_mask,
 )
+from pemviz.estimators.ce_fit import EliteSteps, WeightMode, break_ties, ce_update, new_proposal, pretrain_proposal
+from pemviz.estimators.ce_mixture import MixtureWeights
+from pemviz.estimators.ce_odd import ParameterFit
+from pemviz.estimators.ce_plan import adaptive_run_plan
 from pemviz.estimators.pooling import pool_stage_weights
-from pemviz.core.plan import RunPlan
-from pemviz.core.problems import Problem
-from pemviz.core.fit_settings import EXACT, FitOptions
-from pemviz.core.sampling import Proposal
+from pemviz.methods import CROSS_ENTROPY_METHOD
+from pemviz.settings import settings_of
 
 
 @dataclass(frozen=True)

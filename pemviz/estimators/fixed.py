@@ -7,9 +7,9 @@ import numpy as np
 
 from pemviz.core.detectors import ConstantDetector, Detector, WindowDetector
 from pemviz.core.estimate import Estimate
+from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.core.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan, StageRollouts, pooled_estimate
 
 

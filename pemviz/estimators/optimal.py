@@ -21,8 +21,8 @@ proposal approaches, and :func:`relative_variance` says how far it is.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

@@ -42,7 +42,7 @@ def severity_curve(
     used: tuple[int, ...],
     pooling: tuple[str, tuple[float, ...]] | None,
     cap: tuple[str, str] | None = None,
-) -> "SeverityCurve | None":
+) -> SeverityCurve | None:
     """The run's exceedance curve (:mod:`pemviz.core.severity`): ``final`` (the run's estimate) as its first point,
     then P(failure and min s < x) for each level x of ``problem.severity``, pooled over the stages ``used`` as the run's
     estimate is (``pooling``'s lambda_k, :func:`pool`; None: every rollout alike), each capped at ``cap`` (the sampler's
@@ -116,7 +116,7 @@ def pem_spread(
     used: tuple[int, ...],
     pooling: tuple[str, tuple[float, ...]] | None,
     cap: tuple[str, str] | None = None,
-) -> "PemSpread | None":
+) -> PemSpread | None:
     """p under each of ``problem.alternatives`` from the run's own rollouts (:mod:`pemviz.core.reweight`), pooled as
     the run's estimate: the members of a PEM ensemble and the shifted PEMs; None without alternatives or where the
     estimator keeps no per-stage rollouts."""

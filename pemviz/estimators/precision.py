@@ -20,18 +20,19 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
-from pemviz.settings import DEFAULT_MAX_SIMS
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, format_probability
+from pemviz.core.plan import RunPlan
 from pemviz.core.requirement import Decision, decide, parse_requirement
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.core.plan import RunPlan
 from pemviz.estimators.base import StageOutcome, StagePlan
 from pemviz.estimators.extras import extras
+from pemviz.settings import DEFAULT_MAX_SIMS
 
 GROWTH = 4.0
 """An added batch is at most this many times the final rollouts so far: the interval's width is itself noisy, so the

@@ -12,7 +12,8 @@ q(detect | salient variables) generalised, with one weight per feature to fit in
 from __future__ import annotations
 
 import copy
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from pemviz.core.files import atomic_write, repo_root
 from pemviz.pem.encoding import INPUT_COLUMNS
 

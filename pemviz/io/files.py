@@ -13,12 +13,12 @@ import os
 import signal
 import tempfile
 import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import FrameType
-from typing import Any, Callable, Iterator
+from typing import Any
 
 from pemviz.core.files import OutputExists, _commit, atomic_write, default_file_mode
-
 
 TEMP_NAME_EXTRA = 14
 """Characters a temporary name adds to the target's name: ``.NAME.`` + 8 random characters + ``.tmp``."""

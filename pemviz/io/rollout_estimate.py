@@ -16,8 +16,6 @@ from typing import Any, cast
 
 import numpy as np
 
-from pemviz.methods import MIXED_METHOD, NAIVE_METHOD
-from pemviz.settings import METRICS
 from pemviz.core.detectors import ConstantDetector, Detector, PEMDetector, WindowDetector, action_log_prob
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.problems import LookAheadFn, Problem
@@ -34,6 +32,8 @@ from pemviz.io.rollout_format import (
     parse_formula,
 )
 from pemviz.io.rollout_table import RolloutData, braking_salient
+from pemviz.methods import MIXED_METHOD, NAIVE_METHOD
+from pemviz.settings import METRICS
 
 REESTIMATE_RTOL = 1e-9
 """A rollout file re-estimates to its run's mu_hat within this relative error, and prints the run's rows and verdict:

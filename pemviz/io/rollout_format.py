@@ -98,9 +98,10 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -242,7 +243,7 @@ class RolloutMeta:
         }
 
     @classmethod
-    def from_json(cls, obj: Any, where: str = "sidecar") -> "RolloutMeta":
+    def from_json(cls, obj: Any, where: str = "sidecar") -> RolloutMeta:
         """Parse and check a sidecar object.
 
         Raises:

@@ -7,7 +7,8 @@ Which one a run writes is :func:`pemviz.io.run_rollouts.run_meta`'s choice.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Mapping
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from pemviz.io.rollout_format import RolloutMeta
 from pemviz.scenarios.braking.problem import braking_formula

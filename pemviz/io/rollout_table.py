@@ -30,6 +30,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.io.rollout_format import (
     SALIENT_COLUMNS,
     RolloutFormatError,
@@ -38,7 +39,6 @@ from pemviz.io.rollout_format import (
 )
 from pemviz.pem import braking_salient_inputs
 from pemviz.pem.encoding import INPUT_COLUMNS
-from pemviz.core.rollouts import RolloutBatch
 
 SEVERITY_COLUMNS = ("min_distance_m", "impact_speed_mps")
 """The optional per-rollout severity columns (module docstring): min distance (m), impact speed (m/s, null: no

@@ -20,6 +20,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.core.sampling import write_proposal_file
 from pemviz.io.data import sha256_file
 from pemviz.io.files import check_free_name, check_output_path, commit_files, temp_file
 from pemviz.io.rollout_format import (
@@ -31,8 +33,6 @@ from pemviz.io.rollout_format import (
     sidecar_path,
 )
 from pemviz.io.rollout_table import SEVERITY_COLUMNS, _Table
-from pemviz.core.sampling import write_proposal_file
-from pemviz.core.rollouts import RolloutBatch
 
 
 def check_rollouts_path(path: str | os.PathLike[str], *, overwrite: bool = False, what: str = "rollout file") -> Path:
@@ -159,7 +159,7 @@ class RolloutWriter:
         self._tmp = self._stack.enter_context(temp_file(self.path))
         self._writer: Any = None
 
-    def __enter__(self) -> "RolloutWriter":
+    def __enter__(self) -> RolloutWriter:
         return self
 
     def __exit__(self, *exc: Any) -> None:

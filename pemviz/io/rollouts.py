@@ -23,7 +23,6 @@ from pemviz.io.files import MAGIC
 from pemviz.io.rollout_format import RolloutFormatError, existing_sidecar, read_sidecar
 from pemviz.io.rollout_table import RolloutData, _Table
 
-
 RECORDING_MAGIC = b"RRF"
 """The first bytes of a rerun recording (``.rrd``): ``RRF2`` today, ``RRF0`` / ``RRF1`` in older rerun versions."""
 

@@ -25,8 +25,9 @@ holds as a group: :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adapti
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from pemviz.plugins import Plugins, Ref, resolve
 

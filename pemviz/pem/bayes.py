@@ -22,10 +22,10 @@ from scipy.special import expit, log_expit, logsumexp
 from tqdm.auto import tqdm
 
 from pemviz.pem.encoding import (
-    check_features,
     N_FEATURES,
     NormStats,
     braking_salient_inputs,
+    check_features,
     check_training_data,
     encode_salient,
     fit_norm_stats,

@@ -27,7 +27,6 @@ import numpy as np
 from scipy.special import expit
 
 from pemviz.pem.encoding import (
-    check_features,
     BRAKING_CAMERA_TO_LEAD_CENTRE_M,
     BRAKING_Z_FEATURE,
     N_FEATURES,
@@ -35,6 +34,7 @@ from pemviz.pem.encoding import (
     NormStats,
     SalientCodes,
     braking_features_at_z,
+    check_features,
     encode_salient,
 )
 

@@ -30,11 +30,11 @@ import numpy as np
 
 from pemviz.pem.camera import MIN_RANGE_M, box_errors_to_metric
 from pemviz.pem.encoding import (
-    check_features,
     N_FEATURES,
     ONE_HOT_GROUPS,
     NormStats,
     SalientCodes,
+    check_features,
     encode_salient,
     fit_norm_stats,
 )

@@ -21,13 +21,13 @@ import numpy as np
 from scipy.special import expit
 
 from pemviz.pem.encoding import (
-    check_features,
     BRAKING_Z_FEATURE,
     N_FEATURES,
     NormStats,
-    check_training_data,
     braking_features_at_z,
     braking_z_scored,
+    check_features,
+    check_training_data,
     encode_salient,
     fit_norm_stats,
 )

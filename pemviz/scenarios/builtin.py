@@ -7,10 +7,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from pemviz.core.problems import Problem
-from pemviz.scenarios.crowd.simulator import CrowdParams
 from pemviz.scenarios.crowd.problem import crowd_problem
-from pemviz.scenarios.toy.problem import toy_problem
+from pemviz.scenarios.crowd.simulator import CrowdParams
 from pemviz.scenarios.toy import ToyParams
+from pemviz.scenarios.toy.problem import toy_problem
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig

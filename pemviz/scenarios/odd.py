@@ -10,7 +10,8 @@ lies in the parameter's range), :func:`split_odd` separates the fixed parameters
 
 from __future__ import annotations
 
-from typing import Any, Iterable, TypeGuard
+from collections.abc import Iterable
+from typing import Any, TypeGuard
 
 from pemviz.core.odd import ODD, Distribution, ODDError, parse_distribution
 

@@ -20,8 +20,9 @@ import dataclasses
 import functools
 import math
 import re
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterable, Mapping, Protocol, Union, cast
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, cast
 
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.settings import SCENARIOS, scenario_names
@@ -36,10 +37,10 @@ class DataclassInstance(Protocol):
 if TYPE_CHECKING:
     from pemviz.scenarios.cut_in.scenario import CutInParams
 
-Value = Union[float, int, bool]
+Value = float | int | bool
 """A parameter's value: a float, an int or a bool (the field's type)."""
 
-PairValue = Union[float, int, bool, str]
+PairValue = float | int | bool | str
 """A value of a ``(name, value)`` pair of ``scenario_params``: a :data:`Value`, or for a parameter drawn per rollout
 the text ``"~" + its distribution`` (:func:`pemviz.scenarios.odd.odd_value`)."""
 

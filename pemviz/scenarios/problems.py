@@ -23,8 +23,8 @@ import numpy as np
 from pemviz.core.estimate import Reference
 from pemviz.core.problems import Problem
 from pemviz.core.reweight import AlternativeTarget
-from pemviz.pem.recipes import DEFAULT_PEM_NAME
 from pemviz.pem import load_pem
+from pemviz.pem.recipes import DEFAULT_PEM_NAME
 from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.braking.truth_known import known_log_failure_probability

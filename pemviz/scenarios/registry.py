@@ -20,9 +20,12 @@ import path), so listing the scenarios loads no PEM, no problem and no torch.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
+from pemviz.methods import PLAIN_METHOD, TILT_METHOD
+from pemviz.plugins import Plugins, Ref, resolve
 from pemviz.scenarios.parameters import (
     KINDS,
     RANDOM_PARAMS,
@@ -33,8 +36,6 @@ from pemviz.scenarios.parameters import (
     register_defaults,
     unit_of,
 )
-from pemviz.methods import PLAIN_METHOD, TILT_METHOD
-from pemviz.plugins import Plugins, Ref, resolve
 from pemviz.settings import REGISTERED_SCENARIOS, SCENARIO_COST_FACTORS, SCENARIO_COST_PARTS, SETTINGS
 
 

@@ -9,13 +9,33 @@ from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
-from pemviz.engine.cost import COST, N_STEPS, CostConstants, FollowOn, StageCost, follow_on, mc_rollouts, stage_cost
-from pemviz.engine.cost import with_drift
-from pemviz.engine.events import Event, FinalEstimate, RolloutChunk, RolloutsSampled, RunCancelled, RunFinished
-from pemviz.engine.events import RunStarted, StageFinished, StageResult, StageStarted
 from pemviz.core.plan import RunPlan
+from pemviz.engine.cost import (
+    COST,
+    N_STEPS,
+    CostConstants,
+    FollowOn,
+    StageCost,
+    follow_on,
+    mc_rollouts,
+    stage_cost,
+    with_drift,
+)
+from pemviz.engine.events import (
+    Event,
+    FinalEstimate,
+    RolloutChunk,
+    RolloutsSampled,
+    RunCancelled,
+    RunFinished,
+    RunStarted,
+    StageFinished,
+    StageResult,
+    StageStarted,
+)
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig

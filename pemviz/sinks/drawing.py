@@ -32,7 +32,8 @@ None: ask :meth:`RecordingDrawing.outcome_values` rollout by rollout), for the f
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Mapping, Protocol, cast, runtime_checkable
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, Protocol, cast, runtime_checkable
 
 from pemviz.core.drawing import Drawing
 

@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING, Any, Protocol, cast
 import numpy as np
 
 from pemviz.core.population import FailureGroup, FailureShares, failure_groups
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.severity import FailureSeverity, SeverityProblem, contact_level, failure_severity, rollout_severity
 from pemviz.engine.events import RolloutsSampled
-from pemviz.core.rollouts import RolloutBatch
 
 if TYPE_CHECKING:
     import rerun as rr

@@ -92,19 +92,19 @@ import rerun as rr
 import pemviz
 from pemviz.core.counterfactuals import LikelyFailure, LogPParts, most_likely_failure
 from pemviz.core.estimate import Reference
+from pemviz.core.files import atomic_write
 from pemviz.core.plan import RunPlan
 from pemviz.core.problem_view import ProblemView
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
-from pemviz.core.files import atomic_write
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
 from pemviz.sinks.population import FailureGroups, SharedGroups, log_failures
 from pemviz.sinks.rerun_blueprint import default_blueprint
 from pemviz.sinks.rerun_explain import log_explanation
+from pemviz.sinks.rerun_odd import log_odd_map
 from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
 from pemviz.sinks.rerun_stage_figures import StageFigures, log_histograms, log_series_styles
-from pemviz.sinks.rerun_odd import log_odd_map
 from pemviz.sinks.rerun_text import (
     config_markdown,
     description_markdown,
@@ -226,7 +226,7 @@ class RerunSink(Sink):
 
     # -- constructors -------------------------------------------------------------------------------
     @classmethod
-    def to_file(cls, path: str | os.PathLike, *, overwrite: bool = False, **kw: Any) -> "RerunSink":
+    def to_file(cls, path: str | os.PathLike, *, overwrite: bool = False, **kw: Any) -> RerunSink:
         """A sink that saves to ``path`` when :meth:`close` commits it.
 
         The recording is encoded in memory (:meth:`rerun.RecordingStream.binary_stream`) and written by
@@ -244,7 +244,7 @@ class RerunSink(Sink):
     @classmethod
     def to_grpc(
         cls, url: str | None = None, *, serve: bool = False, grpc_port: int | None = None, **kw: Any
-    ) -> "RerunSink":
+    ) -> RerunSink:
         """A sink that streams to a running viewer (``url``) or serves a gRPC endpoint (``serve``, on
         ``grpc_port``, default 9876; its ``rerun+http://...`` address is in :attr:`serve_url`)."""
         stream = rr.RecordingStream(APP_ID)
@@ -258,7 +258,7 @@ class RerunSink(Sink):
         return sink
 
     @classmethod
-    def to_stdout(cls, **kw: Any) -> "RerunSink":
+    def to_stdout(cls, **kw: Any) -> RerunSink:
         """A sink that writes the recording to standard output (``pemviz run --stdout | rerun -``)."""
         stream = rr.RecordingStream(APP_ID)
         stream.stdout()

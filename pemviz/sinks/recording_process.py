@@ -240,8 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     from pemviz.sinks.process import import_scipy_special_lean, settle_pyarrow_without_pandas
 
     import_scipy_special_lean()  # before the engine's and the sink's modules import it
-    from pemviz.engine.experiment import RobustnessByMetric
     from pemviz.core.files import OutputExists
+    from pemviz.engine.experiment import RobustnessByMetric
     from pemviz.sinks.recording import RerunSink
 
     settle_pyarrow_without_pandas()

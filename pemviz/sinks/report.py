@@ -16,11 +16,12 @@ import html
 import json
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
-from pemviz.core.severity import share_text
 from pemviz.core.files import atomic_write
+from pemviz.core.severity import share_text
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
 

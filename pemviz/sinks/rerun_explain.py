@@ -34,7 +34,8 @@ Entities (``step`` timeline unless static; ``<col>`` = the problem's first signa
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import rerun as rr
@@ -42,8 +43,8 @@ import rerun as rr
 from pemviz.core.counterfactuals import LogPParts
 from pemviz.core.problem_view import ProblemView, object_scene
 from pemviz.core.proposal_view import prob_detect
-from pemviz.engine.events import RolloutsSampled
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.engine.events import RolloutsSampled
 from pemviz.sinks import colours as C
 from pemviz.sinks.drawing import recording_hooks
 from pemviz.sinks.rerun_blueprint import EXPLAIN_PATH

@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import rerun as rr
 
-from pemviz.sinks import colours as C
 from pemviz.engine.events import RolloutsSampled
+from pemviz.sinks import colours as C
 from pemviz.sinks.rerun_views import CRASH_RGBA, HISTOGRAM_BINS, PEM_PLOT_RGBA, STAGE_METRICS, Figure
 
 EXTRA_SERIES = (

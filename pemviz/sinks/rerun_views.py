@@ -9,8 +9,8 @@ Everything here draws into a :class:`rerun.RecordingStream` it is given and keep
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 import rerun as rr
@@ -20,8 +20,8 @@ from pemviz.core.problem_view import ProblemView
 from pemviz.core.proposal_view import LOG_ODDS_SPAN_NATS, ProposalView
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.events import RolloutsSampled, RunStarted
-from pemviz.sinks import colours as C
 from pemviz.plugins import resolve
+from pemviz.sinks import colours as C
 from pemviz.sinks.drawing import recording_hooks
 
 

@@ -15,17 +15,24 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from pemviz.engine.events import FinalEstimate, RolloutChunk, RunCancelled, RunFinished, RunStarted, StageFinished
-from pemviz.engine.events import StageStarted
+from pemviz.core.detectors import ArrayRQMC, ConstantDetector, SamplerView, WindowDetector
+from pemviz.core.sampling import Proposal
+from pemviz.core.weights import convention, stage_log_q
+from pemviz.engine.events import (
+    FinalEstimate,
+    RolloutChunk,
+    RunCancelled,
+    RunFinished,
+    RunStarted,
+    StageFinished,
+    StageStarted,
+)
 from pemviz.estimators.pooling import pool_stage_weights
 from pemviz.io.rollout_writer import RolloutWriter, check_rollouts_path
 from pemviz.io.run_rollouts import run_meta, run_salient, run_severity
 from pemviz.pem.recipes import DEFAULT_PEM_NAME
-from pemviz.core.detectors import ArrayRQMC, ConstantDetector, SamplerView, WindowDetector
-from pemviz.core.sampling import Proposal
-from pemviz.sinks import Sink
-from pemviz.core.weights import convention, stage_log_q
 from pemviz.settings import setting_of
+from pemviz.sinks import Sink
 
 SAY_SIZE_ABOVE_BYTES = 100 * 10**6
 """A run with ``--save-rollouts`` says, after its first chunk and before the rest, how large the file will be when it

@@ -127,7 +127,7 @@ class ImageBox:
         return (self.u_hi - self.u_lo) * (self.v_bot - self.v_top)
 
     @staticmethod
-    def stack(boxes: "list[ImageBox] | tuple[ImageBox, ...]") -> "ImageBox":
+    def stack(boxes: list[ImageBox] | tuple[ImageBox, ...]) -> ImageBox:
         """The boxes of several objects (each of shape ``S``, e.g. one per kind) as one of shape ``[M] + S``."""
         return ImageBox(*(np.stack([getattr(b, name) for b in boxes]) for name in ("u_lo", "u_hi", "v_top", "v_bot")))
 
@@ -167,7 +167,7 @@ def image_box(
 
 
 def occluded_share(
-    boxes: ImageBox, depth_m: np.ndarray | None = None, pairs: "tuple[tuple[int, int], ...] | None" = None
+    boxes: ImageBox, depth_m: np.ndarray | None = None, pairs: tuple[tuple[int, int], ...] | None = None
 ) -> np.ndarray:
     """The share of each object's 2D box covered by the boxes of nearer objects (module docstring):
     ``min(1, sum over nearer i of area(box_i & box_j) / area(box_j))``, the overlap of two boxes being
@@ -285,7 +285,7 @@ def view(
 
 
 def views(
-    kinds: "list[ObjectKind] | tuple[ObjectKind, ...]",
+    kinds: list[ObjectKind] | tuple[ObjectKind, ...],
     loc_x_m: np.ndarray,
     loc_z_m: np.ndarray,
     rot_y_rad: np.ndarray | float,

@@ -26,8 +26,9 @@ sampler; :func:`ahead_rows` gives a problem the rows where the PEM's detection c
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.special import log_expit

@@ -148,17 +148,17 @@ class Tracks:
     age: np.ndarray
 
     @classmethod
-    def empty(cls, shape: tuple[int, ...]) -> "Tracks":
+    def empty(cls, shape: tuple[int, ...]) -> Tracks:
         """No track yet (the float fields are 0), arrays of ``shape``."""
         zeros = (np.zeros(shape) for _ in range(10))
         flags = (np.zeros(shape, dtype=bool) for _ in range(2))  # active, confirmed
         counts = (np.zeros(shape, dtype=np.int64) for _ in range(2))  # coast, age
         return cls(*zeros, *flags, *counts)
 
-    def copy(self) -> "Tracks":
+    def copy(self) -> Tracks:
         return Tracks(*(getattr(self, f.name).copy() for f in fields(self)))
 
-    def select(self, rows: np.ndarray) -> "Tracks":
+    def select(self, rows: np.ndarray) -> Tracks:
         """The tracks of rollouts ``rows`` (int indices or a bool mask on the last axis), copied."""
         return Tracks(*(getattr(self, f.name)[..., rows] for f in fields(self)))
 

@@ -19,6 +19,7 @@ predicates), :mod:`pemviz.stl.formula` (formulas), :mod:`pemviz.stl.parser`, :mo
 kinds, the trace-end convention).
 """
 
+from pemviz.stl.evaluate import TRACE_END, first_violation, robustness, robustness_signal
 from pemviz.stl.expr import KEYWORDS, BinaryExpr, Const, Expr, Negate, Signal, format_number
 from pemviz.stl.formula import (
     Always,
@@ -43,7 +44,6 @@ from pemviz.stl.formula import (
     until,
 )
 from pemviz.stl.parser import STLSyntaxError, parse
-from pemviz.stl.evaluate import TRACE_END, first_violation, robustness, robustness_signal
 from pemviz.stl.semantics import (
     AGM,
     DEFAULT_TEMPERATURE,

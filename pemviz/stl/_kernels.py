@@ -7,7 +7,8 @@ smooth-cumulative, over the window offsets (each step vectorised over traces x o
 from __future__ import annotations
 
 import sys
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 

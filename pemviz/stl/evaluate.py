@@ -32,11 +32,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pemviz.stl import _kernels as K
-from pemviz.stl.formula import Always, And, Formula, Implies, Not, Or, Predicate, Temporal, UnaryTemporal, Until
+from pemviz.stl._kernels import torch
 from pemviz.stl.expr import Signal
+from pemviz.stl.formula import Always, And, Formula, Implies, Not, Or, Predicate, Temporal, UnaryTemporal, Until
 from pemviz.stl.parser import parse
 from pemviz.stl.semantics import DEFAULT_TEMPERATURE, SEMANTICS, Semantics, _col, semantics_from_name
-from pemviz.stl._kernels import torch
 
 if TYPE_CHECKING:
     from concurrent.futures import ThreadPoolExecutor

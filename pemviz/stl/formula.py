@@ -22,8 +22,8 @@ Builders: ``signal("d") >= 2`` is a :class:`Predicate`; ``p & q``, ``p | q``, ``
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Iterable
 
 from pemviz.stl import expr
 from pemviz.stl.expr import (

@@ -14,9 +14,9 @@ most :data:`MAX_DEPTH` deep. Every failure is an :class:`STLSyntaxError` with it
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Iterator
 
 from pemviz.stl.expr import COMPARISONS, KEYWORDS, BinaryExpr, Const, Expr, Negate, Signal
 from pemviz.stl.formula import Always, And, Eventually, Formula, Implies, Not, Or, Predicate, Until

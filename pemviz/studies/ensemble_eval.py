@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.pem.recipes import PEM_RECIPES
 from pemviz.pem import fit_norm_stats
+from pemviz.pem.recipes import PEM_RECIPES
 from pemviz.studies.pem_eval import EvalConfig, ModelEvaluation, score, stratified_folds
 
 

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, cast
+from typing import cast
 
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking import truth, truth_known, truth_latched

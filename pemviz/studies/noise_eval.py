@@ -29,10 +29,10 @@ from typing import ClassVar, Literal, overload
 
 import numpy as np
 
+from pemviz.pem import encode_salient, fit_norm_stats
+from pemviz.pem.encoding import NormStats
 from pemviz.pem.noise import NOISE_DIMS, NoiseModel, fit_homoscedastic, noise_training_data
 from pemviz.pem.recipes import NOISE_RECIPES
-from pemviz.pem.encoding import NormStats
-from pemviz.pem import encode_salient, fit_norm_stats
 from pemviz.studies.pem_eval import Evaluated, stratified_folds
 
 NOISE_MODEL_NAMES = ("homo-normal", "homo-t", "hetero-normal", "hetero-laplace", "hetero-t")

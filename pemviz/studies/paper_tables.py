@@ -11,20 +11,21 @@ repetition's per-stage proposal curves and the paper's Fig. 4 (the stage-3 curve
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import rerun as rr
 
-from pemviz.settings import METRICS
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability
 from pemviz.io.files import write_rrd
 from pemviz.methods import CROSS_ENTROPY_METHOD, DEFAULT_METHOD, NAIVE_METHOD, PLAIN_METHOD
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import PROBLEMS
+from pemviz.settings import METRICS
 from pemviz.sinks.colours import DARK, METRIC_COLOURS, OTHER, rgba, stage_rgba
 from pemviz.studies.exact_answers import ExactAnswer
 from pemviz.studies.validation import Job, RunRecord, ams_fields, csv_text

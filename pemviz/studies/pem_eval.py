@@ -30,11 +30,12 @@ from typing import Any, ClassVar, Generic, Protocol, TypeVar
 
 import numpy as np
 from scipy.special import expit
-from pemviz.pem.recipes import PEM_RECIPES
-from pemviz.pem.encoding import NormStats, bce_from_logits
+
 from pemviz.pem import braking_salient_inputs, encode_salient, fit_norm_stats
-from pemviz.pem.store import load_reference_pem
 from pemviz.pem.bayes import train_bnn_pem
+from pemviz.pem.encoding import NormStats, bce_from_logits
+from pemviz.pem.recipes import PEM_RECIPES
+from pemviz.pem.store import load_reference_pem
 
 MODEL_NAMES = ("ml-nn", "lr", "guess-mu", "b-nn", "gbt")
 """Every model :func:`evaluate_pems` knows, in table order."""

@@ -104,8 +104,8 @@ def fingerprint(config: ExperimentConfig) -> dict[str, Any]:
     ``chunks`` (how many chunks the run's stages came in), ``dispatch`` (:func:`dispatch_in_use`)."""
     import numpy as np
 
-    from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import RolloutChunk, RolloutsSampled, RunFinished
+    from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.problems import problem_for
 
     digest = hashlib.sha256()

@@ -19,20 +19,21 @@ import multiprocessing as mp
 import os
 import sys
 import time
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import format_probability, relative_error
-from pemviz.engine.resources import torch_threads
-from pemviz.engine.experiment import Experiment
-from pemviz.methods import BUILTIN_METHODS, DEFAULT_METHOD, SPLITTING_METHOD, records
-from pemviz.engine.events import RunFinished
 from pemviz.core.files import atomic_write
+from pemviz.engine.events import RunFinished
+from pemviz.engine.experiment import Experiment
+from pemviz.engine.resources import torch_threads
+from pemviz.methods import BUILTIN_METHODS, DEFAULT_METHOD, SPLITTING_METHOD, records
 from pemviz.presets import PRESETS
 from pemviz.studies.exact_answers import ExactAnswer, problem_description, validation_problem
 

@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+
 from conftest import REPO, load_script
 
 SHAPE = (4, 2)  # T steps, M objects

@@ -8,9 +8,9 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import REPO, load_script
-
 from pemviz.scenarios.cut_in import committor
+
+from conftest import REPO, load_script
 
 
 @pytest.fixture(scope="module")

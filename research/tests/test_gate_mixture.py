@@ -8,13 +8,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import log_expit, logsumexp
-
-from conftest import REPO, load_script
 from pemviz.core.detector_noise import standard_log_density
 from pemviz.core.features import with_state
 from pemviz.estimators.base import weighted_steps_mask
 from pemviz.scenarios.crossing.scene import OBJECT_NAMES
+from scipy.special import log_expit, logsumexp
+
+from conftest import REPO, load_script
 
 study = load_script(REPO / "research" / "gate_mixture.py")
 gate = study.state_gate

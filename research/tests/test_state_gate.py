@@ -6,9 +6,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from pemviz.core.diagnostics import effective_sample_size
 
 from conftest import REPO, load_script
-from pemviz.core.diagnostics import effective_sample_size
 
 study = load_script(REPO / "research" / "state_gate.py")
 

@@ -35,8 +35,8 @@ Units: metres, seconds, m/s; log-probabilities in nats.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterator
 
 import numpy as np
 

@@ -10,9 +10,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.braking.panel import BrakingPanel
 from pemviz.scenarios.braking.recording import BrakingRecording, car_positions
+from pemviz.scenarios.braking.simulator import BrakingParams
 
 __all__ = ["BrakingDrawing", "car_positions"]
 

@@ -20,7 +20,7 @@ the default 40 nats).
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy.special import log_expit

@@ -6,18 +6,20 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
 from pemviz import stl
-from pemviz.settings import SIMULATORS
 from pemviz.core.detectors import Detector, GapModel, PEMDetector
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch, branch_rollouts, simulate
 from pemviz.core.problem_view import Thresholds
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.severity import SeverityScale
+from pemviz.scenarios.braking.batched import BatchedBraking, iter_batched, replay, simulate_batched
+from pemviz.scenarios.braking.drawing import BrakingDrawing
+from pemviz.scenarios.braking.lookahead import LOOK_AHEAD_ROLLOUT_S, braking_look_ahead
 from pemviz.scenarios.braking.simulator import (
     BRAKING_SIGNAL_RANGES,
     BRAKING_SIGNALS,
@@ -26,13 +28,11 @@ from pemviz.scenarios.braking.simulator import (
     BrakingParams,
     BrakingScenario,
 )
-from pemviz.scenarios.braking.batched import BatchedBraking, iter_batched, replay, simulate_batched
-from pemviz.scenarios.braking.drawing import BrakingDrawing
-from pemviz.scenarios.braking.lookahead import LOOK_AHEAD_ROLLOUT_S, braking_look_ahead
 from pemviz.scenarios.braking.truth_known import known_log_failure_probability
+from pemviz.settings import SIMULATORS
 
 
-def braking_formula(params: BrakingParams | None = None) -> "stl.Formula":
+def braking_formula(params: BrakingParams | None = None) -> stl.Formula:
     """``G[0,T-1](d >= 2)``: the gap never drops below the crash gap (Innes & Ramamoorthy (2022))."""
     p = params or BrakingParams()
     return stl.parse(f"G[0,{p.n_steps - 1}](d >= {p.crash_gap_m:g})")

@@ -7,7 +7,8 @@ replays with the minimal miss set or the last saving detection). Plain data, no 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 

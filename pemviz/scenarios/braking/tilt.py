@@ -28,8 +28,8 @@ Units: metres, m/s, seconds; log-probabilities in nats.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy.special import log_expit
@@ -59,7 +59,7 @@ LOG_V_FLOOR = -700.0
 SOLVED_KEPT = 4
 """How many solved committors a process keeps (each 10 MB with the default grid)."""
 
-_SOLVED: dict[tuple, "GridCommittor"] = {}
+_SOLVED: dict[tuple, GridCommittor] = {}
 
 
 def steady_integral(params: BrakingParams, speed_mps: np.ndarray) -> np.ndarray:
@@ -326,7 +326,7 @@ class BrakingTilt:
         detector = BrakingTiltDetector(self.committor, self.logit_at_gap, self.eps)
         return draw_tilted(detector, self.target, n, rng), detector.steps
 
-    def splitting_score(self, problem: Problem) -> "BrakingCommittorScore":
+    def splitting_score(self, problem: Problem) -> BrakingCommittorScore:
         """-log V as the score of adaptive multilevel splitting (``ams_score = "committor"``), for ``problem`` (the
         braking problem of the same scene and PEM)."""
         solved = self.solve()

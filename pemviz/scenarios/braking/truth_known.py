@@ -14,9 +14,8 @@ import hashlib
 
 import numpy as np
 
-from pemviz.scenarios.braking.truth_latched import LogitFn, latched_log_failure_probability
 from pemviz.scenarios.braking.simulator import BrakingParams
-
+from pemviz.scenarios.braking.truth_latched import LogitFn, latched_log_failure_probability
 
 FINGERPRINT_GRID_M = np.linspace(0.0, 15.0, 151)
 """Gaps (metres) at which a PEM's logit identifies it for :data:`KNOWN_BRAKING_LOG_P`."""

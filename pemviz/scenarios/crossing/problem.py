@@ -13,8 +13,8 @@ from pemviz import stl
 from pemviz.core.estimate import Reference
 from pemviz.core.problems import Problem, rollout_functions
 from pemviz.scenarios.crossing.scene import OBJECT_NAMES, BatchedCrossing, CrossingParams, pedestrian_ahead_rows
-from pemviz.stack.detector import NOISE_NAMES, camera_detector
 from pemviz.settings import setting_of
+from pemviz.stack.detector import NOISE_NAMES, camera_detector
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
@@ -77,8 +77,8 @@ def crossing(config: ExperimentConfig | None = None, params: CrossingParams | No
     """The registry's factory (``pemviz run --scenario crossing``): :func:`crossing_problem` with the config's PEM
     (None: the shipped one), carrying :data:`MONTE_CARLO_REFERENCE` as its reference when it runs the shipped PEMs
     at the default parameters, under which the reference was drawn."""
-    from pemviz.pem.recipes import DEFAULT_PEM_NAME
     from pemviz.pem import load_pem
+    from pemviz.pem.recipes import DEFAULT_PEM_NAME
 
     pem_name = setting_of(config, "pem", None)
     p = params if params is not None else CrossingParams()

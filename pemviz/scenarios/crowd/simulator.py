@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import log_ndtr
 
-from pemviz.core.detectors import logit
 from pemviz.core.detector_noise import noise_log_density, noise_quantile
+from pemviz.core.detectors import logit
 
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "stopped")
 """The scene's signals: the distance to the nearest obstacle (units) and 1.0 once stopped or crashed."""

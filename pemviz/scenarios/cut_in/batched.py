@@ -23,11 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pemviz.stack import tracker
-from pemviz.scenarios.cut_in.scenario import NO_VEHICLE_M, OBJECT_NAMES, OBSERVATION_NAMES, CutInParams, acc_control
-from pemviz.stack.detector import NOISE_NAMES
 from pemviz.scenarios.cut_in.highway import TrafficTrajectory, traffic_trajectory
+from pemviz.scenarios.cut_in.scenario import NO_VEHICLE_M, OBJECT_NAMES, OBSERVATION_NAMES, CutInParams, acc_control
 from pemviz.scenarios.cut_in.scene import CameraView, Traffic, camera_view, decide, object_rows, scene_signals
+from pemviz.stack import tracker
+from pemviz.stack.detector import NOISE_NAMES
 
 MAX_SPEED_MPS = 40.0
 """highway-env's ``Vehicle.MAX_SPEED``: above it ``clip_actions`` caps the acceleration at ``MAX_SPEED - speed``."""
@@ -95,7 +95,7 @@ class CutInBatchState:
     tracks: tracker.Tracks
     followed: np.ndarray
 
-    def copy(self) -> "CutInBatchState":
+    def copy(self) -> CutInBatchState:
         return CutInBatchState(
             self.t,
             self.ego_x_m.copy(),
@@ -105,7 +105,7 @@ class CutInBatchState:
             self.followed.copy(),
         )
 
-    def select(self, rows: np.ndarray) -> "CutInBatchState":
+    def select(self, rows: np.ndarray) -> CutInBatchState:
         """The state of rollouts ``rows`` (int indices, repeats allowed, or a bool mask), copied: restore it on a batch
         of that many rollouts to continue them (branching, as adaptive multilevel splitting does)."""
         return CutInBatchState(

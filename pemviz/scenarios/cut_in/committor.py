@@ -12,7 +12,7 @@ Units: metres; levels count steps of late braking (:data:`STEP_M`); probabilitie
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 

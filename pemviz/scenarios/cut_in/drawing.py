@@ -9,9 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from pemviz.scenarios.cut_in.scenario import CutInParams
 from pemviz.scenarios.cut_in.panel import CutInPanel
 from pemviz.scenarios.cut_in.recording import CutInRecording
+from pemviz.scenarios.cut_in.scenario import CutInParams
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch

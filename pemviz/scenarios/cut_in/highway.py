@@ -24,8 +24,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pemviz.stack import tracker
-from pemviz.stack.detector import NOISE_NAMES
 from pemviz.scenarios.cut_in.scenario import (
     EGO_LANE,
     LANE_WIDTH_M,
@@ -45,6 +43,8 @@ from pemviz.scenarios.cut_in.scene import (
     scene_signals,
     traffic_at,
 )
+from pemviz.stack import tracker
+from pemviz.stack.detector import NOISE_NAMES
 
 if TYPE_CHECKING:
     from highway_env.road.road import Road

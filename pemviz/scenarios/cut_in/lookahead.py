@@ -27,14 +27,18 @@ from typing import Any
 import numpy as np
 
 from pemviz.core import exact
-
-from pemviz.stack import tracker
 from pemviz.scenarios.cut_in.batched import MAX_SPEED_MPS, BatchedCutIn, CutInBatchState, cached_trajectory
 from pemviz.scenarios.cut_in.committor import LMAX, Grid, LevelChain, continuous_level, g_bin, level
 from pemviz.scenarios.cut_in.highway import TrafficTrajectory
-from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M, OBJECT_NAMES, OBSERVATION_NAMES, CutInParams
-from pemviz.scenarios.cut_in.scenario import idm_acceleration
+from pemviz.scenarios.cut_in.scenario import (
+    LANE_WIDTH_M,
+    OBJECT_NAMES,
+    OBSERVATION_NAMES,
+    CutInParams,
+    idm_acceleration,
+)
 from pemviz.scenarios.cut_in.scene import scene_signals
+from pemviz.stack import tracker
 
 VISIBLE = OBJECT_NAMES.index("visible")
 LOG_PVVY, CONFIRMED, COAST, VX_ERROR, VY_ERROR = 7, 9, 10, 15, 17

@@ -14,8 +14,8 @@ from pemviz.core.problems import Problem, rollout_functions
 from pemviz.core.severity import SeverityScale
 from pemviz.scenarios.cut_in.batched import BatchedCutIn, cached_trajectory
 from pemviz.scenarios.cut_in.drawing import CutInDrawing
-from pemviz.scenarios.cut_in.story import car_labels
 from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, RARITY_SETTINGS, SALIENT_COLUMNS, CutInParams
+from pemviz.scenarios.cut_in.story import car_labels
 from pemviz.stack.detector import NOISE_NAMES
 
 if TYPE_CHECKING:

@@ -6,7 +6,8 @@ run's description is the recording's own; each rollout's outcome is the cut-in's
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from pemviz.core.rollouts import RolloutBatch

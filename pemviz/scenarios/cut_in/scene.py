@@ -39,7 +39,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from pemviz.pem.camera import MIN_RANGE_M
-from pemviz.stack import camera, tracker
 from pemviz.scenarios.cut_in.scenario import (
     LANE_WIDTH_M,
     NO_VEHICLE_M,
@@ -49,6 +48,7 @@ from pemviz.scenarios.cut_in.scenario import (
     acc_control,
     safe_distance,
 )
+from pemviz.stack import camera, tracker
 from pemviz.stack.camera import IMAGE_BOUNDS
 from pemviz.stack.tracker import Tracks
 
@@ -118,7 +118,7 @@ class CutInMemory:
     last_start: np.ndarray
 
     @classmethod
-    def initial(cls, m: int) -> "CutInMemory":
+    def initial(cls, m: int) -> CutInMemory:
         return cls(np.zeros(m, dtype=bool), np.full(m, _NEVER, dtype=np.int64))
 
 

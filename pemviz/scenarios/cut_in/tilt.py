@@ -28,7 +28,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pemviz.core import exact
-
 from pemviz.core.lockstep import replay_rows, run_batched
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.cut_in.batched import BatchedCutIn
@@ -52,7 +51,7 @@ TILT_BETA = 0.7
 TILT_EPS = 0.3
 """The PEMs' share of each tilted step's proposal (the defensive mixture)."""
 
-_SOLVED: dict[tuple, "CutInTilt"] = {}
+_SOLVED: dict[tuple, CutInTilt] = {}
 """This process's solved proposals by :func:`solved_key`, the :data:`SOLVED_KEPT` latest: a later run of the same
 scene, PEMs and options reuses one (its chain and effect model) instead of solving it again."""
 SOLVED_KEPT = 4
@@ -70,7 +69,7 @@ def solved_key(params: CutInParams, target: Any, options: dict[str, Any]) -> tup
     return params, pems, tuple(sorted(options.items()))
 
 
-def solved_tilt(params: CutInParams, target: Any, **options: Any) -> "CutInTilt":
+def solved_tilt(params: CutInParams, target: Any, **options: Any) -> CutInTilt:
     """The :class:`CutInTilt` of ``params`` and ``target`` (keyword ``options`` as its constructor's), the one this
     process solved before when the scene, the PEMs and the options match (:func:`solved_key`), else a new one that
     :meth:`CutInTilt.solve` solves and keeps for the next run."""

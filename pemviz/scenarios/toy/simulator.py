@@ -21,8 +21,8 @@ the distance like the braking scenario's gap), one step per unit of travel.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Union
 
 import numpy as np
 from scipy.special import log_expit
@@ -31,11 +31,10 @@ from pemviz.core.detectors import Detector
 from pemviz.core.lockstep import run_batched
 from pemviz.core.rollouts import RolloutBatch
 
-
 OBSERVATION_NAMES: tuple[str, ...] = ("gap_m", "stopped")
 """Columns of the toy's observation: distance to the obstacle (units) and 1.0 once stopped or crashed."""
 
-DetectionProbability = Union[float, Callable[[np.ndarray], np.ndarray]]
+DetectionProbability = float | Callable[[np.ndarray], np.ndarray]
 """A constant p(detect) in (0, 1), or a function ``p(distance float64 [N]) -> float64 [N]`` in (0, 1)."""
 
 

@@ -73,7 +73,7 @@ class ToyTilt:
         """``n`` rollouts drawn from :class:`ToyTiltDetector`, scored under the toy's PEM; no look-ahead steps."""
         return simulate_toy(self.params, n, ToyTiltDetector(self.params), ToyDetector(self.params), rng), 0
 
-    def splitting_score(self, problem: Problem) -> "ToyCommittorScore":
+    def splitting_score(self, problem: Problem) -> ToyCommittorScore:
         """The poor V as the score of adaptive multilevel splitting (``ams_score = "committor"``)."""
         return ToyCommittorScore(self.params, problem)
 
