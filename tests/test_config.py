@@ -13,10 +13,9 @@ import re
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from pemviz.settings import RUN, SETTINGS, settings_of
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.presets import PRESETS
+from pemviz.settings import RUN, SETTINGS, settings_of
 
 
 @pytest.mark.parametrize(
@@ -285,10 +284,10 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
 
 
 def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with():
-    from pemviz.scenarios.toy.problem import toy_problem
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
     from pemviz.estimators.cross_entropy import CrossEntropy
     from pemviz.scenarios.toy import ToyParams
+    from pemviz.scenarios.toy.problem import toy_problem
 
     problem = toy_problem(ToyParams(10, 5, 3, 0.9))
     config = ExperimentConfig.of(smoothing=0.3, n_stages=4, quantile_level=0.9, n_final=500)

@@ -13,11 +13,10 @@ import re
 from pathlib import Path
 
 import pytest
-
-from .test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
-
 from pemviz.app import compare
 from pemviz.settings import SETTINGS
+
+from .test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 SCREENSHOT = Path(__file__).resolve().parents[2] / "assets" / "screenshots" / "panel_compare.png"
 EXACT_P = 1.984e-15

@@ -4,18 +4,16 @@ the panel's hooks, and their data are the scenarios' constants (that the panel's
 
 from __future__ import annotations
 
-
 import numpy as np
-
 from pemviz.app.drawing import LanePanel, ObjectsPanel, lane_panel, objects_panel
-from pemviz.scenarios.panel_data import LaneScene, ObjectsScene
 from pemviz.app.panel import idle_drawing
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.failures import severity
-from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M, CutInParams
+from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams
 from pemviz.scenarios.cut_in.drawing import CutInDrawing
+from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M, CutInParams
+from pemviz.scenarios.panel_data import LaneScene, ObjectsScene
 
 
 def test_the_braking_drawing_gives_a_lane_scene_of_its_constants():

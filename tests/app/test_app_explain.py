@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from pemviz.scenarios.braking.panel import explain
 from pemviz.sinks import colours
 

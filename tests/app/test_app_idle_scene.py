@@ -19,15 +19,14 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
 from pemviz.app.drawing import scenario_drawing
 from pemviz.app.scene_view import SceneView
 from pemviz.core.problem_view import object_scene
-from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.braking.drawing import BrakingDrawing
-from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, CutInParams
+from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.cut_in.batched import BatchedCutIn
 from pemviz.scenarios.cut_in.panel import start_positions
+from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, CutInParams
 from pemviz.sinks.colours import IDLE, OBJECT
 
 

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from pemviz.app.form import param_key, parse_params
 from pemviz.app.odd_tab import bin_points, odd_table_html
 from pemviz.core.estimate import estimate

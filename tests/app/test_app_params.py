@@ -16,7 +16,6 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-
 from pemviz.app.form import format_param, param_key, parse_form, parse_params, run_label
 from pemviz.app.params_form import ScenarioParamsForm, label
 from pemviz.config import ExperimentConfig

@@ -11,6 +11,7 @@ import pytest
 
 from conftest import PLUGIN_SCENARIO_HEADING as HEADING
 from conftest import doc_python_block
+
 from .test_app import TINY, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
 
 

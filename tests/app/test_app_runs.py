@@ -7,18 +7,23 @@ from __future__ import annotations
 import dataclasses
 import functools
 import io
-import re
 import math
+import re
 
 import numpy as np
 import pytest
-
 from hypothesis import given
 from hypothesis import strategies as st
-
-from pemviz.scenarios.problems import problem_for
-from pemviz.app.form import FIELDS_BY_KEY, NUMBER_FIELDS, PANEL_ROWS, panel_rows, parse_form, parse_number, run_cost
-from pemviz.app.form import run_label
+from pemviz.app.form import (
+    FIELDS_BY_KEY,
+    NUMBER_FIELDS,
+    PANEL_ROWS,
+    panel_rows,
+    parse_form,
+    parse_number,
+    run_cost,
+    run_label,
+)
 from pemviz.app.runs import (
     PanelRun,
     export_path,
@@ -29,17 +34,18 @@ from pemviz.app.runs import (
     sanitize_export_name,
 )
 from pemviz.config import ExperimentConfig
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.engine.cost import CONFIRM_SECONDS, duration_text, stage_cost
+from pemviz.engine.events import RolloutsSampled, StageFinished, StageStarted
+from pemviz.engine.experiment import Experiment
 from pemviz.methods import CROSS_ENTROPY_METHOD, ROW, setting
 from pemviz.methods.adaptive import CrossEntropySettings
-from pemviz.settings import SETTINGS, MethodSettings, rows_of
-from pemviz.engine.cost import CONFIRM_SECONDS, duration_text, stage_cost
-from pemviz.engine.experiment import Experiment
-from pemviz.engine.events import RolloutsSampled, StageFinished, StageStarted
-from pemviz.sinks.console import ConsoleSink
-from pemviz.core.rollouts import RolloutBatch
-from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams, BrakingScenario
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.panel import explain
+from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams, BrakingScenario
+from pemviz.scenarios.problems import problem_for
+from pemviz.settings import SETTINGS, MethodSettings, rows_of
+from pemviz.sinks.console import ConsoleSink
 
 TINY = ExperimentConfig.of(
     n_stages=2, n_per_stage=20, n_final=20, ce_epochs=20, pretrain_rollouts=10, pretrain_epochs=20, plain_fallback=0

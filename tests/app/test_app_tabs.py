@@ -18,15 +18,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pemviz.app import charts
+from pemviz.app.captions import MAX_TITLE
+from pemviz.scenarios.cut_in.panel import GAP_BINS_M as OBJECT_GAP_BINS_M
+from pemviz.scenarios.cut_in.panel import VIEW_OBJECT
+from pemviz.sinks import colours
 from scipy.special import expit
 
 from .test_app import TINY, Tab, app, browser, expect, open_tab, wait_until  # noqa: F401  (app, browser: fixtures)
-
-from pemviz.app import charts
-from pemviz.app.captions import MAX_TITLE
-from pemviz.sinks import colours
-from pemviz.scenarios.cut_in.panel import GAP_BINS_M as OBJECT_GAP_BINS_M
-from pemviz.scenarios.cut_in.panel import VIEW_OBJECT
 
 SCREENSHOTS = Path(__file__).resolve().parents[2] / "assets" / "screenshots"
 VIEWPORT = {"width": 1400, "height": 1300}

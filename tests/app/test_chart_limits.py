@@ -12,14 +12,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from pemviz.app import charts, explain_charts, plots
 from pemviz.app.plots import STAGE_RULES, AxisRange, robust_range
 from pemviz.app.runs import PanelRun
 from pemviz.config import ExperimentConfig
 from pemviz.core.proposal_view import proposal_view
-from pemviz.engine.events import RolloutsSampled
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.engine.events import RolloutsSampled
 from pemviz.scenarios.braking.drawing import BrakingDrawing
 from pemviz.scenarios.braking.panel import GAP_BINS_M
 

@@ -5,9 +5,8 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import viser
-from viser._messages import GuiUpdateMessage
-
 from pemviz.app._viser_compat import resend_value
+from viser._messages import GuiUpdateMessage
 
 
 def test_resend_value_queues_viser_s_update_message_with_the_server_value():

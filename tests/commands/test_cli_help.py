@@ -6,7 +6,6 @@ import argparse
 import re
 
 import pytest
-
 from pemviz.cli import build_parser
 
 
@@ -45,8 +44,8 @@ def test_run_help_gives_the_real_pem_default() -> None:
 
 def test_run_help_gives_the_engines_real_chunks() -> None:
     from pemviz.commands import SHOWN_DEFAULTS
-    from pemviz.engine.experiment import STREAM_ABOVE
     from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE
+    from pemviz.engine.experiment import STREAM_ABOVE
 
     run = " ".join(dict(all_parsers())["pemviz run"].format_help().split())
     assert SHOWN_DEFAULTS["chunk_rollouts"] == (
@@ -56,8 +55,8 @@ def test_run_help_gives_the_engines_real_chunks() -> None:
 
 
 def test_every_command_that_takes_a_preset_accepts_quick() -> None:
-    from pemviz.commands.run import config_from_args
     from pemviz.commands import split_choices
+    from pemviz.commands.run import config_from_args
     from pemviz.presets import PRESETS
 
     parser = build_parser()

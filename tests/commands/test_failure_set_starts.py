@@ -11,11 +11,10 @@ import re
 import traceback
 from pathlib import Path
 
+import pemviz
 import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
-
-import pemviz
 from pemviz.cli import main
 from pemviz.commands import UsageError
 from pemviz.scenarios.parameters import ParameterError

@@ -7,7 +7,6 @@ from __future__ import annotations
 import re
 
 import pytest
-
 from pemviz.cli import main
 
 LEVEL = re.compile(r"^  (gap|clearance) < (-?[\d.]+) m(.*?)\s{2,}(.*)$")

@@ -12,11 +12,11 @@ import time
 from pathlib import Path
 
 import pytest
-
-from conftest import REPO, SHARED
 from pemviz.cli import main as cli_main
 from pemviz.commands import UsageError, output_folder
 from pemviz.studies.validation import RUNS_FILE
+
+from conftest import REPO, SHARED
 
 TINY = (
     "--problems",

@@ -14,7 +14,6 @@ import shutil
 from pathlib import Path
 
 import pytest
-
 from pemviz.cli import main
 from pemviz.sinks.report import document_sha256, report_html, severity_svg
 

@@ -6,13 +6,13 @@ import math
 import re
 
 import pytest
-
-from conftest import REPO, run_cli, verify_rrd
+from pemviz.config import ExperimentConfig
+from pemviz.engine.events import FinalEstimate, StageFinished
+from pemviz.engine.experiment import Experiment
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import problem_for
-from pemviz.config import ExperimentConfig
-from pemviz.engine.experiment import Experiment
-from pemviz.engine.events import FinalEstimate, StageFinished
+
+from conftest import REPO, run_cli, verify_rrd
 
 FINAL_RE = re.compile(r"^\s*final\s+(\d+)/(\d+)\s+(\S+)", re.M)
 MU_RE = re.compile(r"(?:mu_hat = (\S+)|no failure seen) \(log mu_hat = (\S+) nats\) from (\d+) simulations")

@@ -14,11 +14,11 @@ from datetime import datetime
 from pathlib import Path
 
 import pytest
-
-from conftest import REPO
 from pemviz.cli import main as cli_main
 from pemviz.commands.run_recording import default_recording_path, web_viewer_url
 from pemviz.config import ExperimentConfig
+
+from conftest import REPO
 
 QUICK = ("--preset", "quick", "--k", "2")
 

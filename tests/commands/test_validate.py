@@ -9,13 +9,12 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.cli import main as cli_main
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.engine.experiment import Experiment
 from pemviz.presets import PRESETS
 from pemviz.scenarios.toy import ToyParams
+from pemviz.scenarios.toy.problem import toy_problem
 
 REDUCED = ("--k", "4", "--ce-epochs", "150", "--pretrain-epochs", "300")
 
@@ -188,7 +187,6 @@ def test_ce_update_with_an_all_true_step_mask_is_the_paper_update():
 
 def test_state_proposal_reads_its_columns_and_holds_the_rest_for_the_curve():
     import torch
-
     from pemviz.core.sampling import StateProposal
 
     torch.manual_seed(0)

@@ -9,14 +9,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, ConstantDetector, StageSamplers, WindowDetector, step_uniforms
-from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.core.rng import GOLDEN, array_rqmc_uniforms, ranking_key
 from pemviz.estimators.base import weighted_steps_mask
 from pemviz.scenarios import simulate
 from pemviz.scenarios.toy import ToyBraking, ToyParams
+from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import simulate_toy, toy_log_failure_probability
 
 
@@ -109,10 +108,10 @@ def test_blocks_are_ranked_among_themselves_and_shifted_by_their_own_first_unifo
 
 
 def test_batched_array_rqmc_rollouts_do_not_depend_on_the_chunk_size():
-    from pemviz.scenarios.braking.problem import braking_problem
+    from pemviz.core.rollouts import RolloutBatch
     from pemviz.pem import load_pem
     from pemviz.scenarios.braking.batched import iter_batched, simulate_batched
-    from pemviz.core.rollouts import RolloutBatch
+    from pemviz.scenarios.braking.problem import braking_problem
 
     pb = braking_problem(load_pem())
     q = ArrayRQMC(WindowDetector(ConstantDetector(0.5), pb.target, 10.0))

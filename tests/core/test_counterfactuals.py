@@ -5,16 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from pemviz import stl
 from pemviz.core.counterfactuals import ERROR, MISS, counterfactuals
 from pemviz.core.detectors import ConstantDetector
-from pemviz.scenarios.problems import build_problem
-from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking.failures import counterfactual as braking_counterfactual
-from pemviz.scenarios.cut_in.scenario import FAILURE_FORMULA, OBSERVATION_NAMES
 from pemviz.scenarios.cut_in.highway import CutInScenario
+from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
+from pemviz.scenarios.cut_in.scenario import FAILURE_FORMULA, OBSERVATION_NAMES
+from pemviz.scenarios.problems import build_problem
 
 
 def test_braking_single_flips_are_the_braking_scenarios_own():

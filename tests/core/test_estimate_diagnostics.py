@@ -5,11 +5,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
-
-from pemviz.core.diagnostics import effective_sample_size, fit_generalized_pareto, pareto_khat
 import pemviz.core.estimate as estimate_module
+import pytest
 from pemviz.core.confidence import CI_LEVEL
+from pemviz.core.diagnostics import effective_sample_size, fit_generalized_pareto, pareto_khat
 from pemviz.core.estimate import KHAT_UNRELIABLE, estimate, relative_error
 
 

@@ -9,13 +9,13 @@ import re
 
 import numpy as np
 import pytest
+from pemviz.core.confidence import BET_FRACTIONS, betting_lower_bound, markov_lower_bound
+from pemviz.core.estimate import estimate
+from pemviz.core.requirement import decide, parse_requirement
 from scipy.optimize import brentq
 from scipy.special import logsumexp
 
 from conftest import run_cli
-from pemviz.core.confidence import BET_FRACTIONS, betting_lower_bound, markov_lower_bound
-from pemviz.core.estimate import estimate
-from pemviz.core.requirement import decide, parse_requirement
 
 
 def wealth(xs: np.ndarray, m: float) -> float:

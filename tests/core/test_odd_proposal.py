@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.odd import ODD, parse_distribution
 from pemviz.core.odd_proposal import ParameterProposal, parameter_log_ratio, parameter_proposal_of

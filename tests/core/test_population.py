@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.core.population import failure_groups, failure_shares
 from pemviz.estimators.pooling import pool
 from pemviz.scenarios.braking.failures import counterfactual, last_saving_steps

@@ -15,8 +15,6 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-
-from conftest import REPO, result_schema, run_cli
 from pemviz.core.confidence import CI_LEVEL, clopper_pearson
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.requirement import (
@@ -28,6 +26,8 @@ from pemviz.core.requirement import (
     interval_at_level,
     parse_requirement,
 )
+
+from conftest import REPO, result_schema, run_cli
 
 CI_PAGE = REPO / "docs" / "ci.md"
 

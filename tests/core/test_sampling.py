@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from pemviz.core.detectors import ConstantDetector, action_log_prob, defensive_logit
 from pemviz.core.estimate import estimate, format_probability
 from pemviz.core.sampling import (
@@ -214,9 +213,8 @@ def test_converging_fits_reach_the_elites_miss_rate_and_stop_early(fit, epochs, 
 def test_adam_gives_torch_optims_parameters(rows):
     """pemviz's Adam (imported without torch._dynamo) must not change any fit: the parameters torch.optim.Adam gives,
     to rounding (:data:`FIT_TOL`: torch may vectorise its element-wise update differently on another CPU)."""
-    from torch import nn
-
     from pemviz.core.torch_fits import Adam
+    from torch import nn
 
     fitted, start = [], None
     for make in (lambda ps: torch.optim.Adam(ps, lr=1e-2), lambda ps: Adam(list(ps), lr=1e-2)):

@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy import stats
-from scipy.special import stdtrit
-
 from pemviz.core.detector_noise import standard_quantile
 from pemviz.core.t_quantile import LOWEST_EXPONENT, TOLERANCE, student_t_quantile
+from scipy import stats
+from scipy.special import stdtrit
 
 NOISE_PEM_DF = (3.15016556, 2.66272616)
 """The shipped noise PEM's degrees of freedom (range, lateral), to 8 digits."""

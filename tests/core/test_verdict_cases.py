@@ -8,12 +8,12 @@ import types
 
 import numpy as np
 import pytest
-
-from conftest import run_cli
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, Reference, estimate
 from pemviz.estimators.cross_entropy import CrossEntropy
 from pemviz.sinks.console import next_step
+
+from conftest import run_cli
 
 CUT_IN_REFERENCE = Reference(866, 10_000_000, "plain Monte Carlo, shipped PEMs")
 CUT_IN_ROLLOUTS = math.ceil(1.96**2 * (1 - 866 / 10_000_000) / (0.04 * 866 / 10_000_000))  # a 20 % interval: 1,108,911

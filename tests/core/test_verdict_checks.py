@@ -9,7 +9,6 @@ import math
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from pemviz.core.estimate import _verdict
 from pemviz.core.verdict_checks import verdict_checks, worst_of
 

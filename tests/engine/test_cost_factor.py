@@ -5,7 +5,6 @@ the engine names no scenario."""
 from __future__ import annotations
 
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.engine.cost import COST, N_STEPS, stage_cost
 from pemviz.scenarios import registry

@@ -5,12 +5,11 @@ a plain Monte Carlo run shows its listeners."""
 from __future__ import annotations
 
 import numpy as np
-
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.problems import problem_for
-from pemviz.engine.experiment import Experiment
-from pemviz.engine.events import RolloutsSampled
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.engine.events import RolloutsSampled
+from pemviz.engine.experiment import Experiment
+from pemviz.scenarios.problems import problem_for
 
 FIELDS = ("observations", "detected", "log_p", "log_q", "noise")
 

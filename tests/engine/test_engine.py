@@ -5,12 +5,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 import pytest
-
 from pemviz.config import ExperimentConfig
-from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RolloutsSampled
+from pemviz.engine.experiment import Experiment
 from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import build_problem
 
@@ -277,7 +275,6 @@ def test_same_seed_gives_the_estimates_recorded_before_the_estimators_moved(key)
 
 def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
     import torch
-
     from pemviz.engine.events import RunStarted
 
     events: list = []
@@ -306,7 +303,6 @@ def test_the_first_event_describes_the_problem_and_no_thread_setting_changes():
 
 def test_torch_threads_sets_and_restores_the_process_setting():
     import torch
-
     from pemviz.engine.resources import torch_threads
 
     before = torch.get_num_threads()

@@ -10,13 +10,9 @@ import io
 
 import numpy as np
 import pytest
-
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, WindowDetector
 from pemviz.core.problems import Problem
-from pemviz.scenarios.braking.problem import braking_problem
-from pemviz.scenarios.toy.problem import toy_problem
-from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import RolloutsSampled, StageFinished
 from pemviz.engine.executors import (
     ChunkUniforms,
@@ -27,9 +23,12 @@ from pemviz.engine.executors import (
     simulate_chunk,
     task_blocks,
 )
+from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
 from pemviz.scenarios import simulate
+from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams
+from pemviz.scenarios.toy.problem import toy_problem
 
 
 def test_t_draws_of_n_uniforms_are_the_rows_of_one_t_by_n_draw_and_chunks_are_its_columns():
@@ -146,7 +145,6 @@ ray_missing = pytest.mark.skipif(
 def ray_workers(request):
     """A local Ray cluster of 1 or 2 CPUs for the module's tests; ``--executor ray`` then uses it."""
     import ray
-
     from pemviz.engine.executors import close_executors
 
     ray.init(num_cpus=request.param, include_dashboard=False, log_to_driver=False)
@@ -171,7 +169,7 @@ BLOCKS = ExperimentConfig.of(
 Carlo after it (its stages are what is compared)."""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _serial_run(uniforms: str):
     return _run(BLOCKS.replace(uniforms=uniforms), braking_problem(load_pem().with_temperature(4.0)))
 
@@ -216,7 +214,7 @@ RUN_ARGS = (
 Carlo after it)."""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _final_lines(seed: int, executor: str) -> tuple[str, str]:
     """(the verdict line, mu_hat with its log) of ``pemviz run`` (:data:`RUN_ARGS`) on ``executor``."""
     from pemviz import cli

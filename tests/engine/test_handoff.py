@@ -9,7 +9,6 @@ import sys
 
 import numpy as np
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.engine import handoff
 from pemviz.engine.pool import _stream_block

@@ -7,7 +7,6 @@ from __future__ import annotations
 import io
 
 import pytest
-
 from pemviz.engine import resources
 from pemviz.engine.resources import Competition, TaskTimes, competition, crowding
 

@@ -16,9 +16,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
-
 import pemviz.engine.resources as resources
+import pytest
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine.executors import SerialExecutor, close_executors, get_executor
 from pemviz.engine.pool import LocalExecutor
@@ -117,7 +116,7 @@ def test_pooled_blocks_and_streamed_chunks_are_the_serial_rollouts_and_leave_the
     assert folder is None or not os.path.exists(folder)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _printed(args: tuple[str, ...], workers: int, pays_s: float) -> tuple[list[str], bool]:
     """The lines ``pemviz run ARGS --workers W`` prints that do not say a time, and whether a pool started."""
     from pemviz import cli

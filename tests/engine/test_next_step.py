@@ -9,15 +9,14 @@ import math
 import re
 import types
 
-import pytest
-
 import pemviz.scenarios.registry  # noqa: F401 (registers each scenario's cost factor, as a run does)
+import pytest
 from pemviz.cli import build_parser
 from pemviz.commands.run import config_from_args
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, Reference
-from pemviz.engine.events import FinalEstimate
 from pemviz.engine.cost import duration_text, mc_rollouts
+from pemviz.engine.events import FinalEstimate
 from pemviz.sinks.console import MC_AFFORDABLE, final_lines, next_step, plain_rollout_seconds
 
 CUT_IN_REFERENCE = Reference(866, 10_000_000, "plain Monte Carlo, shipped PEMs")

@@ -10,7 +10,6 @@ import subprocess
 import sys
 
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.studies import reproducibility as rp
 
@@ -153,10 +152,9 @@ def test_cut_in_chunks_of_1000_give_the_default_chunk_s_rollouts_bit_for_bit():
     errors, log p and observations, bit for bit. The PEM networks compute each row on its own (GridMLP); with float64
     BLAS products, chunks of 1,000 gave other last bits than the default chunk."""
     import numpy as np
-
-    from pemviz.scenarios.problems import problem_for
     from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE
     from pemviz.core.rollouts import RolloutBatch
+    from pemviz.scenarios.problems import problem_for
 
     pb = problem_for(ExperimentConfig.of(scenario="cut-in"))
 

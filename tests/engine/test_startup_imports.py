@@ -5,15 +5,14 @@ moves there. A default run imports neither torch nor, as the program, pandas."""
 from __future__ import annotations
 
 import numpy as np
+import pemviz.core.sampling as sampling
 import pytest
 import torch
-
-import pemviz.core.sampling as sampling
 from pemviz.config import ExperimentConfig
 from pemviz.core import torch_use
-from pemviz.scenarios.problems import build_problem
 from pemviz.core.sampling import Proposal, StateProposal, fit_proposal
 from pemviz.engine.experiment import Experiment
+from pemviz.scenarios.problems import build_problem
 
 
 @pytest.fixture

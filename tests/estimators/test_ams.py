@@ -8,23 +8,23 @@ import math
 
 import numpy as np
 import pytest
-
-from conftest import run_cli
 from pemviz.config import ConfigError, ExperimentConfig
-from pemviz.engine.experiment import Experiment
+from pemviz.core.rollouts import can_snapshot
 from pemviz.engine.events import RunFinished
+from pemviz.engine.experiment import Experiment
 from pemviz.envs import BrakingEnv
 from pemviz.estimators import build_estimator
 from pemviz.estimators.ams import SCORE_FLOOR, run_ams, running_score
-from pemviz.scenarios.braking.problem import braking_problem
-from pemviz.scenarios.problems import build_problem
-from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios import branch
-from pemviz.core.rollouts import can_snapshot
 from pemviz.scenarios.braking.batched import BatchedBraking
+from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
+from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams
+from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import toy_log_failure_probability
+
+from conftest import run_cli
 
 
 def ratios(problem, n: int, k: int, seeds: range) -> np.ndarray:

@@ -7,21 +7,19 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, action_log_prob
-from pemviz.scenarios.problems import build_problem
-from pemviz.scenarios.toy.problem import toy_problem
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import Proposal
-from pemviz.estimators.ce_fit import break_ties
+from pemviz.estimators import build_estimator
+from pemviz.estimators.base import failure_steps, log_weight
+from pemviz.estimators.ce_fit import FitOptions, break_ties, ce_update
 from pemviz.estimators.cross_entropy import CrossEntropy, DefensiveDetector
 from pemviz.estimators.fallback import PlainFallback
 from pemviz.estimators.fixed import FixedSampler
-from pemviz.estimators import build_estimator
-from pemviz.estimators.base import failure_steps, log_weight
-from pemviz.estimators.ce_fit import FitOptions, ce_update
-from pemviz.core.rollouts import RolloutBatch
+from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios.toy import ToyParams
+from pemviz.scenarios.toy.problem import toy_problem
 
 SMALL_RUN = dict(n_per_stage=50, n_final=100, ce_epochs=100, pretrain_epochs=100)
 """K x 50 rollouts, N_e = 100, 100 Adam epochs per fit: a run of a second or two."""
@@ -128,9 +126,8 @@ def test_a_baseline_is_one_weighted_batch_whose_estimate_is_eq_6():
 @pytest.mark.parametrize("seed", range(8))
 def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of_all_n(seed):
     """Chunk by chunk, the pool ends with gamma_kappa of the whole stage and every rollout r <= gamma, in order."""
-    from pemviz.estimators.base import EliteCandidates
-    from pemviz.estimators.base import quantile_threshold
     from pemviz.core.rollouts import RolloutBatch
+    from pemviz.estimators.base import EliteCandidates, quantile_threshold
 
     rng = np.random.default_rng(seed)
     n = int(rng.integers(50, 400))
@@ -162,8 +159,8 @@ def test_elite_candidates_keep_exactly_the_rollouts_at_or_below_the_threshold_of
 def test_elite_steps_thinned_as_they_come_keep_the_weighted_log_likelihood_in_expectation():
     """Thinning the gathered steps (systematic resampling, repeated as chunks arrive) keeps
     E[sum_s w_s f(h_s, a_s)] for any f: the CE objective's expectation."""
-    from pemviz.estimators.ce_fit import EliteSteps
     from pemviz.core.rollouts import RolloutBatch
+    from pemviz.estimators.ce_fit import EliteSteps
 
     rng = np.random.default_rng(0)
     m, t = 60, 5

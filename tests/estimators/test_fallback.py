@@ -8,7 +8,6 @@ import dataclasses
 import math
 
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.engine.experiment import Experiment
 from pemviz.estimators.fallback import PlainFallback, with_plain_fallback

@@ -9,7 +9,6 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.problems import step_robustness
 from pemviz.estimators.ams import Splitting

@@ -15,9 +15,9 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.estimators import build_estimator, run_plan
+from pemviz.estimators.fixed import FixedSampler
 from pemviz.methods import (
     Method,
     get_method,
@@ -26,7 +26,6 @@ from pemviz.methods import (
     registered_name,
     unregister_method,
 )
-from pemviz.estimators.fixed import FixedSampler
 from pemviz.testing import check_estimator
 
 HERE = Path(__file__).resolve().parent

@@ -7,14 +7,13 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, StageSamplers, WindowDetector
 from pemviz.core.scored_target import ScoredTarget
-from pemviz.estimators.cross_entropy import DefensiveDetector
 from pemviz.engine.experiment import Experiment
-from pemviz.scenarios.problems import build_problem
+from pemviz.estimators.cross_entropy import DefensiveDetector
 from pemviz.scenarios import simulate
+from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams
 
 T = 6

@@ -7,16 +7,15 @@ import math
 
 import numpy as np
 import pytest
-
-from pemviz.scenarios.braking import truth_latched
 from pemviz.core.estimate import relative_error
 from pemviz.core.problems import ShiftedPEM
-from pemviz.scenarios.braking.problem import braking_problem
-from pemviz.scenarios.problems import build_problem
-from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, relative_variance, rollouts_for
+from pemviz.scenarios.braking import truth_latched
+from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.scenarios.braking.simulator import BrakingParams
+from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams, ToyValue
+from pemviz.scenarios.toy.problem import toy_problem
 
 
 @pytest.fixture(scope="module")

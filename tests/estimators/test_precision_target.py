@@ -7,15 +7,14 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.confidence import clopper_pearson
 from pemviz.core.estimate import Estimate, estimate
-from pemviz.scenarios.problems import build_problem
 from pemviz.engine.experiment import Experiment
-from pemviz.estimators.precision import GROWTH, MIN_BATCH, PrecisionTarget, added_batch_size
 from pemviz.estimators import build_estimator
 from pemviz.estimators.pooling import pool
+from pemviz.estimators.precision import GROWTH, MIN_BATCH, PrecisionTarget, added_batch_size
+from pemviz.scenarios.problems import build_problem
 
 TOY = "toy-1e-3"
 """Exact p = 1e-3: plain Monte Carlo reaches a 20 % interval in about 10^5 rollouts, a second."""

@@ -7,12 +7,11 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import estimate
-from pemviz.scenarios.problems import build_problem
 from pemviz.engine.experiment import Experiment
 from pemviz.estimators.base import SeenFailures, failure_steps, log_p_before_failure
+from pemviz.scenarios.problems import build_problem
 
 
 @pytest.mark.parametrize(

@@ -11,7 +11,6 @@ import hashlib
 
 import numpy as np
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.features import with_state
 from pemviz.core.lockstep import run_batched
@@ -25,6 +24,7 @@ from pemviz.scenarios.crossing.scene import FEATURE_NAMES, OBJECT_NAMES, Batched
 from pemviz.scenarios.problems import problem_for
 from pemviz.stack import tracker
 from pemviz.testing import check_estimator
+
 from conftest import run_cli
 
 

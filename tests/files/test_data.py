@@ -12,10 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
+from pemviz.cli import main as cli_main
 from pemviz.core.files import repo_root
 from pemviz.io import data
-from pemviz.cli import main as cli_main
 
 SHARED_DATA = repo_root().parent / "shared" / "data" / "kitti-salient"
 needs_shared_data = pytest.mark.skipif(

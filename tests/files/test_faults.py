@@ -25,14 +25,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pemviz import cli
+from pemviz.core.files import OutputExists, atomic_write
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.io import rollout_format, rollout_writer
+from pemviz.io import rollouts as rio
+from pemviz.io.files import check_output_path
+from pemviz.io.rollout_sidecars import braking_meta
 
 from conftest import REPO, verify_rrd
-from pemviz import cli
-from pemviz.io import rollout_format, rollout_writer, rollouts as rio
-from pemviz.io.rollout_sidecars import braking_meta
-from pemviz.core.files import OutputExists, atomic_write
-from pemviz.io.files import check_output_path
-from pemviz.core.rollouts import RolloutBatch
 
 FAULT_SEEDS = range(int(os.environ.get("FAULT_SEEDS", "1")))
 SMALL_RUN = ["run", "--preset", "quick", "--k", "1", "--n", "10", "--n-final", "10", "--ce-epochs", "1"]

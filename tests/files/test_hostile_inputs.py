@@ -9,7 +9,6 @@ import json
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-
 from pemviz import stl
 from pemviz.io import rollouts as rio
 from pemviz.io.rollout_format import RolloutFormatError, RolloutMeta

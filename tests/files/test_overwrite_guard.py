@@ -11,7 +11,6 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
 from pemviz import cli
 from pemviz.io.files import SIGNATURES, written_by_pemviz
 

@@ -14,28 +14,29 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-
-from conftest import estimated_log_mu, run_cli, verify_rrd
-from pemviz.core.estimate import estimate
-from pemviz.estimators.ce_fit import FitOptions, ce_update, pretrain_proposal
-from pemviz.core.plan import RunPlan
-from pemviz.presets import PRESETS
-from pemviz.scenarios.problems import problem_for
 from pemviz import cli
-from pemviz.io.rollout_estimate import REESTIMATE_RTOL, detector_log_prob, estimate_rollouts, pem_log_prob
-from pemviz.io import rollout_format, rollout_table, rollout_writer, rollouts as rio
-from pemviz.io.rollout_sidecars import braking_meta
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, action_log_prob
-from pemviz.engine.experiment import Experiment
-from pemviz.engine.events import FinalEstimate, RolloutChunk, RunFinished, RunStarted, StageStarted
-from pemviz.pem import load_pem, save_pem
-from pemviz.scenarios.braking.problem import braking_problem
-from pemviz.core.severity import rollout_severity
-from pemviz.scenarios.braking.failures import severity
-from pemviz.core.sampling import Proposal, load_proposal
+from pemviz.core.estimate import estimate
+from pemviz.core.plan import RunPlan
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.core.sampling import Proposal, load_proposal
+from pemviz.core.severity import rollout_severity
+from pemviz.engine.events import FinalEstimate, RolloutChunk, RunFinished, RunStarted, StageStarted
+from pemviz.engine.experiment import Experiment
+from pemviz.estimators.ce_fit import FitOptions, ce_update, pretrain_proposal
+from pemviz.io import rollout_format, rollout_table, rollout_writer
+from pemviz.io import rollouts as rio
+from pemviz.io.rollout_estimate import REESTIMATE_RTOL, detector_log_prob, estimate_rollouts, pem_log_prob
+from pemviz.io.rollout_sidecars import braking_meta
+from pemviz.pem import load_pem, save_pem
+from pemviz.presets import PRESETS
+from pemviz.scenarios.braking.failures import severity
+from pemviz.scenarios.braking.problem import braking_problem
+from pemviz.scenarios.problems import problem_for
 from pemviz.sinks.rollouts import RolloutSink
+
+from conftest import estimated_log_mu, run_cli, verify_rrd
 
 LOG_MU_RE = re.compile(r"log mu_hat = (\S+) nats")
 

@@ -17,13 +17,13 @@ import pyarrow.parquet as pq
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pemviz import cli
+from pemviz.core.rollouts import RolloutBatch
+from pemviz.io import rollout_format, rollout_writer
+from pemviz.io import rollouts as rio
+from pemviz.io.rollout_estimate import REESTIMATE_RTOL, estimate_rollouts
 
 from conftest import estimated_log_mu
-
-from pemviz import cli
-from pemviz.io.rollout_estimate import REESTIMATE_RTOL, estimate_rollouts
-from pemviz.io import rollout_format, rollout_writer, rollouts as rio
-from pemviz.core.rollouts import RolloutBatch
 
 META = rollout_format.RolloutMeta(formula="G[0,5](d >= 2)", dt_s=0.1)
 """A sidecar for the hand-written batches: one signal, the gap (metres), T = 6 steps."""

@@ -17,16 +17,15 @@ import pyarrow.parquet as pq
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from scipy.special import logsumexp
-
-from conftest import estimated_log_mu
-
 from pemviz import cli
 from pemviz.core.severity import severity_of_signal
 from pemviz.core.weights import component_of, mean_weight, mixture_step_log_q
 from pemviz.io import rollout_format
 from pemviz.io import rollouts as rio
 from pemviz.io.rollout_estimate import REESTIMATE_RTOL
+from scipy.special import logsumexp
+
+from conftest import estimated_log_mu
 
 
 def run_and_estimate(capsys, tmp_path, *run_args: str, estimate_args: tuple[str, ...] = ()) -> tuple[str, str, dict]:

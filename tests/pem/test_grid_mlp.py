@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from conftest import float64_network
-
 from pemviz.pem import load_pem
 from pemviz.pem.encoding import salient_codes
 from pemviz.pem.network import MLP_BLOCK, GridMLP
 from pemviz.pem.store import load_noise_pem
 from pemviz.studies import reproducibility as rp
+
+from conftest import float64_network
 
 
 def raw_rows(n: int, seed: int = 0) -> np.ndarray:

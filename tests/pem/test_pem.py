@@ -9,19 +9,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import float64_network
-
 from pemviz import pem
-from pemviz.pem.encoding import BRAKING_CAMERA_TO_LEAD_CENTRE_M, POSE_COLUMNS, bce_from_logits, NormStats
+from pemviz.cli import main as cli_main
+from pemviz.core.files import repo_root
+from pemviz.io import data
+from pemviz.pem.encoding import BRAKING_CAMERA_TO_LEAD_CENTRE_M, POSE_COLUMNS, NormStats, bce_from_logits
 from pemviz.pem.modules import MLNN
 from pemviz.pem.network import PemFormatError
 from pemviz.pem.recipes import BEST_PEM_NAME
 from pemviz.pem.store import ASSETS_DIR_ENV, load_reference_pem, pem_path, reference_pem_dir
 from pemviz.pem.training import PemRecipe, train_pem
 from pemviz.pem.trees import export_hist_gradient_boosting
-from pemviz.core.files import repo_root
-from pemviz.io import data
-from pemviz.cli import main as cli_main
+
+from conftest import float64_network
 
 SHARED = repo_root().parent / "shared"
 needs_shared_data = pytest.mark.skipif(

@@ -50,7 +50,6 @@ def test_a_pem_written_as_the_page_says_loads_and_runs(tmp_path, monkeypatch, na
 
 def test_a_pem_of_another_version_is_refused_in_one_line(tmp_path):
     import torch
-
     from pemviz.pem.store import load_pem, pem_path
 
     payload = torch.load(pem_path(), weights_only=True)

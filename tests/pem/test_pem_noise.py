@@ -12,9 +12,10 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from scipy import special, stats
-
 from pemviz import pem
+from pemviz.cli import main as cli_main
+from pemviz.core.files import repo_root
+from pemviz.io import data
 from pemviz.pem.camera import KITTI_FOCAL_PX, box_errors_to_metric
 from pemviz.pem.encoding import NormStats
 from pemviz.pem.modules import MLNN, NoiseNLL
@@ -30,10 +31,8 @@ from pemviz.pem.noise import (
 )
 from pemviz.pem.recipes import NOISE_RECIPES
 from pemviz.pem.store import noise_pem_path, save_noise_pem
-from pemviz.cli import main as cli_main
-from pemviz.core.files import repo_root
-from pemviz.io import data
 from pemviz.studies import noise_eval
+from scipy import special, stats
 
 SHARED_DATA = repo_root().parent / "shared" / "data" / "kitti-salient"
 F = KITTI_FOCAL_PX
@@ -491,9 +490,8 @@ def test_cli_eval_rejects_bad_noise_epochs(tmp_path: Path, capsys) -> None:
 def test_the_closed_form_quantile_and_log_density_are_scipy_stats(family):
     """The error families' quantile and log density in closed form (scipy.special) against scipy.stats' frozen
     distributions (the oracle), deep into both tails, per component's degrees of freedom."""
-    from scipy import stats
-
     from pemviz.core.detector_noise import standard_log_density, standard_quantile
+    from scipy import stats
 
     df = np.array([2.5, 7.0]) if family == "student-t" else None
     u = np.array([1e-12, 1e-6, 0.01, 0.3, 0.5, 0.7, 0.99, 1 - 1e-6, 1 - 1e-12])[:, None] * np.ones(2)

@@ -8,18 +8,17 @@ import math
 
 import numpy as np
 import pytest
-from scipy.special import logit
-
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ConstantDetector
-from pemviz.scenarios.problems import PEM_SHIFTS, problem_for, with_alternatives
-from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.core.reweight import ShiftedDetector, detection_log_ratios, with_pem
-from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
 from pemviz.pem.ensemble import DEFAULT_MEMBERS, bootstrap_rows, ensemble_path, load_ensemble
+from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.scenarios.braking.simulator import BrakingParams
+from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
+from pemviz.scenarios.problems import PEM_SHIFTS, problem_for, with_alternatives
+from scipy.special import logit
 
 
 class Invisible:

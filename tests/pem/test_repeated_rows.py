@@ -5,12 +5,11 @@ pemviz.pem.network.GridMLP)."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
-
 import pemviz.pem.perception as perception
+import pytest
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.problems import problem_for
 from pemviz.pem.perception import PROBE_ROWS, repeated_rows
+from pemviz.scenarios.problems import problem_for
 
 
 def test_few_distinct_rows_are_grouped_exactly_and_many_are_declined():

@@ -22,15 +22,14 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
 from pemviz import pem
-from pemviz.pem.modules import MLNN
-from pemviz.pem.network import PemFormatError
-from pemviz.pem.noise import NoisePEM
 from pemviz.core.files import load_tagged
 from pemviz.core.torch_payload import UnsupportedPayload, load_payload, read_payload
 from pemviz.pem import network, noise, store
 from pemviz.pem.ensemble import ensemble_for, load_ensemble
+from pemviz.pem.modules import MLNN
+from pemviz.pem.network import PemFormatError
+from pemviz.pem.noise import NoisePEM
 
 ASSETS = sorted(store.assets_dir().glob("*.pt"))
 

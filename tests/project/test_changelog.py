@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import re
 
-from conftest import REPO
-
 import pemviz
+
+from conftest import REPO
 
 SECTIONS = ("Added", "Changed", "Fixed", "Removed")
 MAX_CHARS = 200

@@ -67,9 +67,9 @@ def test_every_count_in_the_docs_is_the_code_s_or_absent() -> None:
     registries; counts of tests or skips, which change with every test added, are not written in the docs at all
     (``pytest -rs`` lists skips)."""
     from pemviz.commands import COMMANDS
-    from pemviz.settings import SETTINGS
     from pemviz.presets import PRESETS
     from pemviz.scenarios.registry import registered
+    from pemviz.settings import SETTINGS
 
     truth = {
         "preset": len(PRESETS),

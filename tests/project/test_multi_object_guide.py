@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from conftest import doc_python_block
 
 

@@ -9,10 +9,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import load_script
-
 from pemviz.core.confidence import clopper_pearson
 from pemviz.scenarios.parameters import apply_parameters, parse_assignments
+
+from conftest import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 

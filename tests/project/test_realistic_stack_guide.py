@@ -7,6 +7,7 @@ from __future__ import annotations
 import re
 
 import numpy as np
+
 from conftest import REPO
 
 

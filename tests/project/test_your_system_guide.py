@@ -19,13 +19,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from conftest import BIN, REPO
 from pemviz.config import ExperimentConfig
 from pemviz.engine.experiment import Experiment
 from pemviz.io.rollout_estimate import estimate_rollouts
 from pemviz.io.rollouts import read_rollouts
 from pemviz.scenarios.registry import registered, unregister
+
+from conftest import BIN, REPO
 
 PAGE = REPO / "docs" / "your-system.md"
 NAME = "my-crosswalk"

@@ -10,13 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
-from pemviz.scenarios.problems import problem_for
-from pemviz.scenarios import problems, simulate
-from pemviz.scenarios.braking import problem as braking_problem_module
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import ArrayRQMC, ConstantDetector, PEMDetector, WindowDetector
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.scenarios import problems, simulate
+from pemviz.scenarios.braking import problem as braking_problem_module
 from pemviz.scenarios.braking.batched import (
     BatchedBraking,
     iter_batched,
@@ -25,6 +23,7 @@ from pemviz.scenarios.braking.batched import (
     summarise_batched,
 )
 from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
+from pemviz.scenarios.problems import problem_for
 
 FIELDS = ("observations", "detected", "log_p", "log_q")
 
@@ -230,8 +229,8 @@ def test_run_command_passes_sim_flag_into_the_config():
 
 
 def test_engine_runs_the_configured_back_end_and_both_give_the_same_estimate(monkeypatch):
-    from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import RunFinished
+    from pemviz.engine.experiment import Experiment
 
     estimates = {}
     for sim, unused in (("batched", "simulate"), ("highway-env", "simulate_batched")):

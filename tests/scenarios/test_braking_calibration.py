@@ -6,7 +6,6 @@ import csv
 
 import numpy as np
 import pytest
-
 from pemviz.core.detectors import ConstantDetector, PEMDetector, WindowDetector
 from pemviz.scenarios.braking.batched import simulate_batched
 from pemviz.scenarios.braking.simulator import LEAD_SPEED_PROFILE_MPS, BrakingParams, BrakingScenario

@@ -7,10 +7,9 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.core.proposal_view import miss_log_odds, proposal_view
-from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
 from pemviz.scenarios.braking.failures import controller_trace, counterfactual, describe, severity
+from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
 
 P = BrakingParams()
 
@@ -154,9 +153,9 @@ def test_proposal_view_by_hand():
 
 def test_a_default_runs_late_stage_misses_the_lead_inside_10_m_far_more_than_the_pem():
     from pemviz.config import ExperimentConfig
-    from pemviz.scenarios.problems import problem_for
-    from pemviz.engine.experiment import Experiment
     from pemviz.engine.events import RolloutsSampled, StageFinished
+    from pemviz.engine.experiment import Experiment
+    from pemviz.scenarios.problems import problem_for
 
     cfg = ExperimentConfig.of()
     events = []

@@ -19,17 +19,16 @@ import math
 
 import numpy as np
 import pytest
-from scipy.special import log_expit, logsumexp
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import PEMDetector
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
-from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
 from pemviz.scenarios.braking import tilt as tilt_module
+from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
 from pemviz.scenarios.braking.tilt import LOG_V_FLOOR, TILT_EPS, BrakingTilt, BrakingTiltDetector, draw_tilted
 from pemviz.scenarios.braking.truth import BrakingStart, braking_exact, branching_start, exact_bound
 from pemviz.scenarios.problems import build_problem
+from scipy.special import log_expit, logsumexp
 
 
 @pytest.fixture(scope="module")

@@ -7,12 +7,12 @@ import re
 
 import numpy as np
 import pytest
-
-from pemviz.core.checks import CheckError, check_estimator, check_simulator
 from pemviz.config import ExperimentConfig
+from pemviz.core.checks import CheckError, check_estimator, check_simulator
 from pemviz.estimators import build_estimator
-from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy import ToyBraking, ToyParams
+from pemviz.scenarios.toy.problem import toy_problem
+
 from .test_simulator_protocol import ParkedCarAEB
 
 

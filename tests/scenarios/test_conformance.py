@@ -13,17 +13,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from conftest import doc_python_block
-from pemviz.methods import BUILTIN_METHODS as METHODS
-from pemviz.settings import SCENARIOS
-from pemviz.scenarios.problems import build_problem
 from pemviz.estimators.fixed import FixedSampler
 from pemviz.io.rollouts import read_rollouts
+from pemviz.methods import BUILTIN_METHODS as METHODS
 from pemviz.scenarios import builtin, register, registered
-from pemviz.scenarios.registry import get as get_scenario, unregister
+from pemviz.scenarios.problems import build_problem
+from pemviz.scenarios.registry import get as get_scenario
+from pemviz.scenarios.registry import unregister
 from pemviz.scenarios.toy import ToyBraking
+from pemviz.settings import SCENARIOS
 from pemviz.testing import RUN_ROLLOUTS, ConformanceError, check_estimator, check_scenario
+
+from conftest import doc_python_block
 
 KNOWN_FAILURES: dict[str, str] = {}
 """Scenarios the kit finds at fault, with the failure it reports (none now). A naive50 run of a cut-in draws

@@ -9,15 +9,15 @@ import math
 
 import numpy as np
 import pytest
-from conftest import REPO
-
 from pemviz.config import ExperimentConfig
 from pemviz.engine.experiment import Experiment
-from pemviz.scenarios.registry import get as get_scenario
 from pemviz.scenarios import registered
-from pemviz.scenarios.crossing.scene import BatchedCrossing, CrossingParams
 from pemviz.scenarios.crossing.problem import MONTE_CARLO_REFERENCE, crossing
+from pemviz.scenarios.crossing.scene import BatchedCrossing, CrossingParams
+from pemviz.scenarios.registry import get as get_scenario
 from pemviz.testing import check_scenario
+
+from conftest import REPO
 
 
 def test_crossing_is_registered_and_passes_the_conformance_kit(tmp_path):

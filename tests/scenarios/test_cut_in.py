@@ -8,9 +8,7 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.pem.encoding import encode_salient
-from pemviz.stack import tracker
 from pemviz.scenarios.cut_in.scenario import (
     FAILURE_FORMULA,
     OBJECT_NAMES,
@@ -22,6 +20,7 @@ from pemviz.scenarios.cut_in.scenario import (
     safe_distance,
 )
 from pemviz.scenarios.cut_in.scene import CutInMemory, camera_view, measure, object_rows, traffic_at
+from pemviz.stack import tracker
 from pemviz.stl import robustness
 
 P = CutInParams()

@@ -7,7 +7,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-
+from pemviz.scenarios.cut_in.batched import BatchedCutIn, cached_trajectory, replay
+from pemviz.scenarios.cut_in.highway import CutInScenario
 from pemviz.scenarios.cut_in.scenario import (
     FAILURE_FORMULA,
     LANE_WIDTH_M,
@@ -16,8 +17,6 @@ from pemviz.scenarios.cut_in.scenario import (
     OBSERVATION_NAMES,
     CutInParams,
 )
-from pemviz.scenarios.cut_in.batched import BatchedCutIn, cached_trajectory, replay
-from pemviz.scenarios.cut_in.highway import CutInScenario
 from pemviz.stl import robustness
 
 P = CutInParams()

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from pemviz.core.features import check_features
 from pemviz.scenarios.cut_in.batched import FEATURE_NAMES, BatchedCutIn
 from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem

@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.special import expit, stdtrit
-
 from pemviz.config import ExperimentConfig
 from pemviz.pem.encoding import encode_salient
 from pemviz.scenarios.cut_in.batched import BatchedCutIn
 from pemviz.scenarios.cut_in.scenario import FAILURE_FORMULA, OBJECT_NAMES, SALIENT_COLUMNS, CutInParams
 from pemviz.scenarios.registry import problem_for
 from pemviz.stl import robustness
+from scipy.special import expit, stdtrit
 
 
 def plain_loop(problem, params: CutInParams, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

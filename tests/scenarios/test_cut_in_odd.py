@@ -9,10 +9,10 @@ import dataclasses
 
 import numpy as np
 import pytest
-
 from pemviz.core.odd import ODD, parse_distribution
 from pemviz.scenarios.cut_in.batched import BatchedCutIn, translation_error
 from pemviz.scenarios.cut_in.scenario import OBSERVATION_NAMES, CutInParams
+
 from .test_cut_in_batched import highway_env_replay, random_inputs
 
 P = CutInParams()

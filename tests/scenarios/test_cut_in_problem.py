@@ -5,9 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.special import log_expit
-
-from conftest import run_cli
 from pemviz import stl
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.detectors import StageSamplers
@@ -15,6 +12,9 @@ from pemviz.pem import load_pem
 from pemviz.pem.store import load_noise_pem
 from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
 from pemviz.scenarios.cut_in.scenario import FAILURE_FORMULA, OBJECT_NAMES, OBSERVATION_NAMES, SALIENT_COLUMNS
+from scipy.special import log_expit
+
+from conftest import run_cli
 
 VISIBLE = OBJECT_NAMES.index("visible")
 
@@ -152,8 +152,8 @@ class PerCall:
 
 def test_the_heads_evaluated_once_per_step_give_the_per_call_rollouts_bit_for_bit(problem, monkeypatch):
     from pemviz.core.detectors import ArrayRQMC, ConstantDetector
-    from pemviz.pem.noise import NoisePEM
     from pemviz.core.rollouts import RolloutBatch
+    from pemviz.pem.noise import NoisePEM
 
     asked = []
     noise_params = NoisePEM.noise_params

@@ -10,13 +10,13 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
-
-from conftest import REPO
 from pemviz import stl
 from pemviz.core.detectors import action_log_prob
 from pemviz.envs import ENV_ID, MISSED_GAP_M, BasicAgentController, BrakingEnv
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking.simulator import BrakingScenario
+
+from conftest import REPO
 
 SPEC = stl.parse("G[0,99](d >= 2)")
 

@@ -10,13 +10,12 @@ import re
 
 import numpy as np
 import pytest
-from scipy.special import log_expit, logsumexp
-
 from pemviz.cli import main
 from pemviz.pem.store import load_pem
 from pemviz.scenarios.braking.batched import replay
 from pemviz.scenarios.braking.lookahead import log_exceedance_after, start_steps
 from pemviz.scenarios.braking.simulator import BrakingParams
+from scipy.special import log_expit, logsumexp
 
 
 def brute_force(p: BrakingParams, logit_at_gap, prefix: np.ndarray, level: float) -> float:

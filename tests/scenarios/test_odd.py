@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.core.odd import ODD, ODDError, bin_log_weights, odd_map, parse_distribution
 from pemviz.engine.experiment import Experiment

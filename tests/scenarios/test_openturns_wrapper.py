@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import load_script
-
-from pemviz.scenarios.problems import build_problem
 from pemviz.scenarios.braking.batched import simulate_batched
+from pemviz.scenarios.problems import build_problem
+
+from conftest import load_script
 
 _PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "openturns_braking.py"
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 import math
 
 import pytest
-from scipy.stats import beta
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import Estimate, Reference
 from pemviz.scenarios.problems import problem_for
+from scipy.stats import beta
+
 from conftest import run_cli
 
 

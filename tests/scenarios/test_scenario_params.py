@@ -11,9 +11,6 @@ import math
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from conftest import REPO
-from pemviz.settings import SCENARIOS
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.cut_in.scenario import RARITY_SETTINGS, CutInParams
@@ -25,6 +22,9 @@ from pemviz.scenarios.parameters import (
     parse_assignment,
     scenario_parameters,
 )
+from pemviz.settings import SCENARIOS
+
+from conftest import REPO
 
 SMALL = ["--no-record", "--k", "1", "--n", "50", "--n-final", "50"]
 
@@ -118,9 +118,9 @@ def test_the_problem_has_the_gap_and_no_reference_of_the_default_scene():
 
 
 def test_the_braking_exact_answer_is_dropped_or_recomputed_for_changed_parameters():
-    from pemviz.scenarios.problems import problem_for
-    from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
     from pemviz.pem import load_pem
+    from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
+    from pemviz.scenarios.problems import problem_for
 
     default = problem_for(ExperimentConfig.of(pem_shift=0.5))
     assert default.exact_log_p is not None and default.severity_exact

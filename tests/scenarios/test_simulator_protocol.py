@@ -4,22 +4,22 @@ recovers its exact failure probability; pemviz's own scenarios implement the pro
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
-from scipy.special import log_expit
-
-from conftest import doc_python_block
 from pemviz import stl
-from pemviz.core.checks import check_simulator
 from pemviz.config import ExperimentConfig
-from pemviz.engine.experiment import Experiment
+from pemviz.core.checks import check_simulator
 from pemviz.core.problems import Problem
+from pemviz.engine.experiment import Experiment
 from pemviz.scenarios import simulate
 from pemviz.scenarios.braking.simulator import BrakingScenario
 from pemviz.scenarios.toy import ToyBraking, ToyParams
+from scipy.special import log_expit
+
+from conftest import doc_python_block
 
 N_STEPS = 25
 

@@ -9,7 +9,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-
 from pemviz.core.features import check_features, feature_replay, replay_features
 from pemviz.scenarios.crossing.problem import crossing_problem
 from pemviz.scenarios.crossing.scene import FEATURE_NAMES, OBJECT_NAMES, BatchedCrossing, CrossingParams

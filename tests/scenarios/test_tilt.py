@@ -15,7 +15,6 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.config import ExperimentConfig
 from pemviz.engine.experiment import Experiment
 from pemviz.scenarios.problems import build_problem
@@ -51,9 +50,8 @@ def test_the_toys_tilt_detector_is_the_pem_outside_the_window():
 @pytest.fixture(scope="module")
 def cut_in():
     from pemviz.pem import load_pem
-    from pemviz.scenarios.cut_in.problem import cut_in_problem
-
     from pemviz.scenarios.cut_in import tilt as tilt_module
+    from pemviz.scenarios.cut_in.problem import cut_in_problem
 
     tilt_module._SOLVED.clear()  # solved here, not reused from another test's run
     problem = cut_in_problem(load_pem())

@@ -8,17 +8,16 @@ import math
 
 import numpy as np
 import pytest
-from scipy.special import log_expit
-
 from pemviz.core.detectors import ConstantDetector, WindowDetector
 from pemviz.core.estimate import estimate
-from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios import simulate
 from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario, braking_replay, braking_step, lead_speeds
-from pemviz.scenarios.toy import ToyBraking, ToyParams
-from pemviz.scenarios.toy.simulator import simulate_toy, toy_log_failure_probability
 from pemviz.scenarios.braking.truth import _relaxed_step, braking_exact, branching_start, miss_bound
 from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
+from pemviz.scenarios.toy import ToyBraking, ToyParams
+from pemviz.scenarios.toy.problem import toy_problem
+from pemviz.scenarios.toy.simulator import simulate_toy, toy_log_failure_probability
+from scipy.special import log_expit
 
 
 @pytest.fixture(scope="module")

@@ -8,11 +8,9 @@ import itertools
 
 import numpy as np
 import pytest
-
-from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
 from pemviz.scenarios.braking import truth
+from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
 from pemviz.scenarios.braking.truth import BrakingStart, MissBound, braking_exact
-from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
 from pemviz.scenarios.braking.truth_cells import (
     CellMissBound,
     cell_miss_bound,
@@ -20,6 +18,7 @@ from pemviz.scenarios.braking.truth_cells import (
     speed_lipschitz,
     speed_ranges,
 )
+from pemviz.scenarios.braking.truth_latched import latched_log_failure_probability
 
 
 def test_speed_ranges_hold_every_next_speed_of_the_cell():

@@ -9,11 +9,9 @@ import json
 
 import numpy as np
 import pytest
-from scipy.special import expit
-
 from pemviz.config import ExperimentConfig
-from pemviz.core.problems import Problem
 from pemviz.core.problem_view import object_label
+from pemviz.core.problems import Problem
 from pemviz.engine.experiment import Experiment, RobustnessByMetric
 from pemviz.io.rollout_estimate import estimate_rollouts
 from pemviz.io.rollout_format import RolloutMeta, json_float
@@ -23,8 +21,9 @@ from pemviz.scenarios.registry import unregister
 from pemviz.sinks.most_likely import MostLikelyFailure
 from pemviz.sinks.rollouts import RolloutSink
 from pemviz.testing import check_scenario
+from scipy.special import expit
 
-from .user_crosswalk import SCENARIO, T, Crosswalk, crosswalk_problem
+from .user_crosswalk import SCENARIO, Crosswalk, T, crosswalk_problem
 
 
 @pytest.fixture

@@ -8,7 +8,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 from pemviz import stl
 from pemviz.core.detector_noise import noise_log_density, noise_quantile
 from pemviz.core.problems import Problem, rollout_functions

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import numpy as np
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import estimate
+from pemviz.core.plan import RunPlan
 from pemviz.core.problem_view import ProblemView, SignalView, Thresholds
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine.cost import CostConstants
 from pemviz.engine.events import RolloutsSampled, RunStarted, StageFinished, StageResult
-from pemviz.core.plan import RunPlan
-from pemviz.core.rollouts import RolloutBatch
-from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.braking.drawing import BrakingDrawing
+from pemviz.scenarios.braking.simulator import BrakingParams
 
 PLAN = RunPlan.of([(0, "pretrain", 20), (1, "ce", 30), (2, "ce", 30), (3, "final", 50)])
 """Pretraining, K = 2 CE stages, the final batch: 130 simulations."""

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import re
 
-from conftest import REPO
 from pemviz.sinks.colours import BLUE, RED, css, hex_colour, rgba, stage_rgb
+
+from conftest import REPO
 
 COLOUR_LITERAL = re.compile(
     r"#[0-9a-fA-F]{6}\b"  # hex

@@ -7,9 +7,8 @@ from __future__ import annotations
 import io
 
 import numpy as np
-
-from pemviz.engine.events import FinalEstimate, RunCancelled, StageStarted
 from pemviz.core.plan import RunPlan
+from pemviz.engine.events import FinalEstimate, RunCancelled, StageStarted
 from pemviz.sinks import StageClock
 from pemviz.sinks.console import ConsoleSink
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
-
 from pemviz.core.population import FailureShares
 from pemviz.sinks.population import locate_rows
 

@@ -4,7 +4,6 @@ slowdown (:func:`pemviz.engine.resources.load_slowdown`, given here as a number)
 from __future__ import annotations
 
 import pytest
-
 from pemviz.sinks import StageClock
 
 from .synthetic import PLAN, SIMPLE, run_started

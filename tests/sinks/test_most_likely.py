@@ -10,12 +10,11 @@ import re
 
 import numpy as np
 import pytest
-
 from pemviz.app.runs import PanelRun
 from pemviz.config import ExperimentConfig
-from pemviz.sinks.most_likely import MostLikelyFailure
-from pemviz.scenarios.problems import problem_for
 from pemviz.engine.experiment import Experiment
+from pemviz.scenarios.problems import problem_for
+from pemviz.sinks.most_likely import MostLikelyFailure
 from pemviz.sinks.recording import RerunSink
 
 CONFIGS = {
@@ -99,15 +98,14 @@ def test_the_cut_in_why_line_states_the_detections_log_probability_and_the_error
     car and the first T - 1 steps recomputed here from the detection PEM's own network, and the log-density of its
     measurement errors, the noise PEM's density (scipy.stats) of each detected car's error. Their sum is the log p by
     which the failure was chosen (the likeliest of the batch's failures, as before)."""
-    from scipy.special import log_expit
-
     from pemviz.core.counterfactuals import failure_log_p, failure_log_p_parts
     from pemviz.core.detectors import ConstantDetector, StageSamplers
     from pemviz.engine.events import RolloutsSampled
     from pemviz.pem import load_pem
     from pemviz.pem.store import load_noise_pem
-    from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, SALIENT_COLUMNS
     from pemviz.scenarios.cut_in.problem import cut_in_problem
+    from pemviz.scenarios.cut_in.scenario import OBJECT_NAMES, SALIENT_COLUMNS
+    from scipy.special import log_expit
 
     pem, noise = load_pem(), load_noise_pem("hetero-t")
     problem = cut_in_problem(pem)

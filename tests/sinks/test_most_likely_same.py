@@ -23,11 +23,11 @@ from pemviz.core.counterfactuals import (  # noqa: E402
     likeliest_failures,
     most_likely_failure,
 )
-from pemviz.sinks.most_likely import MostLikelyFailure  # noqa: E402
-from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz.engine.events import RolloutsSampled  # noqa: E402
 from pemviz.engine.experiment import Experiment  # noqa: E402
+from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz.sinks.console import ConsoleSink  # noqa: E402
+from pemviz.sinks.most_likely import MostLikelyFailure  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 
 SMALL = dict(ce_epochs=30, pretrain_epochs=50, plain_fallback=0)  # the stages' failures, no plain rollouts after

@@ -9,8 +9,8 @@ import pytest
 pytest.importorskip("viser")
 
 from pemviz.app.runs import PanelRun  # noqa: E402
-from pemviz.engine.events import StageStarted  # noqa: E402
 from pemviz.core.plan import RunPlan  # noqa: E402
+from pemviz.engine.events import StageStarted  # noqa: E402
 from pemviz.sinks import SCALE_PRIOR, StageClock  # noqa: E402
 
 from .synthetic import PLAN, SIMPLE, TOY, batch, finished, run_started, sampled  # noqa: E402

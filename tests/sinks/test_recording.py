@@ -18,15 +18,14 @@ import pytest
 rr = pytest.importorskip("rerun")
 pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
 
-from conftest import verify_rrd  # noqa: E402
-from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz import cli  # noqa: E402
-from pemviz.engine import experiment as engine  # noqa: E402
 from pemviz.config import ExperimentConfig  # noqa: E402
-from pemviz.engine.experiment import Experiment  # noqa: E402
+from pemviz.engine import experiment as engine  # noqa: E402
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunStarted, StageFinished  # noqa: E402
-from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario  # noqa: E402
+from pemviz.engine.experiment import Experiment  # noqa: E402
 from pemviz.scenarios.braking.failures import severity  # noqa: E402
+from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario  # noqa: E402
+from pemviz.scenarios.problems import problem_for  # noqa: E402
 from pemviz.sinks.console import ConsoleSink  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 from pemviz.sinks.rerun_views import (  # noqa: E402
@@ -39,6 +38,8 @@ from pemviz.sinks.rerun_views import (  # noqa: E402
     TAG_RGBA,
     nice_ticks,
 )
+
+from conftest import verify_rrd  # noqa: E402
 
 SMALL = dict(
     n_stages=3,
@@ -553,7 +554,6 @@ def assert_every_view_has_data(events: list, tables: dict) -> None:
     ones (a figure of the Stages tab: its data or its note, not only its axes), for the layout the recording
     carries."""
     import rerun.blueprint as rrb
-
     from pemviz.sinks.rerun_blueprint import TIMELINE, default_blueprint
 
     bp = default_blueprint(5, of(events, RunStarted)[0].problem)

@@ -15,12 +15,13 @@ import pytest
 rr = pytest.importorskip("rerun")
 pytest.importorskip("datafusion", reason="rerun-sdk[catalog] reads recordings back")
 
-from conftest import REPO, verify_rrd  # noqa: E402
 from pemviz import cli  # noqa: E402
 from pemviz.core.files import OutputExists  # noqa: E402
 from pemviz.sinks import HANDLERS, Sink  # noqa: E402
 from pemviz.sinks.recording import RerunSink  # noqa: E402
 from pemviz.sinks.recording_process import RECORDED, RecordingProcess  # noqa: E402
+
+from conftest import REPO, verify_rrd  # noqa: E402
 
 RUN = ["run", "--preset", "quick", "--k", "2", "--n", "30", "--n-final", "40", "--ce-epochs", "5", "--seed", "3"]
 OWN = ("rerun_segment_id", "wall_s", "Markdown", "TextDocument")

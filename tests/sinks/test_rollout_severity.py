@@ -9,9 +9,8 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.problems import problem_for
+from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.severity import (
     FailureSeverity,
     SeverityScale,
@@ -21,12 +20,12 @@ from pemviz.core.severity import (
     severity_of_signal,
     share_text,
 )
-from pemviz.engine.experiment import Experiment
 from pemviz.engine.events import FinalEstimate
-from pemviz.core.rollouts import RolloutBatch
+from pemviz.engine.experiment import Experiment
 from pemviz.scenarios.braking.batched import replay
-from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams
 from pemviz.scenarios.braking.failures import severity
+from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams
+from pemviz.scenarios.problems import problem_for
 from pemviz.sinks.console import ConsoleSink, final_lines
 from pemviz.sinks.population import FailureGroups, grouping_document
 
@@ -93,9 +92,9 @@ def test_braking_rollouts_agree_with_the_scene_s_severity_number_for_number(brak
 def test_cut_in_impact_speed_is_the_ego_s_closing_speed_on_the_car_it_meets():
     # the cut-in car missed for a while: contact is a clearance <= 0 (the boxes meet); the closing speed over the
     # step into it is the ego's speed minus the front car's at the step before, to 0.1 m/s (the cut-in car turns)
+    from pemviz.scenarios.cut_in.batched import replay as replay_cut_in
     from pemviz.scenarios.cut_in.problem import cut_in_params
     from pemviz.scenarios.cut_in.scenario import OBSERVATION_NAMES as NAMES
-    from pemviz.scenarios.cut_in.batched import replay as replay_cut_in
 
     problem = problem_for(ExperimentConfig.of(scenario="cut-in"))
     p = cut_in_params("moderate")

@@ -9,8 +9,8 @@ import pytest
 pytest.importorskip("pyarrow")
 
 from pemviz.core.detectors import ConstantDetector  # noqa: E402
-from pemviz.engine.events import RolloutChunk, RunCancelled, StageStarted  # noqa: E402
 from pemviz.core.plan import RunPlan  # noqa: E402
+from pemviz.engine.events import RolloutChunk, RunCancelled, StageStarted  # noqa: E402
 from pemviz.sinks.rollouts import RolloutSink  # noqa: E402
 
 from .synthetic import batch, run_started  # noqa: E402

@@ -8,15 +8,14 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.config import ExperimentConfig
-from pemviz.scenarios.braking import truth, truth_known
-from pemviz.scenarios.problems import problem_for
 from pemviz.core.severity import SeverityScale, level_events
 from pemviz.engine.events import RolloutsSampled
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
+from pemviz.scenarios.braking import truth, truth_known
 from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
+from pemviz.scenarios.problems import problem_for
 
 EXACT_1_5 = 2.9992e-17
 """P(min gap < 1.5 m) of the braking scenario under the shipped PEM, by enumeration (``benchmarks/severity.py
@@ -174,7 +173,6 @@ def test_a_level_some_rollouts_reach_without_a_backed_estimate_says_so_and_gives
     # "not reached" means no rollout reached the level; a level that some reach but whose weights back no estimate
     # says "not estimated" and prints the 95 % lower bound those weights do back
     import numpy as np
-
     from pemviz.core.estimate import estimate
     from pemviz.core.severity import SeverityCurve, SeverityPoint, SeverityScale
 

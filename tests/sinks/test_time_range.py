@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.app.form import run_cost
 from pemviz.config import ExperimentConfig
 from pemviz.engine.cost import COST, duration_text, stage_cost

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from pemviz.core.detectors import draw_step
-from pemviz.stack import camera
 from pemviz.core.event_probs import event_log_probs
+from pemviz.stack import camera
 from pemviz.stack.detector import NOISE_NAMES, ahead_rows, camera_detector, perceive
 
 NAMES = ("range_m", *camera.SALIENT_NAMES, "visible")

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from pemviz.scenarios.cut_in.scenario import CutInParams
 from pemviz.scenarios.cut_in.scene import CutInMemory, camera_view, traffic_at
 from pemviz.stack import camera

@@ -5,9 +5,9 @@ not, and leaves a car that moves with the ego unbiased."""
 from __future__ import annotations
 
 import numpy as np
-from conftest import REPO, load_script
-
 from pemviz.stack.tracker import TrackerParams
+
+from conftest import REPO, load_script
 
 prior = load_script(REPO / "benchmarks" / "track_prior.py")
 N = 400

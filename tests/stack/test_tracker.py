@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
-from scipy.linalg import block_diag
-
 from pemviz.stack import tracker
 from pemviz.stack.tracker import TrackerParams, Tracks
+from scipy.linalg import block_diag
 
 DT = 0.1
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from pemviz.stack import tracker
 from pemviz.stack.tracker import FEATURE_NAMES, TTC_CAP_S, TrackerParams, Tracks
 

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from pemviz import stl
 from pemviz.stl import always, eventually, signal, until
 

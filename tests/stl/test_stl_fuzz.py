@@ -10,7 +10,6 @@ import os
 
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
 from pemviz.stl import parse
 from pemviz.stl.parser import MAX_DEPTH, STLSyntaxError
 

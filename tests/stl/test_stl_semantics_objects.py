@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz import stl
 from pemviz.stl._kernels import NumpyOps as OPS
 

@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz.settings import METRICS
 from pemviz.studies.paper_tables import (
     RowSpec,

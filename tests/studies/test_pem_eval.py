@@ -7,13 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from conftest import verify_rrd
 from pemviz import pem
-from pemviz.pem.store import load_reference_pem
+from pemviz.cli import main as cli_main
 from pemviz.core.files import repo_root
 from pemviz.io import data
-from pemviz.cli import main as cli_main
+from pemviz.pem.store import load_reference_pem
 from pemviz.studies.pem_eval import (
     GAP_GRID_M,
     EvalConfig,
@@ -26,6 +24,8 @@ from pemviz.studies.pem_eval import (
     stratified_folds,
 )
 from pemviz.studies.pem_eval_recording import write_recording
+
+from conftest import verify_rrd
 
 SHARED_DATA = repo_root().parent / "shared" / "data" / "kitti-salient"
 QUICK = EvalConfig(folds=(0,), mlnn_epochs=20, gbt_trees=60, bnn_steps=200, bnn_samples=100)

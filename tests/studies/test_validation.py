@@ -7,7 +7,6 @@ import math
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
 from pemviz.config import ExperimentConfig
 from pemviz.core.estimate import relative_error
 from pemviz.scenarios.problems import PROBLEMS, build_problem
@@ -154,8 +153,8 @@ def test_baselines_get_the_first_presets_simulation_budget():
 
 
 def test_the_main_truth_of_a_shipped_pem_is_the_kept_enumeration_not_recomputed():
-    from pemviz.scenarios.braking.truth_known import KNOWN_BRAKING_LOG_P, pem_fingerprint
     from pemviz.pem import load_pem
+    from pemviz.scenarios.braking.truth_known import KNOWN_BRAKING_LOG_P, pem_fingerprint
 
     answer = exact_answer("main")
     assert answer.log_p_fail == KNOWN_BRAKING_LOG_P[pem_fingerprint(load_pem().logit_at_gap)] == -33.85370929668962
