@@ -241,27 +241,28 @@ class PrecisionTarget:
             else:
                 n = int(min(n, max(1, math.floor(rate * time_left / per))))
         if cap is not None:
-            if self.decision is not None:
-                self.stop = (
-                    f"requirement undecided within budget: {cap} ({self.decision.why}, after "
-                    f"{self.n_simulations:,} simulations)"
-                )
-                return None
-            assert target is not None  # no decision, so no requirement: the target is rel_error's
-            width = est.rel_half_width
-            shown = (
-                "no failure yet"
-                if not math.isfinite(width)
-                else f"relative half-width {width:.3g} > {target:g}"
-                if width > target
-                else f"the estimate is {est.verdict}: its weights back no interval"
-            )
-            self.stop = (
-                f"stopped at a cap, not at the target: {cap} ({shown} after {self.n_simulations:,} " "simulations)"
-            )
+            self.stop = self._capped(cap, est)
             return None
         self._current = self.inner.extend(int(n))
         return self._current
+
+    def _capped(self, cap: str, est: Estimate) -> str:
+        """The stop line of a run that hit ``cap`` (its words) before its requirement or target, at ``est``."""
+        if self.decision is not None:
+            return (
+                f"requirement undecided within budget: {cap} ({self.decision.why}, after "
+                f"{self.n_simulations:,} simulations)"
+            )
+        target, width = self.config.stop.rel_error, est.rel_half_width
+        assert target is not None  # no decision, so no requirement: the target is rel_error's
+        shown = (
+            "no failure yet"
+            if not math.isfinite(width)
+            else f"relative half-width {width:.3g} > {target:g}"
+            if width > target
+            else f"the estimate is {est.verdict}: its weights back no interval"
+        )
+        return f"stopped at a cap, not at the target: {cap} ({shown} after {self.n_simulations:,} simulations)"
 
     def simulations_per_rollout(self) -> float:
         """What an added rollout costs in simulations: 1, or for an estimator that counts its own (a tilted
