@@ -97,7 +97,7 @@ class BrakingEnv(gym.Env):
         params: the scenario's constants (:class:`pemviz.scenarios.braking.simulator.BrakingParams`).
     """
 
-    metadata = {"render_modes": []}
+    metadata: dict[str, Any] = {"render_modes": []}
     observation_space: gym.spaces.Box
     action_space: gym.spaces.Box
 

@@ -3,6 +3,7 @@ pemviz.studies.reproducibility, which the user guide's Reproducibility section s
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import platform
@@ -26,11 +27,18 @@ def small(scenario: str = "braking", **fields) -> ExperimentConfig:
     return ExperimentConfig.of(scenario=scenario, **{**base, **fields})
 
 
+@functools.cache
+def serial(scenario: str) -> dict:
+    """:func:`rp.fingerprint` of ``small(scenario)`` run serially in this process, in whole batches: the reference
+    of the chunk-size and the dispatch tests (one run each, read by both)."""
+    return rp.fingerprint(small(scenario, executor="serial"))
+
+
 @pytest.mark.parametrize("scenario", ["braking", "cut-in"])
 def test_any_chunk_size_gives_the_run_of_whole_batches_bit_for_bit(scenario):
-    # chunks of 32 cut every stage (40, 60, 100, 300 rollouts) with a remainder; a chunk size at or above a stage's
-    # rollouts runs the whole batch, the path of `whole` itself
-    whole = rp.fingerprint(small(scenario))
+    # chunks of 32 cut every stage (40, 60, 100, 300 rollouts) with a remainder, simulated by the local executor's
+    # workers; the whole batches are the serial run in this process (`serial`), so chunking and executor both change
+    whole = serial(scenario)
     got = rp.fingerprint(small(scenario, chunk_rollouts=32))
     assert rp.compare(whole, got, same_machine=True) == []
     assert got["chunks"] > len(got["stages"]) and whole["chunks"] == len(whole["stages"])
@@ -114,8 +122,9 @@ def test_every_dispatch_setting_gives_the_same_rollouts_and_printed_numbers():
     # each setting picks the kernels another x86-64 CPU would run (AVX2 without AVX-512, scalar torch, MKL's SSE4.2
     # path, OpenBLAS's Haswell or Sandybridge kernels, numpy without its AVX-512 loops): the same rollouts, elites,
     # thresholds and printed line; log mu_hat to 1e-12 relative. Both scenarios run in each process; the settings
-    # share two processes (:func:`dispatch_runs`: all at their lowest, all at AVX2), as found is the third.
-    found = fingerprints_in_subprocess({})
+    # share two processes (:func:`dispatch_runs`: all at their lowest, all at AVX2); as found is this process's own
+    # serial run (`serial`, also the chunk-size test's reference).
+    found = {scenario: serial(scenario) for scenario in ("braking", "cut-in")}
     assert all(f["failures"] > 0 for f in found.values())
     for names, env in dispatch_runs(rp.DISPATCH_SETTINGS):
         got = fingerprints_in_subprocess(env)
