@@ -23,14 +23,11 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any, cast
 
 import numpy as np
 
 from pemviz.conformance_runs import KitRun, files_folder, run_engine, run_with_files
-
-if TYPE_CHECKING:
-    from pemviz.core.problems import Problem
 
 SCENARIO_CHECKS = ("schema", "problem", "determinism", "features", "twin", "drawing", "rollout-file", "recording")
 """The checks of :func:`check_scenario`, in the order they run."""
@@ -111,7 +108,7 @@ class _Checks:
         return Report(self.subject, tuple(self.passed), tuple(self.skipped))
 
 
-def _check_files(checks: _Checks, run: KitRun, problem: Problem | None = None) -> None:
+def _check_files(checks: _Checks, run: KitRun, problem: Any = None) -> None:
     """The rollout file re-estimates to the run's own estimate; the recording was written and is not empty."""
     from pemviz.io.rollout_estimate import REESTIMATE_RTOL, estimate_rollouts
     from pemviz.io.rollouts import read_rollouts
@@ -192,7 +189,7 @@ def _first_difference(a: Any, b: Any) -> str | None:
     return None
 
 
-def _samplers(problem: Problem) -> list[tuple[str, Any]]:
+def _samplers(problem: Any) -> list[tuple[str, Any]]:
     from pemviz.core.detectors import ConstantDetector
 
     return [("the target (PEM)", problem.target), ("a 50 % detector", ConstantDetector(0.5))]
@@ -505,11 +502,7 @@ def _never_fails(problem: Any) -> Any:
 
 
 def check_estimator(
-    method: Any,
-    *,
-    problem: Problem | None = None,
-    folder: str | Path | None = None,
-    settings: Mapping[str, Any] | None = None,
+    method: Any, *, problem: Any = None, folder: str | Path | None = None, settings: Mapping[str, Any] | None = None
 ) -> Report:
     """Check an estimation method on a problem with an exact answer: its interface, its bias, its verdicts, its files.
 

@@ -345,9 +345,9 @@ LOAD_DRIFT = 0.4
 """How much longer than its first estimate a run on a loaded machine may take, nothing following its stages, as a
 share: the estimate is the model's seconds times the load read over a fraction of a second at the start
 (:func:`pemviz.engine.resources.load_slowdown`), whose CPU-speed probe drifts by 10-40 % within seconds, and whose
-sharing moves as the other sessions' jobs start and end. The cut-in's tilt run (one stage, nothing after it) took
-0.75-1.30 times its first estimate in 9 runs at load average 4-15 where its CPU seconds were the model's times the
-probe's reading (the Validation page, "Time estimates")."""
+sharing moves as the other sessions' jobs start and end. A run with one stage and nothing after it took 0.75-1.30
+times its first estimate in 9 runs at load average 4-15 (e.g. the cut-in's tilt) where its CPU seconds were the
+model's times the probe's reading (the Validation page, "Time estimates")."""
 LOAD_WORDS = "as the machine's load varies"
 """What the upper end of a range says where it is the load's drift alone (:func:`with_drift`)."""
 

@@ -371,3 +371,13 @@ def parameter_table() -> str:
         cells = [f"`{by[s].default!r}`" if s in by else "-" for s in SCENARIOS]
         lines.append(f"| `{name}` | {first.kind} | {first.unit or '-'} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def scenario_params_text(scenario: str, pairs: tuple[tuple[str, Value], ...]) -> str:
+    """The parameters ``pairs`` ((name, value), a config's ``scenario_params``) of the scenario named ``scenario``
+    that differ from its defaults, as the header line of ``pemviz run`` gives them after the scenario's name (``""``:
+    none; e.g. `` (cut_in_gap_m=19.5 m)``)."""
+    if not pairs:
+        return ""
+    changed = changed_parameters(scenario, pairs)
+    return f" ({parameters_text(scenario, changed)})" if changed else ""

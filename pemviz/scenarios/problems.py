@@ -34,7 +34,6 @@ from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import ToyParams
 
 if TYPE_CHECKING:
-    from pemviz.config import ExperimentConfig
     from pemviz.scenarios.braking.drawing import BrakingDrawing
 
 # -- named problems -----------------------------------------------------------------------------------------------
@@ -85,7 +84,7 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
     raise ValueError(f"unknown problem {name!r}; use one of {', '.join(PROBLEMS)}")
 
 
-def problem_for(config: ExperimentConfig) -> Problem:
+def problem_for(config: Any) -> Problem:
     """The problem a run of ``config`` estimates: its scenario's registry factory called with the config
     (:attr:`pemviz.scenarios.registry.Scenario.factory`: :func:`braking_run_problem`, :func:`cut_in_run_problem`, a
     plugin's own), which reads the parameters ``config.scenario_params`` and the PEM ``pem``. Loads the PEM on
@@ -100,7 +99,7 @@ def problem_for(config: ExperimentConfig) -> Problem:
     return cast(Problem, registered(config))
 
 
-def braking_run_problem(config: ExperimentConfig | None, params: BrakingParams | None = None) -> Problem:
+def braking_run_problem(config: Any, params: BrakingParams | None = None) -> Problem:
     """The braking scenario's problem (the registry's factory of ``braking``) at ``params`` (None: the defaults), its
     crash gap ``config.margin`` where given, the PEM ``pem`` on the simulator ``config.sim`` (``config`` None:
     the shipped PEM on the batched twin), with the config's alternative targets (:func:`with_alternatives`)."""
@@ -113,7 +112,7 @@ def braking_run_problem(config: ExperimentConfig | None, params: BrakingParams |
     return with_alternatives(problem, config) if config is not None else problem
 
 
-def cut_in_run_problem(config: ExperimentConfig | None, params: Any = None) -> Problem:
+def cut_in_run_problem(config: Any, params: Any = None) -> Problem:
     """A cut-in scenario's problem (the registry's factory of ``cut-in`` and ``cut-in-rare``) at ``params`` (a
     :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`; None: the ``moderate`` setting), named after
     ``config.scenario``, the PEMs ``pem`` (``config`` None: the shipped ones), with the plain Monte Carlo
@@ -138,7 +137,7 @@ PEM_SHIFTS = (-1.0, -0.5, 0.5, 1.0)
 (negative) or less often than the PEM says."""
 
 
-def with_alternatives(problem: Problem, config: ExperimentConfig) -> Problem:
+def with_alternatives(problem: Problem, config: Any) -> Problem:
     """``problem`` with the alternative targets ``config`` asks for (:mod:`pemviz.core.reweight`): with
     ``pem_uncertainty`` every member of the PEM's ensemble (:func:`pemviz.pem.ensemble.ensemble_for`) and the shifts
     :data:`PEM_SHIFTS`, and ``pem_shift`` D; each with its exact answer where the truth knows it (the braking

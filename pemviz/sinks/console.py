@@ -31,6 +31,7 @@ from pemviz.engine.events import (
 )
 from pemviz.methods import PLAIN_METHOD
 from pemviz.plugins import resolve
+from pemviz.scenarios.parameters import scenario_params_text
 from pemviz.scenarios.registry import no_method_answers
 from pemviz.sinks import Sink, StageClock
 
@@ -484,18 +485,6 @@ def _after_mc(
             "(--method adaptive), with its verdict"
         )
     return f"more rollouts: {command} samples until the interval is within {PERCENT} " f"({route.text(s_per, 'plain')})"
-
-
-def scenario_params_text(scenario: str, pairs: tuple[tuple[str, float | int | bool], ...]) -> str:
-    """The parameters ``pairs`` ((name, value), a config's ``scenario_params``) of the scenario named ``scenario``
-    that differ from its defaults, as the header line gives them after the scenario's name: e.g.
-    `` (cut_in_gap_m=19.5 m)``; ``""``: none."""
-    if not pairs:
-        return ""
-    from pemviz.scenarios.parameters import changed_parameters, parameters_text
-
-    changed = changed_parameters(scenario, pairs)
-    return f" ({parameters_text(scenario, changed)})" if changed else ""
 
 
 def final_lines(

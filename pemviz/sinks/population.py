@@ -376,7 +376,7 @@ def severity_document(sev: FailureSeverity) -> dict:
     }
 
 
-def log_failures(stream: rr.RecordingStream, grouping: FailureGrouping, problem: Problem | None = None) -> str:
+def log_failures(stream: rr.RecordingStream, grouping: FailureGrouping, problem: object = None) -> str:
     """Log a run's failures to its recording (static): ``failures`` (Markdown, :func:`population_markdown`),
     ``final/failures`` (every failure, in share order: stage, rollout, share, log-weight, log p, group, and where the
     problem gives them its min distance and impact speed) and ``final/severity_of_failures``: p(severity | failure)

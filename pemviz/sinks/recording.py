@@ -84,7 +84,7 @@ import math
 import os
 from datetime import timedelta
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -125,9 +125,6 @@ from pemviz.sinks.rerun_views import (
     log_thresholds,
 )
 
-if TYPE_CHECKING:
-    from pemviz.core.problems import Problem
-
 APP_ID = "pemviz"
 
 FILE_BATCHER = rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=3600), flush_num_bytes=8 << 20, flush_num_rows=4096)
@@ -164,7 +161,7 @@ class RerunSink(Sink):
         likely_per_stage: int = 3,
         scene_per_stage: int = 1,
         repetition: int | None = None,
-        problem: Problem | None = None,
+        problem: object = None,
     ) -> None:
         self.stream = stream
         self.problem = problem

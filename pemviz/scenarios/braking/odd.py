@@ -8,7 +8,7 @@ look-ahead, which hold for one start only.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
@@ -19,11 +19,8 @@ from pemviz.scenarios.braking.batched import BatchedBraking
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.settings import setting_of
 
-if TYPE_CHECKING:
-    from pemviz.config import ExperimentConfig
 
-
-def braking_odd_problem(config: ExperimentConfig, params: BrakingParams | None, odd: ODD) -> Problem:
+def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> Problem:
     """The braking problem over ``odd`` (parameters ``gap0_m`` and / or ``ego_speed0_mps``), the others at ``params``
     (None: the defaults), the PEM ``config.perception.pem`` (None: the shipped one).
 

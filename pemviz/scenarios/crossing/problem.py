@@ -5,7 +5,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -15,9 +15,6 @@ from pemviz.core.problems import Problem, rollout_functions
 from pemviz.scenarios.crossing.scene import OBJECT_NAMES, BatchedCrossing, CrossingParams, pedestrian_ahead_rows
 from pemviz.settings import setting_of
 from pemviz.stack.detector import NOISE_NAMES, camera_detector
-
-if TYPE_CHECKING:
-    from pemviz.config import ExperimentConfig
 
 CROSSING_FORMULA = "G(clearance >= 0)"
 """No collision with a pedestrian: the signed separation of the boxes (m) stays >= 0; failure = robustness < 0."""
@@ -73,7 +70,7 @@ def crossing_problem(
     )
 
 
-def crossing(config: ExperimentConfig | None = None, params: CrossingParams | None = None) -> Problem:
+def crossing(config: Any = None, params: CrossingParams | None = None) -> Problem:
     """The registry's factory (``pemviz run --scenario crossing``): :func:`crossing_problem` with the config's PEM
     (None: the shipped one), carrying :data:`MONTE_CARLO_REFERENCE` as its reference when it runs the shipped PEMs
     at the default parameters, under which the reference was drawn."""

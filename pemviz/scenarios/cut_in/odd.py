@@ -15,7 +15,7 @@ Clopper-Pearson interval holds at any budget.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
@@ -26,9 +26,6 @@ from pemviz.scenarios.cut_in.batched import BatchedCutIn, translation_error
 from pemviz.scenarios.cut_in.scenario import CutInParams
 from pemviz.settings import setting_of
 
-if TYPE_CHECKING:
-    from pemviz.config import ExperimentConfig
-
 RANDOM_PARAMS = ("cut_in_gap_m",)
 """The cut-in's parameters an ODD may draw per rollout."""
 
@@ -36,7 +33,7 @@ TRANSLATION_TOLERANCE_M = 1e-9
 """The most the traffic from another start gap may differ from the moved one (metres) for the ODD to be accepted."""
 
 
-def cut_in_odd_problem(config: ExperimentConfig, params: CutInParams | None, odd: ODD) -> Problem:
+def cut_in_odd_problem(config: Any, params: CutInParams | None, odd: ODD) -> Problem:
     """The cut-in problem over ``odd`` (parameter ``cut_in_gap_m``, metres), the others at ``params`` (None: the
     defaults), the PEMs ``config.perception.pem`` (None: the shipped ones).
 

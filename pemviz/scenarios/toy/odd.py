@@ -5,7 +5,7 @@ p_ODD = sum_b P(b) prod_{d=safe}^{b} (1 - p(d)) (:func:`toy_odd_log_failure_prob
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from scipy.special import logsumexp
@@ -15,9 +15,6 @@ from pemviz.core.odd_rollouts import problem_over_odd
 from pemviz.core.problems import Problem
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import BatchedToy, ToyParams, toy_log_failure_probability
-
-if TYPE_CHECKING:
-    from pemviz.config import ExperimentConfig
 
 
 class _PerRollout(BatchedToy):
@@ -48,7 +45,7 @@ def toy_odd_log_failure_probability(params: ToyParams, odd: ODD) -> float:
     return float(logsumexp(logs, b=np.asarray(law.weights)))  # a weight of 0 adds nothing
 
 
-def toy_odd_problem(config: ExperimentConfig, params: ToyParams | None, odd: ODD) -> Problem:
+def toy_odd_problem(config: Any, params: ToyParams | None, odd: ODD) -> Problem:
     """The toy over ``odd`` (its braking distance drawn per rollout), with the exact p_ODD.
 
     Raises:
