@@ -34,7 +34,8 @@ def test_mypy_flags_a_planted_fault_and_passes_the_package(tmp_path):
     planted fault: the fault is the one error found, in the planted file, and every module of the package is checked."""
     bad = tmp_path / "bad.py"
     bad.write_text("def f(x: int) -> str:\n    return x\n")
-    run = _tool("mypy", "--config-file", str(REPO / "pyproject.toml"), "pemviz", str(bad))
+    cache = str(tmp_path / "mypy-cache")  # cold, as CI's clean clone: a cache of an earlier run names its own bad.py
+    run = _tool("mypy", "--config-file", str(REPO / "pyproject.toml"), "--cache-dir", cache, "pemviz", str(bad))
     assert run.returncode == 1 and "Found 1 error in 1 file" in run.stdout, run.stdout[-4000:]
     errors = [line for line in run.stdout.splitlines() if ": error:" in line]
     assert len(errors) == 1 and errors[0].startswith(str(bad)), run.stdout[-4000:]
