@@ -408,7 +408,8 @@ def next_step(
         budget = min(budget, max_time / mc_s)
     if method.plain:
         return _after_mc(e, config, route, s_per, max_time)
-    heavy = f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it)"
+    heavy = f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it, and a precision "
+    heavy += "target stops adding them after two such looks)"  # estimators.precision.HEAVY_LOOKS
     heavy = heavy if e.khat > KHAT_UNRELIABLE else ""
     low = "heavy-tailed weights make this run's estimate usually too low"  # splitting: skewed, most runs below p
     low = low if method.weighted else "splitting's estimate is skewed, most runs low"
