@@ -19,7 +19,9 @@ retry's N), and the proposal's variants, each alone: ``network-only`` (``--state
 network over the row and its features), ``fit-errors-only`` (``--state-fit-errors``: the errors' location and
 log-scale shifts fitted too), ``network-fit-errors-only`` (both), ``network-fit-errors-only-400`` (both, N = 400)
 and ``tempered-only`` (``--state-fit-ess 0.3``: each stage's fit weights tempered to an ESS of at least 0.3 of its
-elites; each run's line gives the stages' tempering powers beta).
+elites; each run's line gives the stages' tempering powers beta), ``tempered-0.1-only`` (the same at 0.1),
+``share-0.3-only`` and ``share-0.5-only`` (``--state-share``: the PEM's share) and ``step-0.5-only`` and
+``step-0.3-only`` (``--state-step``: the GLM's coefficients moved that far to each fit).
 
 Usage::
 
