@@ -17,11 +17,7 @@ the PEM's logit plus a linear function of the row and its features, the errors d
 (``--plain-fallback 0``: the proposal's own answer), ``state-only-400`` (the same at N = 400 a stage, the default's
 retry's N), and the proposal's variants, each alone: ``network-only`` (``--state-model network``: the paper's
 network over the row and its features), ``fit-errors-only`` (``--state-fit-errors``: the errors' location and
-log-scale shifts fitted too), ``network-fit-errors-only`` (both), ``network-fit-errors-only-400`` (both, N = 400)
-and ``tempered-only`` (``--state-fit-ess 0.3``: each stage's fit weights tempered to an ESS of at least 0.3 of its
-elites; each run's line gives the stages' tempering powers beta), ``tempered-0.1-only`` (the same at 0.1),
-``share-0.3-only`` and ``share-0.5-only`` (``--state-share``: the PEM's share) and ``step-0.5-only`` and
-``step-0.3-only`` (``--state-step``: the GLM's coefficients moved that far to each fit).
+log-scale shifts fitted too), ``network-fit-errors-only`` (both) and ``network-fit-errors-only-400`` (both, N = 400).
 
 Usage::
 
@@ -63,12 +59,6 @@ SAMPLERS: dict[str, tuple[str, ...]] = {
         "--n",
         "400",
     ),
-    "tempered-only": (*STATE, "--state-fit-ess", "0.3", "--plain-fallback", "0"),
-    "tempered-0.1-only": (*STATE, "--state-fit-ess", "0.1", "--plain-fallback", "0"),
-    "share-0.3-only": (*STATE, "--state-share", "0.3", "--plain-fallback", "0"),
-    "share-0.5-only": (*STATE, "--state-share", "0.5", "--plain-fallback", "0"),
-    "step-0.5-only": (*STATE, "--state-step", "0.5", "--plain-fallback", "0"),
-    "step-0.3-only": (*STATE, "--state-step", "0.3", "--plain-fallback", "0"),
 }
 """Each sampler's flags (module docstring)."""
 
@@ -84,7 +74,6 @@ class Run:
     outcome: scene_neutral.Outcome
     replayed: int
     replay_s: float
-    betas: tuple[float, ...] = ()
 
 
 def one_run(scene: str, sampler: str, seed: int) -> Run:
@@ -101,21 +90,11 @@ def one_run(scene: str, sampler: str, seed: int) -> Run:
         counted["s"] += time.perf_counter() - t0
         return out
 
-    betas: list[float] = []
-    stage = StateCrossEntropy._ce_stage
-
-    def tempered(self, *args):  # noqa: ANN001, ANN002, ANN202
-        out = stage(self, *args)
-        betas.append(self.fit_betas[-1] if self.fit_betas else 1.0)
-        return out
-
     StateCrossEntropy._with_state = counting  # type: ignore[method-assign]
-    StateCrossEntropy._ce_stage = tempered  # type: ignore[method-assign]
     scene_neutral.SCENES.update(SCENES)
     scene_neutral.SAMPLERS.update(SAMPLERS)
     outcome = scene_neutral.one_run(scene, sampler, seed)
-    sims = outcome.sims + counted["n"]
-    return Run(dataclasses.replace(outcome, sims=sims), counted["n"], counted["s"], tuple(betas))
+    return Run(dataclasses.replace(outcome, sims=outcome.sims + counted["n"]), counted["n"], counted["s"])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,8 +115,7 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"# {o.scene} {o.variant} seed {o.seed}: x{o.ratio:.3g} of p, {o.verdict}, interval "
                 f"{'holds' if o.interval_holds else ('misses' if o.interval else 'none')}, {o.sims:,} "
-                f"rollout-equivalents ({r.replayed:,} replayed, {r.replay_s:.1f} s), {o.wall_s:.0f} s, fit betas "
-                f" {' '.join(f'{b:.3g}' for b in r.betas) or '-'}",
+                f"rollout-equivalents ({r.replayed:,} replayed, {r.replay_s:.1f} s), {o.wall_s:.0f} s",
                 file=sys.stderr,
                 flush=True,
             )

@@ -410,13 +410,6 @@ SETTINGS: dict[str, Setting] = _settings(
     Setting("state_fit_errors", "the state proposal's error shifts", "the state proposal fits the measurement errors' "
             "location and log-scale shifts too (off: they are drawn from the PEM, only the detections proposed)",
             kind="bool", owner=STATE_METHOD, flags=("--state-fit-errors",)),
-    Setting("state_fit_ess", "the state proposal's tempered fits", "each CE fit's weights raised to the largest "
-            "power <= 1 whose ESS is at least this fraction of the rollouts fitted (0: the weights as they are; "
-            "the estimate's weights are never tempered)", kind="real", lo=0.0, hi=1.0, owner=STATE_METHOD,
-            flags=("--state-fit-ess",)),
-    Setting("state_step", "the state GLM's step", "each CE fit moves the GLM's coefficients this fraction of the way "
-            "to the fitted ones (1: all the way; --state-model glm)", kind="real", lo=0.0, hi=1.0, lo_open=True,
-            owner=STATE_METHOD, flags=("--state-step",)),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
 

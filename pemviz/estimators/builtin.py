@@ -131,11 +131,9 @@ def adaptive_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, st
 
 def state_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | None:
     """The state method's settings: the cross-entropy sampler's (:func:`adaptive_conflict`), and the PEM's share with
-    the plain proposal's at most all of a stage; the GLM's step with the GLM only."""
+    the plain proposal's at most all of a stage."""
     if config.state.state_share + config.adaptive.plain_share > 1.0:
         return "state_share", "state_share + plain_share must be <= 1"
-    if config.state.state_step != 1.0 and config.state.state_model != "glm":
-        return "state_step", "state_step is the GLM's step: it needs state_model = 'glm'"
     return adaptive_conflict(config, n_objects)
 
 

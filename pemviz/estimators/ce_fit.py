@@ -11,7 +11,6 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from pemviz.core.diagnostics import effective_sample_size
 from pemviz.core.fit_settings import FitOptions
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import Proposal, StateProposal, fit_proposal
@@ -169,8 +168,6 @@ def ce_update(
     weights: WeightMode = "frozen",
     n_factors: int | None = None,
     step_mask: np.ndarray | None = None,
-    min_ess_fraction: float = 0.0,
-    betas: list[float] | None = None,
 ) -> list[float]:
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
@@ -185,9 +182,6 @@ def ce_update(
         n_factors: steps in each weight (default T - 1: the last action affects nothing).
         step_mask: bool [N, T] or None: steps that count, in the weights and in the fit (False: left out,
             e.g. outside the proposal's window or after the failure).
-        min_ess_fraction: f > 0: alpha times the beta of :func:`ess_tempering` that brings the elites' weights
-            w_i^alpha (frozen) to a Kish ESS of at least f times the elites (0: alpha as it is).
-        betas: where given, that beta is appended to it (1.0 untempered).
     Returns:
         the loss per epoch (per L-BFGS evaluation). The weights are divided by their largest value (a
         constant factor, to which Adam's steps are invariant), so that w^alpha never overflows.
@@ -202,10 +196,6 @@ def ce_update(
     mask = mask[idx]
     lp = (log_p[idx, :k] * mask[:, :k]).sum(axis=1)
     frozen_log_w = ((log_p[idx, :k] - log_q[idx, :k]) * mask[:, :k]).sum(axis=1)
-    beta = ess_tempering(smoothing * frozen_log_w, min_ess_fraction * idx.size) if min_ess_fraction > 0.0 else 1.0
-    smoothing *= beta
-    if betas is not None:
-        betas.append(beta)
     if weights == "frozen" and step_mask is not None:
         scaled = smoothing * frozen_log_w
         rows, actions = inputs[idx][mask], detected[idx][mask]
@@ -264,34 +254,6 @@ def recomputed_objective(
     return loss
 
 
-def ess_tempering(log_w: np.ndarray, min_ess: float) -> float:
-    """The largest beta in (0, 1] whose weights w_i^beta have a Kish effective sample size of at least ``min_ess``
-    (1.0 where the weights themselves reach it), by bisection to 1e-12.
-
-    Args:
-        log_w: float64 [S] the weights w_i as natural logs; those of -inf (zero weights) do not count.
-        min_ess: the floor, in [0, S'] with S' the weights of finite log (above S' it is taken as S').
-    Returns:
-        beta: the fit's weights are w_i^beta, i.e. ``beta * log_w``; 1.0 with fewer than two finite weights.
-    Source: the ESS-controlled (adaptive) tempering of sequential Monte Carlo samplers (Jasra, Stephens, Doucet &
-    Tsagaris, "Inference for Levy-driven stochastic volatility models via adaptive sequential Monte Carlo", Scand. J.
-    Stat. 38(1), 2011), Kish's ESS as in Kong, Liu & Wong (JASA 89(425), 1994): Kish's ESS of w^beta does not grow
-    with beta, so the bisection finds where it crosses the floor.
-    """
-    lw = np.asarray(log_w, dtype=np.float64)
-    lw = lw[np.isfinite(lw)]
-    if lw.size <= 1:
-        return 1.0
-    goal = min(float(min_ess), float(lw.size)) * (1.0 - 1e-12)
-    if effective_sample_size(lw) >= goal:
-        return 1.0
-    lo, hi = 0.0, 1.0  # ESS(lo) >= goal > ESS(hi); at beta -> 0 every weight is 1 and the ESS is S'
-    while hi - lo > 1e-12:
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if effective_sample_size(mid * lw) >= goal else (lo, mid)
-    return max(lo, 1e-12)
-
-
 def fit_elite_steps(
     proposal: Proposal,
     rows: np.ndarray,
@@ -343,8 +305,6 @@ class EliteSteps:
         thin_above: steps held before a thinning (default 20 x ``max_rows``).
         keep_observations: also hold each step's observation, so that :meth:`reweight` can compute new weights
             (until a thinning).
-        min_ess_fraction: with f > 0, :meth:`fit` tempers the elites' weights (:func:`ess_tempering`) so that their
-            ESS is at least f times the rollouts it fits (0: the weights as they are). Settable between fits.
     """
 
     def __init__(
@@ -354,12 +314,8 @@ class EliteSteps:
         rng: np.random.Generator,
         thin_above: int | None = None,
         keep_observations: bool = False,
-        min_ess_fraction: float = 0.0,
     ) -> None:
         self.grid, self.max_rows, self.rng = grid, max_rows, rng
-        self.min_ess_fraction = min_ess_fraction
-        self.beta = 1.0
-        """The power the last :meth:`fit` raised the rollouts' weights to (1.0: untempered)."""
         self.thin_above = None if max_rows is None else (thin_above or 20 * max_rows)
         self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.keep_observations = keep_observations
@@ -447,19 +403,10 @@ class EliteSteps:
         return True
 
     def fit(self, proposal: Proposal, options: FitOptions) -> list[float]:
-        """:func:`fit_elite_steps` on the gathered steps; with ``min_ess_fraction`` f > 0 each rollout's log-weight
-        (as held: alpha log w_i) times the beta of :func:`ess_tempering` at the floor f x the rollouts held (the
-        fit's weights only; once thinned, the rows are the resampling's equal-weighted draws and are fitted as held).
-        """
+        """:func:`fit_elite_steps` on the gathered steps."""
         rows, actions, log_w = self.arrays()
-        log_w_max, self.beta = self.log_w_max, 1.0
-        if self.min_ess_fraction > 0.0 and not self.thinned and log_w.size:
-            order, held = (np.concatenate([p[i] for p in self.parts]) for i in (0, 3))
-            per = held[np.unique(order, return_index=True)[1]]  # each rollout's log-weight, once
-            self.beta = ess_tempering(per, self.min_ess_fraction * per.size)
-            log_w, log_w_max = self.beta * log_w, self.beta * log_w_max
         return fit_elite_steps(
-            proposal, rows, actions, log_w, log_w_max, options, self.n_steps if self.thinned else None
+            proposal, rows, actions, log_w, self.log_w_max, options, self.n_steps if self.thinned else None
         )
 
 

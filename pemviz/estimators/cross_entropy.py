@@ -106,9 +106,6 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     SETTINGS = settings_of(CROSS_ENTROPY_METHOD)
     fits_errors = True
     """Whether the proposal draws a noisy target's measurement errors from a model of its own (else the target's)."""
-    fit_ess = 0.0
-    """f: each CE fit's weights tempered to a Kish ESS of at least f times its elites (:func:`.ce_fit.ess_tempering`;
-    0: as they are; the state method's ``state_fit_ess``)."""
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         self.config, self.problem = config, problem
@@ -128,8 +125,6 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         self.pooled: list[int] = []
         """CE stages drawn after one reached gamma = 0 (their proposals were fitted to failures)."""
         self.reached_failures = False
-        self.fit_betas: list[float] = []
-        """Each CE stage's fit's tempering power of its weights (1.0: untempered; :attr:`fit_ess`)."""
         self._plan: StagePlan | None = None
         self._chunks: list[RolloutBatch] = []
         """The pretraining batch's chunks."""
@@ -524,13 +519,11 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         self.check()
         fit = self._fit_options(self.ce.ce_epochs)
         if self._steps is not None:
-            self._steps.min_ess_fraction = self.fit_ess
             if batch is not None and elite.any():
                 self._add_steps(batch.select(elite), index[elite], gamma)
             if self._steps is self._failure_steps and self.ce.fit_weights == "mixture":
                 self._steps.reweight(self._pool_log_weight)
             self._steps.fit(proposal, fit)
-            self.fit_betas.append(self._steps.beta)
             self._fit_noise(fit)
             self._parameters.refit(self.ce.fit_all_failures and gamma <= 0.0, self._own_samplers())
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
@@ -549,8 +542,6 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             smoothing=self._smoothing(gamma),
             weights=cast(WeightMode, self.ce.weights),
             step_mask=mask,
-            min_ess_fraction=self.fit_ess,
-            betas=self.fit_betas,
         )
         self._parameters.add(batch.select(elite), self._smoothing(gamma) * batch.log_weight()[elite])
         self._parameters.refit(self.ce.fit_all_failures and gamma <= 0.0, self._own_samplers())

@@ -13,9 +13,7 @@ features (:func:`pemviz.core.lockstep.run_batched` asks a detector that ``reads_
 each batch the estimator observes gets them back by replay (:attr:`pemviz.core.problems.Problem.features`), appended to
 its object rows, and the target reads the rows' own columns only (:class:`FirstColumns`), so every log p is the PEM's
 own. The PEM draws a share ``state_share`` of the rollouts of every stage after the failure level and of the final
-batch (:class:`pemviz.methods.state.StateSettings`), so those weights stay below 1 / ``state_share``. With
-``state_fit_ess`` each stage's fit weighs its elites by their weights tempered to an effective sample size of at least
-that fraction of them (:func:`pemviz.estimators.ce_fit.ess_tempering`); the estimate's weights stay p / q.
+batch (:class:`pemviz.methods.state.StateSettings`), so those weights stay below 1 / ``state_share``.
 """
 
 from __future__ import annotations
@@ -117,7 +115,6 @@ class StateCrossEntropy(CrossEntropy):
         super().__init__(config, dataclasses.replace(problem, target=self._first), check)
         self.ce = dataclasses.replace(self.ce, target_share=float(config.state.state_share))
         self.fits_errors = bool(config.state.state_fit_errors)
-        self.fit_ess = float(config.state.state_fit_ess)
         self.replayed = 0
         """Rollouts whose state features were replayed for the fits and weights (rollout-equivalents)."""
 
@@ -142,5 +139,5 @@ class StateCrossEntropy(CrossEntropy):
         if self.config.state.state_model == "glm":
             from pemviz.estimators.state_glm import StateGLM
 
-            return StateGLM(*shape, self._first, self.config.state.state_step)
+            return StateGLM(*shape, self._first)
         return FeatureProposal(*shape)

@@ -35,21 +35,11 @@ class StateGLM(FeatureProposal):
             their features, the gap first).
         offset: the target's detector at such rows (it reads the rows' own columns:
             :class:`pemviz.estimators.state.FirstColumns`), whose logit is the offset.
-        step: a in (0, 1], each fit's step: (w, b) moves to a times the fitted coefficients plus (1 - a) times the
-            current ones (the cross-entropy method's smoothed update, Rubinstein & Kroese, "The Cross-Entropy
-            Method", 2004, Sec. 3.3.1; 1: the fitted coefficients).
     """
 
-    def __init__(
-        self,
-        columns: tuple[int, ...],
-        scales: tuple[float, ...],
-        reference: tuple[float, ...],
-        offset: Any,
-        step: float = 1.0,
-    ):
+    def __init__(self, columns: tuple[int, ...], scales: tuple[float, ...], reference: tuple[float, ...], offset: Any):
         super().__init__(columns, scales, reference)
-        self.offset, self.step = offset, float(step)
+        self.offset = offset
         self.coef = np.zeros(len(columns) + 1)
         """(w [k], b): the linear part's weights over the scaled columns and its intercept."""
 
@@ -87,9 +77,8 @@ class StateGLM(FeatureProposal):
     ) -> list[float]:
         """The cross-entropy update in place: minimise ``-sum_i (C_i1 log q(detect | h_i) + C_i0 log q(miss | h_i)) /
         sum C + GLM_L2 |w|^2 / 2`` over (w, b) by L-BFGS from the current (w, b), at rows ``inputs`` [M, k] with
-        weighted miss and detection counts ``counts`` [M, 2]; rows where the target is certain are left out; then
-        (w, b) moves by ``step`` toward the minimiser. Returns the minimum (nats per fitted event), or [] with
-        nothing to fit."""
+        weighted miss and detection counts ``counts`` [M, 2]; rows where the target is certain are left out. Returns
+        the final loss (nats per fitted event), or [] with nothing to fit."""
         if check is not None:
             check()
         off = np.asarray(self.offset.detect_logit(inputs), dtype=np.float64)
@@ -111,6 +100,5 @@ class StateGLM(FeatureProposal):
             return float(value), grad
 
         out = minimize(loss, self.coef.copy(), jac=True, method="L-BFGS-B", options={"maxiter": 200})
-        fitted = np.asarray(out.x, dtype=np.float64)
-        self.coef = fitted if self.step == 1.0 else self.step * fitted + (1.0 - self.step) * self.coef
+        self.coef = np.asarray(out.x, dtype=np.float64)
         return [float(out.fun)]

@@ -27,17 +27,8 @@ class StateSettings:
         (:class:`pemviz.core.torch_fits.NoiseShift`, linear in the row and its features); False: the errors are drawn
         from the PEM's own error model and only the detections are proposed. The defaults (``glm``, the PEM's errors)
         are the variant measured closest to the answer on the crossing (the Validation page).
-    state_fit_ess: f in [0, 1]: each CE stage's fit raises its rollouts' weights to the largest power beta <= 1
-        whose Kish ESS is at least f times the rollouts fitted (:func:`pemviz.estimators.ce_fit.ess_tempering`: the
-        adaptive tempering of Jasra et al. 2011); 0: the weights as they are. Only the fits' weights: the
-        estimate's stay p / q.
-    state_step: a in (0, 1], the GLM's step (``state_model = "glm"``): each fit moves its coefficients to a times
-        the fitted ones plus (1 - a) times the current ones (:class:`pemviz.estimators.state_glm.StateGLM`); 1: the
-        fitted ones.
     """
 
     state_share: float = 0.1
     state_model: str = "glm"
     state_fit_errors: bool = False
-    state_fit_ess: float = 0.0
-    state_step: float = 1.0

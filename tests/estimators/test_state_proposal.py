@@ -112,13 +112,6 @@ def test_the_state_method_is_unbiased_on_the_toy_from_a_poor_start():
     assert report.passed == ("interface", "unbiased", "verdicts", "rollout-file", "recording")
 
 
-def test_the_state_method_with_tempered_fits_and_a_glm_step_is_still_unbiased_on_the_toy():
-    # only the fits' weights are tempered (here to an ESS of every elite: beta below 0.1 in every stage of these
-    # runs) and the GLM moves half way: the estimate's weights stay p / q
-    report = check_estimator("state", settings={"state_fit_ess": 1.0, "state_step": 0.5})
-    assert report.passed == ("interface", "unbiased", "verdicts", "rollout-file", "recording")
-
-
 def test_the_glm_is_the_pem_until_fitted_and_its_fit_moves_it_toward_the_elites_misses():
     from pemviz.estimators.state_glm import StateGLM
     from pemviz.scenarios.toy.simulator import ToyDetector, ToyParams
@@ -134,17 +127,6 @@ def test_the_glm_is_the_pem_until_fitted_and_its_fit_moves_it_toward_the_elites_
     assert (q < 0.5).all()
     frozen = copy.deepcopy(glm)
     assert frozen.offset is glm.offset and frozen.coef is not glm.coef
-    # with a step of 0.4 (misses and detections mixed: the fit's minimum is finite and unique, the loss strictly
-    # convex), the first fit from (w, b) = 0 lands at 0.4 of the minimiser, the second at 0.4 + 0.6 x 0.4 of it
-    mixed = np.array([[3.0, 2.0], [4.0, 1.0], [5.0, 0.5]])
-    full = StateGLM((0, 1, 2, 3), (10.0, 1.0, 1.0, 1.0), (10.0, 0.0, 0.0, 0.0), FirstColumns(target, 2))
-    full.fit_counts(rows, mixed)
-    half = StateGLM((0, 1, 2, 3), (10.0, 1.0, 1.0, 1.0), (10.0, 0.0, 0.0, 0.0), FirstColumns(target, 2), step=0.4)
-    half.fit_counts(rows, mixed)
-    np.testing.assert_allclose(half.coef, 0.4 * full.coef, atol=1e-4)  # L-BFGS-B stops within 1e-4
-    half.fit_counts(rows, mixed)
-    np.testing.assert_allclose(half.coef, 0.64 * full.coef, atol=1e-4)
-    assert np.abs(full.coef).max() > 0.5  # the fit moved: the steps are a test of something
 
 
 def test_a_scene_without_features_is_refused_in_one_line():
@@ -153,49 +135,3 @@ def test_a_scene_without_features_is_refused_in_one_line():
     r = run_cli("run", "--scenario", "braking", "--method", "state", "--no-record")
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.count("\n") == 1 and "reports no state features" in r.stderr
-
-
-def test_the_tempering_finds_the_power_whose_ess_is_the_floor_and_leaves_weights_above_it():
-    from pemviz.core.diagnostics import effective_sample_size
-    from pemviz.estimators.ce_fit import ess_tempering
-
-    # weights (1, 1, 1, 1, w): w^beta = a gives ESS (4 + a)^2 / (4 + a^2), which is 4 at a = 8/3; with w = (8/3)^2
-    # the floor 4 is reached at beta = 1/2 exactly
-    log_w = np.array([0.0, 0.0, 0.0, 0.0, 2.0 * np.log(8.0 / 3.0)])
-    assert effective_sample_size(log_w) == pytest.approx(10000.0 / 4420.0)  # (4 + 64/9)^2 / (4 + 4096/81)
-    beta = ess_tempering(log_w, 0.8 * 5)
-    assert beta == pytest.approx(0.5, abs=1e-9)
-    assert effective_sample_size(beta * log_w) == pytest.approx(4.0, abs=1e-8)
-    # w = 2: ESS (6)^2 / 8 = 4.5 is above the floor 4: the weights are left as they are
-    assert ess_tempering(np.array([0.0, 0.0, 0.0, 0.0, np.log(2.0)]), 4.0) == 1.0
-    # a zero weight (-inf) does not count; one weight alone is left as it is
-    assert ess_tempering(np.array([-np.inf, 0.0, 0.0, 0.0, 0.0, 2.0 * np.log(8.0 / 3.0)]), 4.0) == pytest.approx(0.5)
-    assert ess_tempering(np.array([3.0]), 1.0) == 1.0
-
-
-def test_the_elites_fit_is_tempered_per_rollout(monkeypatch):
-    from pemviz.core.fit_settings import FitOptions
-    from pemviz.core.rollouts import RolloutBatch
-    from pemviz.estimators import ce_fit
-
-    seen = {}
-
-    def fit_elite_steps(proposal, rows, actions, log_w, log_w_max, options, n_steps=None):
-        seen["log_w"], seen["max"] = log_w, log_w_max
-        return []
-
-    monkeypatch.setattr(ce_fit, "fit_elite_steps", fit_elite_steps)
-    # five elite rollouts of two steps, weights as above: alpha log w_i = (0, 0, 0, 0, 2 log(8/3))
-    obs = np.arange(10.0).reshape(5, 2, 1)
-    batch = RolloutBatch(obs, np.zeros((5, 2), bool), np.zeros((5, 2)), np.zeros((5, 2)), ("gap",))
-    log_w = np.array([0.0, 0.0, 0.0, 0.0, 2.0 * np.log(8.0 / 3.0)])
-    for fraction, beta in ((0.8, 0.5), (0.0, 1.0)):
-        steps = ce_fit.EliteSteps(np.linspace(0.0, 10.0, 3), None, np.random.default_rng(0))
-        steps.min_ess_fraction = fraction
-        steps.add(np.array([3, 4]), batch.select(np.arange(5) >= 3), obs[3:], np.ones((2, 2), bool), log_w[3:])
-        steps.add(np.arange(3), batch.select(np.arange(5) < 3), obs[:3], np.ones((3, 2), bool), log_w[:3])
-        steps.fit(None, FitOptions(10))
-        assert steps.beta == pytest.approx(beta, abs=1e-9)
-        # each step carries its rollout's weight to the power beta, in the order drawn (rollout by rollout)
-        np.testing.assert_allclose(seen["log_w"], beta * np.repeat(log_w, 2), rtol=1e-9, atol=1e-12)
-        assert seen["max"] == pytest.approx(beta * log_w.max())
