@@ -45,6 +45,9 @@ MAX_ROLLOUTS = 200
 """At most this many of a stage's rollouts (evenly spaced) have their features replayed for its curve: about one more
 simulation of each (:attr:`pemviz.core.problems.Problem.features`)."""
 
+Q_SERIES, PEM_SERIES = "q(detect)", "PEM p(detect)"
+"""The two series of a feature curve as the recording and the panel name them."""
+
 EFFECT_FLOOR = 1e-6
 """Nats: a column whose effect (:func:`feature_effects`) is below this moves nothing (the rounding of logit q - logit
 p where the proposal adds a constant to the PEM's logit is ~1e-15)."""

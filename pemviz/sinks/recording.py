@@ -521,7 +521,8 @@ class RerunSink(Sink):
             np.asarray(ev.log_weight)[i],
             index=ev.rollout_numbers[i],
         )
-        self.most_likely_detect = object_detect_probabilities(ev.batch, likely.row, ev.sampler, ev.target)
+        features = getattr(self.problem, "features", None)  # a state proposal is asked with the replayed features
+        self.most_likely_detect = object_detect_probabilities(ev.batch, likely.row, ev.sampler, ev.target, features)
         target = ev.target if ev.target is not None else getattr(self.problem, "target", None)
         try:
             self.most_likely_parts = LogPParts.of(ev.batch, likely.row, target)

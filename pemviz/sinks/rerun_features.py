@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from pemviz.core.feature_view import FeatureCurve, stage_feature_curve
+from pemviz.core.feature_view import PEM_SERIES, Q_SERIES, FeatureCurve, stage_feature_curve
 from pemviz.sinks.rerun_views import AXIS_RGBA, PEM_RGBA, Figure
 
 FEATURE_PATH = "feature"
@@ -28,9 +28,6 @@ FEATURE_PATH = "feature"
 
 FEATURE_FIG = Figure(FEATURE_PATH, "", "p(detect)")
 """The feature view's figure: its x axis title is the stage's feature (logged with its axes)."""
-
-Q_SERIES, PEM_SERIES = "q(detect)", "PEM p(detect)"
-"""The two series' names (their labels in the figure's legend)."""
 
 
 def feature_title(curve: FeatureCurve, stage: int) -> str:
