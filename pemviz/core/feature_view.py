@@ -184,8 +184,8 @@ def feature_curve(
     b = _bins(x[:, j], n_bins)
     n = np.bincount(b)
     kept = n > 0
-    mean = [np.bincount(b, weights=v)[kept] / n[kept] for v in (x[:, j], q, p)]
-    return FeatureCurve(str(names[j]), j, tuple(str(s) for s in names), effects, *mean, n[kept])
+    x_mean, q_mean, p_mean = (np.bincount(b, weights=v)[kept] / n[kept] for v in (x[:, j], q, p))
+    return FeatureCurve(str(names[j]), j, tuple(str(s) for s in names), effects, x_mean, q_mean, p_mean, n[kept])
 
 
 def state_proposal_of(sampler: object) -> object | None:

@@ -50,7 +50,7 @@ def test_a_state_run_records_q_and_the_pem_over_the_feature_that_moved_q_most_at
     r = run_cli(
         "run", "--scenario", "crossing", "--method", "state", "--n", "20", "--n-final", "20", "--k", "2",
         "--plain-fallback", "0", "--seed", "5", "--save", str(path),
-    )  # fmt: skip
+    )  # fmt: skip  # the command as typed, its flags in pairs
     assert r.returncode == 0, r.stderr[-2000:]
     verify_rrd(path)
     tables = read({"s": path})["s"]
