@@ -32,7 +32,7 @@ FEATURE_FIG = Figure(FEATURE_PATH, "", "p(detect)")
 
 def feature_title(curve: FeatureCurve, stage: int) -> str:
     """The figure's title for ``stage``'s curve: the feature's name and its effect (nats)."""
-    return f"stage {stage}: q(detect) vs PEM over {curve.name} (moves logit q by {curve.effect:.2f} nats / sd)"
+    return f"stage {stage}: {curve.name} moves logit q by {curve.effect:.2f} nats / sd"
 
 
 def log_feature_curve(stream: rr.RecordingStream, curve: FeatureCurve, stage: int, colour: tuple[int, ...]) -> None:
@@ -48,7 +48,7 @@ def log_feature_curve(stream: rr.RecordingStream, curve: FeatureCurve, stage: in
     stream.log(
         f"{FEATURE_PATH}/axes/title",
         rr.Points2D(
-            [[w / 2, h + 0.13 * h], [0.0, -0.08 * h]],
+            [[w / 2, h + 0.13 * h], [w / 2, -0.08 * h]],
             radii=-0.01,
             colors=AXIS_RGBA,
             labels=[curve.name, feature_title(curve, stage)],
@@ -58,7 +58,7 @@ def log_feature_curve(stream: rr.RecordingStream, curve: FeatureCurve, stage: in
     stream.log(
         f"{FEATURE_PATH}/axes/legend",
         rr.Points2D(
-            [[1.08 * w, 0.1 * h], [1.08 * w, 0.22 * h]],
+            [[1.12 * w, 0.4 * h], [1.12 * w, 0.52 * h]],
             radii=-3.0,
             colors=[colour, PEM_RGBA],
             labels=[Q_SERIES, PEM_SERIES],
@@ -70,7 +70,8 @@ def log_feature_curve(stream: rr.RecordingStream, curve: FeatureCurve, stage: in
         ("pem", PEM_SERIES, curve.p_detect, PEM_RGBA, -2.0),
     ):
         points = np.column_stack([curve.x, values])
-        stream.log(f"{FEATURE_PATH}/data/{name}", rr.LineStrips2D([points], colors=rgba, radii=radius, labels=[label]))
+        strip = rr.LineStrips2D([points], colors=rgba, radii=radius, labels=[label], show_labels=False)  # legend
+        stream.log(f"{FEATURE_PATH}/data/{name}", strip)
         stream.log(f"{FEATURE_PATH}/data/{name}/bins", rr.Points2D(points, colors=rgba, radii=radius * 1.5))
     stream.log(
         f"{FEATURE_PATH}/stats",

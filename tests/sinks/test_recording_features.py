@@ -78,7 +78,7 @@ def test_a_state_run_records_q_and_the_pem_over_the_feature_that_moved_q_most_at
         np.testing.assert_allclose(np.array(q_strip), np.column_stack([c.x, c.q_detect]), rtol=1e-6)  # float32
         np.testing.assert_allclose(np.array(p_strip), np.column_stack([c.x, c.p_detect]), rtol=1e-6)
         title = column(stage, "/feature/axes/title:Points2D:labels")[i]
-        assert title[0] == c.name and f"over {c.name}" in title[1]
+        assert title[0] == c.name and title[1].startswith(f"stage {k}: {c.name} moves logit q by ")
     # the run's last curve moves q(detect) from the PEM's in some bin, and it shows on the timeline the recording opens
     last = expected[3]
     assert np.max(np.abs(last.q_detect - last.p_detect)) > 0.05
