@@ -1,5 +1,6 @@
 """The plots panel (left) of a :class:`pemviz.app.session.Session`: *Live* (what each stage's sampler did over the
-states its rollouts visited, per-stage values of every kept run, mu_hat with its interval and the exact answer),
+states its rollouts visited, for a state proposal also over the feature that moved it most
+(:mod:`pemviz.app.feature_chart`), per-stage values of every kept run, mu_hat with its interval and the exact answer),
 *Explain* (:class:`pemviz.app.explain_tab.ExplainTab`) and *Compare* (each kept run's final estimate with its 95 %
 interval on a log10 chart beside the exact answer or reference, the settings that differ between the kept runs, and
 their reference-state proposal curves) and *ODD* (where p over an operating design domain comes from:
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 import viser
 
-from pemviz.app import charts, compare, plots
+from pemviz.app import charts, compare, feature_chart, plots
 from pemviz.app.captions import show_chart
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.odd_tab import OddTab
@@ -37,6 +38,7 @@ class PlotsPanel:
         with panel.add_tab("Live", viser.Icon.CHART_LINE):
             self.marginal_note = gui.add_html(charts.marginal_note(None))  # why the q(detect) charts are hidden
             self.marginal_plots = charts.marginal_plots(gui)
+            self.feature_plot = feature_chart.feature_plot(gui)  # a state proposal's q(detect) over a feature
             self.stage_plots = {key: plots.stage_plot(gui, title, y) for key, title, y in plots.STAGE_PLOTS}
         with panel.add_tab("Explain", viser.Icon.ZOOM_QUESTION):
             self.explain.build()
@@ -64,6 +66,7 @@ class PlotsPanel:
         with self.client.atomic():
             if record is not None:
                 charts.fill_marginal_plots(self.marginal_plots, record, self.marginal_note)
+            feature_chart.fill_feature_plot(self.feature_plot, record)
             for i, plot in enumerate(self.compare_plots):
                 show_chart(plot, i < len(runs) and runs[i].curve_grid_m.size > 0)  # a slot without a run is hidden
                 if i < len(runs):

@@ -30,6 +30,7 @@ from pemviz.config import ExperimentConfig
 from pemviz.core.counterfactuals import LikelyFailure, LogPParts, scoring_detector
 from pemviz.core.counterfactuals import most_likely_failure as pick_most_likely
 from pemviz.core.estimate import Reference
+from pemviz.core.feature_view import FeatureCurve, stage_feature_curve
 from pemviz.core.population import FailureShares
 from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities, proposal_view
 from pemviz.core.rollouts import RolloutBatch
@@ -53,6 +54,7 @@ from pemviz.sinks.recording import RerunSink
 
 if TYPE_CHECKING:
     from pemviz.core.detectors import Detector
+    from pemviz.core.features import FeaturesFn
     from pemviz.core.plan import RunPlan
     from pemviz.core.problem_view import ProblemView
     from pemviz.core.problems import Problem
@@ -252,11 +254,12 @@ class Trajectory:
         return np.array(self.batch.observations[0, :, names.index(name)], dtype=np.float64)
 
 
-def trajectory(event: RolloutsSampled, i: int) -> Trajectory:
+def trajectory(event: RolloutsSampled, i: int, features: FeaturesFn | None = None) -> Trajectory:
     """Row ``i`` of a sampled batch as a :class:`Trajectory` (its detections and log-probabilities are views of its
-    batch of one)."""
+    batch of one); ``features``: the problem's replay of the state features, for a sampler that reads them."""
     batch = event.batch
-    object_p, object_q = object_detect_probabilities(batch, int(i), event.sampler, event.target) or (None, None)
+    detect = object_detect_probabilities(batch, int(i), event.sampler, event.target, features)
+    object_p, object_q = detect or (None, None)
     one = batch.select(np.array([int(i)]))
     return Trajectory(
         stage=event.stage,
@@ -286,15 +289,18 @@ def most_likely_failure(best: Trajectory | None, event: RolloutsSampled) -> Traj
     return trajectory(event, likely.row)
 
 
-def least_robust(kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJECTORIES) -> list[Trajectory]:
-    """Merge a stage's rollouts into the kept list; the ``n`` least robust, least first.
+def least_robust(
+    kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJECTORIES, features: FeaturesFn | None = None
+) -> list[Trajectory]:
+    """Merge a stage's rollouts into the kept list; the ``n`` least robust, least first (``features``: as
+    :func:`trajectory`).
 
     Ties keep the earlier stage / lower index first (a stable sort on robustness).
     """
     if n <= 0 or event.batch.n == 0:
         return list(kept)
     r = np.asarray(event.robustness, dtype=np.float64)
-    new = [trajectory(event, int(i)) for i in np.argsort(r, kind="stable")[:n]]
+    new = [trajectory(event, int(i), features) for i in np.argsort(r, kind="stable")[:n]]
     merged = sorted(list(kept) + new, key=lambda t: t.robustness)  # sorted() is stable
     return merged[:n]
 
@@ -338,9 +344,13 @@ def population_of(
     ``shares`` is None (the estimator keeps no per-stage rollouts)."""
     if shares is None:
         return None
-    g = group_failures(shares, sampled, drawing, problem)
+    g, features = group_failures(shares, sampled, drawing, problem), getattr(problem, "features", None)
     return Population(
-        g, tuple(trajectory(*f) if f is not None and rank < MAX_POPULATION else None for rank, f in enumerate(g.found))
+        g,
+        tuple(
+            trajectory(*f, features) if f is not None and rank < MAX_POPULATION else None
+            for rank, f in enumerate(g.found)
+        ),
     )
 
 
@@ -385,6 +395,9 @@ class PanelRun(Sink):
         """:attr:`likely` as a :class:`Trajectory`."""
         self.proposal_views: dict[int, tuple[str, ProposalView]] = {}
         """Stage -> (kind, q(detect) of its sampler over the states its rollouts visited, per gap bin)."""
+        self.feature_curves: dict[int, tuple[str, FeatureCurve]] = {}
+        """Stage -> (kind, q(detect) of the state proposal that drew it against the PEM over the feature that moved it
+        most: :func:`pemviz.core.feature_view.stage_feature_curve`, with :attr:`problem`); none for other samplers."""
         self.proposal_axis: ViewAxis = DEFAULT_AXIS
         """What the views' bins are: the drawing's :meth:`~pemviz.app.drawing.PanelDrawing.proposal_axis` once the
         run started (:data:`DEFAULT_AXIS` for a problem whose drawing gives none)."""
@@ -441,11 +454,12 @@ class PanelRun(Sink):
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
         self.sampled_current = True
         self.sampled = {**self.sampled, event.stage: event}
-        self.trajectories = least_robust(self.trajectories, event)
+        features = self.problem.features if self.problem is not None else None  # a state proposal reads them
+        self.trajectories = least_robust(self.trajectories, event, features=features)
         likely = pick_most_likely(event, self.likely)
         if likely is not self.likely:
             assert likely is not None  # None only while no failure has been seen, and then it is ``self.likely``
-            self.likely, self.most_likely_failure = likely, trajectory(event, likely.row)
+            self.likely, self.most_likely_failure = likely, trajectory(event, likely.row, features)
         window = self.view.thresholds.window if self.view is not None and self.view.thresholds else None
         axis = self.proposal_axis
         if axis.view_object is None:  # one object a step: the batch's own distance signal
@@ -454,6 +468,10 @@ class PanelRun(Sink):
             view = object_proposal_view(event, axis)
         if view is not None:
             self.proposal_views = {**self.proposal_views, event.stage: (event.kind, view)}
+        pb = self.problem  # heard while the sampler is the one that drew (the estimator refits it after the stage)
+        curve = stage_feature_curve(event.batch, event.sampler, pb.target, features) if pb is not None else None
+        if curve is not None:
+            self.feature_curves = {**self.feature_curves, event.stage: (event.kind, curve)}
 
     def on_stage_finished(self, event: StageFinished) -> None:
         self.stages = self.stages + [event.result]

@@ -26,8 +26,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.special import expit
 
+from pemviz.core.detectors import reads_state
+from pemviz.core.features import with_state
+
 if TYPE_CHECKING:  # annotations only
     from pemviz.core.detectors import Detector
+    from pemviz.core.features import FeaturesFn
     from pemviz.core.rollouts import RolloutBatch
 
 QUANTILES = (0.1, 0.9)
@@ -74,7 +78,11 @@ def prob_detect(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:
 
 
 def object_detect_probabilities(
-    batch: RolloutBatch, i: int, sampler: Detector | None, target: Detector | None
+    batch: RolloutBatch,
+    i: int,
+    sampler: Detector | None,
+    target: Detector | None,
+    features: FeaturesFn | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Each object's p(detect) under ``target`` (the PEM) and q(detect) under ``sampler`` along rollout ``i`` of a
     batch of several objects: float64 (p [T, M], q [T, M]), the detectors' logits at the rollout's object rows
@@ -82,6 +90,9 @@ def object_detect_probabilities(
     one object a step (its log-probabilities are already per object) or without both detectors. The
     log-probabilities a batch keeps sum a step's objects, so these are asked of the detectors themselves: call it
     while ``sampler`` is the one that drew the batch (an estimator refits its proposal in place after each stage).
+    A detector that reads the state features (:func:`pemviz.core.detectors.reads_state`, e.g. ``method = "state"``'s
+    proposal) is asked about the rows with the rollout's features, replayed by ``features``
+    (:attr:`pemviz.core.problems.Problem.features`), as the simulation asked it; None where they cannot be.
 
     Raises:
         ValueError: ``i`` outside the batch.
@@ -91,10 +102,20 @@ def object_detect_probabilities(
     if batch.objects is None or batch.n_objects < 2 or sampler is None or target is None:
         return None
     rows = np.array(batch.object_rows[int(i)], dtype=np.float64)  # [T, M, G], a copy no detector keeps a view of
-    flat = rows.reshape(-1, rows.shape[-1])
-    p = expit(np.asarray(target.detect_logit(flat), dtype=np.float64))
-    q = expit(np.asarray(sampler.detect_logit(flat), dtype=np.float64))
-    return p.reshape(rows.shape[:2]), q.reshape(rows.shape[:2])
+    wide = rows
+    if reads_state(sampler) or reads_state(target):
+        one = batch.select(np.array([int(i)]))
+        replayed = features(one, None) if features is not None else None
+        if replayed is None:  # a detector that reads the state, and no features to ask it with
+            return None
+        wide = np.array(with_state(one, replayed).object_rows[0], dtype=np.float64)
+
+    def detect(detector: Detector) -> np.ndarray:
+        at = wide if reads_state(detector) else rows
+        logit = np.asarray(detector.detect_logit(at.reshape(-1, at.shape[-1])), dtype=np.float64)
+        return expit(logit).reshape(rows.shape[:2])
+
+    return detect(target), detect(sampler)
 
 
 def miss_log_odds(log_p_action: np.ndarray, detected: np.ndarray) -> np.ndarray:

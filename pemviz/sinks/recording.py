@@ -29,6 +29,8 @@ Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in
   ``proposal/data/elite_KK``: the elite rollouts' empirical detection rate per 0.1 m gap bin (for the final batch
   the "elites" are its crashes). ``proposal/data`` carries the transform from (metres, probability) to the plot box;
   ``proposal/axes`` the frame.
+- ``feature/...``: a state proposal's q(detect) against the PEM over the feature that moved it most, per stage
+  (:mod:`pemviz.sinks.rerun_features`; with the run's problem, :attr:`RerunSink.problem`).
 - ``stages/{failure_rate,gamma,log10_mu_hat,ess,nll,khat}``: per-stage values as :class:`rerun.Scalars` on
   ``stage``, styled once (static :class:`rerun.SeriesLines` and :class:`rerun.SeriesPoints`) for rerun's
   native time-series views; ``stages/log10_mu_hat/{ci_low,ci_high,exact}``: the 95 % interval and the exact answer
@@ -51,9 +53,8 @@ Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in
   (:func:`pemviz.sinks.rerun_rollouts.featured`: the least robust and the most likely failures) as entities of their
   own, with the rollout's properties (:class:`rerun.AnyValues`: stage, rollout, role, log p, log-weight, robustness,
   outcome and the drawing object's numbers of it, e.g. a severity). ``rollouts/{detected,missed}/stage_KK``: the
-  first signal of
-  the featured rollouts at their detections (shown for the least robust) and misses, where a detection can still
-  change the outcome (:func:`pemviz.sinks.rerun_rollouts.deciding`).
+  first signal of the featured rollouts at their detections (shown for the least robust) and misses, where a
+  detection can still change the outcome (:func:`pemviz.sinks.rerun_rollouts.deciding`).
 - ``scene/stage_KK/{lane,label,<object>...,sight}`` (a drawing object that draws a scene only,
   :class:`pemviz.sinks.drawing.RecordingDrawing`): top-down scene of each stage's least-robust rollout, one lane per
   stage, a box per object the drawing names (e.g. ``ego`` and ``lead``), playable on ``step``: the ego is green
@@ -97,11 +98,13 @@ from pemviz.core.plan import RunPlan
 from pemviz.core.problem_view import ProblemView
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
+from pemviz.methods import STATE_METHOD
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
 from pemviz.sinks.population import FailureGroups, SharedGroups, log_failures
 from pemviz.sinks.rerun_blueprint import default_blueprint
 from pemviz.sinks.rerun_explain import log_explanation
+from pemviz.sinks.rerun_features import log_stage_features
 from pemviz.sinks.rerun_odd import log_odd_map
 from pemviz.sinks.rerun_rollouts import kept_rollouts, least_robust, log_stage_rollouts
 from pemviz.sinks.rerun_stage_figures import StageFigures, log_histograms, log_series_styles
@@ -194,17 +197,12 @@ class RerunSink(Sink):
         self.most_likely_detect: tuple[np.ndarray, np.ndarray] | None = None
         """Each object's p(detect) and q(detect) [T, M] along :attr:`most_likely` (several objects and an event that
         names its detectors; else None), read while the sampler that drew it was unchanged."""
-        self.n_failures_seen = 0
-        self.explained = False
-        self.config_md = ""
-        self.intro_md = ""
-        self.status_md = ""
+        self.n_failures_seen, self.explained = 0, False
+        self.config_md = self.intro_md = self.status_md = self.estimate_md = ""
         self.stage_rows: list[str] = []
         self.exact_log_p: float | None = None
         self.reference: Reference | None = None
-        self.estimate_md = ""
-        self.n_lanes = 0
-        self.thresholds_logged = False
+        self.n_lanes, self.thresholds_logged = 0, False
         self.curve_stages: list[int] = []
         self.finished = False
         self._pending: RolloutsSampled | None = None
@@ -308,6 +306,7 @@ class RerunSink(Sink):
     def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
         self._pending = event
         self._groups(event)
+        log_stage_features(self.stream, event, self.problem, self._colour(event.stage))  # while its sampler drew
 
     def on_stage_finished(self, event: StageFinished) -> None:
         self._stage_finished(event.result)
@@ -372,7 +371,7 @@ class RerunSink(Sink):
 
     # -- run started ----------------------------------------------------------------------------------
     def on_run_started(self, ev: RunStarted) -> None:
-        cfg = ev.config
+        cfg, state = ev.config, ev.config.method == STATE_METHOD  # a state proposal: its feature view
         self.plan, self.view, self.drawing = ev.plan, ev.problem, ev.problem.drawing
         if self._groups.problem is None:  # its own; a shared one knows the run's problem already
             self._groups.drawing, self._groups.problem = ev.problem.drawing, self.problem
@@ -394,7 +393,7 @@ class RerunSink(Sink):
             ),
         )
         s.send_recording_name(f"pemviz {cfg.method} {cfg.metric} seed {cfg.seed}")
-        s.send_blueprint(default_blueprint(len(self.plan.stages) * self.scene_per_stage, self.view))
+        s.send_blueprint(default_blueprint(len(self.plan.stages) * self.scene_per_stage, self.view, features=state))
         self.intro_md = intro_markdown(ev)
         self.config_md = config_markdown(cfg)
         self._log_description()
@@ -522,7 +521,8 @@ class RerunSink(Sink):
             np.asarray(ev.log_weight)[i],
             index=ev.rollout_numbers[i],
         )
-        self.most_likely_detect = object_detect_probabilities(ev.batch, likely.row, ev.sampler, ev.target)
+        features = getattr(self.problem, "features", None)  # a state proposal is asked with the replayed features
+        self.most_likely_detect = object_detect_probabilities(ev.batch, likely.row, ev.sampler, ev.target, features)
         target = ev.target if ev.target is not None else getattr(self.problem, "target", None)
         try:
             self.most_likely_parts = LogPParts.of(ev.batch, likely.row, target)

@@ -7,10 +7,11 @@ one per question, and text views beside them that hold on every timeline:
 - **Stages** (open at start): what the sampler learned, stage by stage. The proposal's q(miss) over the states the
   stage's rollouts visited beside the PEM's, per gap bin, on a probability and a log-odds scale (bar charts;
   :mod:`pemviz.core.proposal_view`: the last stage's on ``step``, each stage's when scrubbing ``stage``), the
-  reference-state curve q(detect | d) of each stage's proposal, the per-stage series as static figures
-  (:mod:`pemviz.sinks.rerun_stage_figures`: log10 mu_hat with its interval and the exact answer, failures / N,
-  gamma, ESS, k-hat, NLL, the mean miss probability inside the sampler window) and the histograms of robustness and
-  log-weight.
+  reference-state curve q(detect | d) of each stage's proposal (for a state-dependent proposal also q(detect)
+  against the PEM over the feature that moved it most: :mod:`pemviz.sinks.rerun_features`), the per-stage series as
+  static figures (:mod:`pemviz.sinks.rerun_stage_figures`: log10 mu_hat with its interval and the exact answer,
+  failures / N, gamma, ESS, k-hat, NLL, the mean miss probability inside the sampler window) and the histograms of
+  robustness and log-weight.
 - **Explain** (timeline ``step``): the most likely failure of the run: what happened in words, p(detect) of the
   PEM and q(detect) of the sampler along it with its misses, its first signal against the thresholds with the
   counterfactual replays, the controller and its scene (the last two for a problem with a scene).
@@ -30,6 +31,7 @@ import rerun.blueprint as rrb
 
 from pemviz.core.problem_view import ProblemView, SignalView
 from pemviz.sinks import colours as C
+from pemviz.sinks.rerun_features import FEATURE_FIG
 from pemviz.sinks.rerun_stage_figures import figure, figure_titles
 from pemviz.sinks.rerun_views import LANE_SPACING_M, PROPOSAL_FIG, SCENE_PATH, SCENE_X_RANGE_M
 
@@ -45,6 +47,9 @@ EXPLAIN_PATH = "explain"
 """Root of the most likely failure's entities (:mod:`pemviz.sinks.rerun_explain`)."""
 
 _NO_LEGEND = rrb.PlotLegend(visible=False)
+
+FEATURE_VIEW_NAME = "q(detect) vs PEM over the feature that moved q most (a state proposal's, per stage)"
+"""The name of the Stages tab's feature view (:mod:`pemviz.sinks.rerun_features`; a run of ``method = "state"``)."""
 
 
 def _signals(view: ProblemView | None) -> tuple[SignalView, ...]:
@@ -68,12 +73,14 @@ def tab_name(tab: str) -> str:
     return words if tab == "stages" else f"{words} (timeline: {TIMELINE[tab]})"
 
 
-def _stages_tab(view: ProblemView | None) -> rrb.Container:
+def _stages_tab(view: ProblemView | None, features: bool = False) -> rrb.Container:
     scene = _has_scene(view)
     several = view is not None and view.objects_xy is not None  # no gap bins: the reference-state curve alone
     series = [figure(key).view(title) for key, title in figure_titles(scene, window=not several)]
+    reference = PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM", legend_room=0.34)
+    feature = FEATURE_FIG.view(FEATURE_VIEW_NAME, legend_room=0.34)
     proposal = (
-        PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM", legend_room=0.34)
+        (rrb.Horizontal(feature, reference) if features else reference)
         if several
         else rrb.Horizontal(
             rrb.BarChartView(
@@ -87,7 +94,8 @@ def _stages_tab(view: ProblemView | None) -> rrb.Container:
                     plot_legend=_NO_LEGEND,
                     name="log-odds of a miss (nats) per gap bin: median, 10-90 % (light), PEM (grey)",
                 ),
-                PROPOSAL_FIG.view("Reference-state curve q(detect | d) (other inputs fixed) vs PEM", legend_room=0.34),
+                *([feature] if features else []),
+                reference,
             ),
         )
     )
@@ -232,7 +240,11 @@ def _odd_views(view: ProblemView | None) -> list[Any]:
 
 
 def default_blueprint(
-    n_lanes: int = 12, view: ProblemView | None = None, tab: str = "stages", paused: bool = False
+    n_lanes: int = 12,
+    view: ProblemView | None = None,
+    tab: str = "stages",
+    paused: bool = False,
+    features: bool = False,
 ) -> rrb.Blueprint:
     """The recording's layout: the tabs *Stages*, *Explain* and *Rollouts* with the estimate, the run and the
     failures beside them.
@@ -243,6 +255,8 @@ def default_blueprint(
         tab: the tab open at start, one of :data:`TABS`; the time panel shows its timeline (:data:`TIMELINE`).
         paused: start with the time cursor paused (at the timeline's start); else the viewer plays the timeline
             once on opening and stops at its end (the last stage).
+        features: the Stages tab shows the feature view of a state-dependent proposal
+            (:mod:`pemviz.sinks.rerun_features`), beside or before the reference-state curve.
     Raises:
         ValueError: ``tab`` not one of :data:`TABS`.
     """
@@ -250,7 +264,12 @@ def default_blueprint(
         raise ValueError(f"default_blueprint: tab must be one of {TABS}, got {tab!r}")
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Tabs(_stages_tab(view), _explain_tab(view), _rollouts_tab(view, n_lanes), active_tab=TABS.index(tab)),
+            rrb.Tabs(
+                _stages_tab(view, features),
+                _explain_tab(view),
+                _rollouts_tab(view, n_lanes),
+                active_tab=TABS.index(tab),
+            ),
             rrb.Vertical(
                 rrb.TextDocumentView(origin="/estimate", name="Estimate"),
                 rrb.Tabs(

@@ -124,9 +124,10 @@ class Figure:
         y_range: tuple[float, float],
         x_ticks: np.ndarray | None = None,
         n_y_ticks: int = 5,
+        static: bool = True,
     ) -> None:
-        """Log (static) the data transform, the frame, grid lines and tick labels for these ranges (about
-        ``n_y_ticks`` round values on the y axis)."""
+        """Log the data transform, the frame, grid lines and tick labels for these ranges (about ``n_y_ticks`` round
+        values on the y axis): static, or with ``static=False`` on the stream's current time (axes that change)."""
         (x0, x1), (y0, y1) = x_range, y_range
         if y1 <= y0:
             y0, y1 = y0 - 0.5, y1 + 0.5
@@ -134,7 +135,7 @@ class Figure:
         stream.log(
             f"{self.path}/data",
             rr.Transform3D(translation=[-x0 * sx, y1 * sy, 0.0], scale=[sx, -sy, 1.0]),
-            static=True,
+            static=static,
         )
         w, h = self.width, self.height
         xt = nice_ticks(x0, x1, 6) if x_ticks is None else np.asarray(x_ticks, dtype=np.float64)
@@ -149,7 +150,7 @@ class Figure:
         stream.log(
             f"{self.path}/axes/frame",
             rr.LineStrips2D(frame, colors=AXIS_RGBA, radii=-1.0),
-            static=True,
+            static=static,
         )
         pos = [[x, h + 0.045 * h] for x in X] + [[-0.06 * w, y] for y in Y]
         labels = [f"{v:g}" for v in xt] + [f"{v:g}" for v in yt]
@@ -160,7 +161,7 @@ class Figure:
         stream.log(
             f"{self.path}/axes/labels",
             rr.Points2D(pos, radii=-0.01, colors=AXIS_RGBA, labels=labels, show_labels=True),
-            static=True,
+            static=static,
         )
 
     def view(self, name: str, legend_room: float = 0.0) -> rrb.Spatial2DView:
