@@ -39,8 +39,8 @@ def cli_markdown() -> str:
 
 def choices_markdown(name: str) -> str:
     """``- **classic**: the worst step's margin alone`` for each choice of setting ``name`` (or of ``preset``)."""
-    from pemviz.settings import SETTINGS
     from pemviz.presets import PRESET_HELP
+    from pemviz.settings import SETTINGS
 
     pairs = PRESET_HELP.items() if name == "preset" else SETTINGS[name].choice_help
     return "\n".join(f"- **{value}**: {what}" for value, what in pairs)

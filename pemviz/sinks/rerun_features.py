@@ -1,7 +1,7 @@
 """The recording's view of what a state-dependent proposal does to a feature (``method = "state"``): per stage,
 q(detect) of the proposal that drew the stage against the PEM's p(detect) over the feature that moved q most from the
 PEM, binned over the rows the stage drew (:func:`pemviz.core.feature_view.stage_feature_curve`), as a figure like the
-braking proposal's q(detect | gap) (:data:`pemviz.sinks.rerun_views.PROPOSAL_FIG`).
+proposal's q(detect | gap) curve (:data:`pemviz.sinks.rerun_views.PROPOSAL_FIG`).
 
 Entity paths (``feature``; each stage's on ``stage`` and on ``step`` 0, so that ``step`` shows the last stage's):
 
