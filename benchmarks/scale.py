@@ -9,6 +9,7 @@ peak memory and recording size, for N = 10^2 .. 10^5 rollouts per stage (default
     python benchmarks/scale.py --cores                  # every core (the default) against --workers 1
     python benchmarks/scale.py --cores --cores-n 1000000 --cases crossing cut-in braking
     python benchmarks/scale.py --cores --cores-n 1000000 --cases crossing-save --once   # default workers only
+    python benchmarks/scale.py --cores --ray 2 4 --cases crossing cut-in   # and a local Ray cluster of 2, 4 workers
 
 Besides the table, one line per N gives the two ratios to watch: (other + fit) / simulation (what the sampler costs
 beyond simulating; at most 1.0 at N = 10,000), and the experiment's simulation cost per rollout against the pure
@@ -38,7 +39,11 @@ Per run it prints wall and CPU seconds (the run's and its reaped workers', user 
 estimate (its first ``run ~X left``), the peak resident memory (``VmHWM``) of the run's process and of its largest
 worker, and the load average; per case the wall ratio. ``--pays-s 1`` starts the pool after the first block whatever
 the blocks left cost (100,000 crossing rollouts, 12 blocks of about 1 s, stay in one process by default), to measure
-its CPU on a short run. Figures: docs/validation.md, "Every core".
+its CPU on a short run. ``--ray 2 4`` also runs each case with ``--executor ray`` on a local Ray cluster of 2 and
+of 4 worker processes (``ray.init(num_cpus=W)`` in the run's process, before ``pemviz run``: no network), and prints
+the speed-up over ``--workers 1``, the ideal (W, at most the usable cores) and their ratio, by the run's own seconds
+(the "in S s" of its estimate line: the cluster's start is not the run's) and by the process's wall. Figures:
+docs/validation.md, "Every core".
 """
 
 from __future__ import annotations
@@ -176,16 +181,35 @@ _PAYS = (
 """``--pays-s``: ``pemviz run`` with the pool's threshold set first (``python -c ... run ARGS``)."""
 
 
+_RAY = (
+    "import sys, ray; ray.init(num_cpus=%d, include_dashboard=False, log_to_driver=False); from pemviz import cli; "
+    "code = cli.main(sys.argv[1:]); ray.shutdown(); sys.exit(code)"
+)
+"""``--ray W``: ``pemviz run --executor ray`` on a local cluster of W worker processes started first
+(``python -c ... run ARGS``)."""
+
+RUN_SECONDS = re.compile(r"from \d+ simulations in ([\d.]+) s")
+"""The run's own seconds, from its estimate line."""
+
+
 def _seconds(text: str) -> float:
     value, unit = text.split()
     return float(value) * {"s": 1.0, "min": 60.0, "h": 3600.0}[unit]
 
 
-def cores(cases: list[str], n: int, workers: str | None, once: bool = False, pays_s: float | None = None) -> None:
+def cores(
+    cases: list[str],
+    n: int,
+    workers: str | None,
+    once: bool = False,
+    pays_s: float | None = None,
+    ray: list[int] | None = None,
+) -> None:
     """Time each case with the default workers (or ``workers``) and (unless ``once``) with ``--workers 1``, in fresh
     processes: wall, CPU (the run's and its workers', user + system), the run's first time estimate, the peak memory of
     the run's process and of its largest worker, the load. ``pays_s``: the pool starts where the blocks left would
-    take that many CPU seconds (:data:`pemviz.engine.resources.POOL_PAYS_S`; None: its value)."""
+    take that many CPU seconds (:data:`pemviz.engine.resources.POOL_PAYS_S`; None: its value). ``ray``: also on a
+    local Ray cluster of each of these sizes, with the speed-up over one worker and its ratio to the ideal."""
     print(f"{len(os.sched_getaffinity(0))} usable cores; load average before: {os.getloadavg()[0]:.2f}")
     print(
         f"{'case':>17} {'workers':>8} {'wall s':>7} {'cpu s':>7} {'first est. s':>12} {'est/wall':>8} {'run MB':>7} "
@@ -193,13 +217,15 @@ def cores(cases: list[str], n: int, workers: str | None, once: bool = False, pay
     )
     for case in cases:
         args = [*(["--n", str(n)] if "mc" in CORES_CASES[case] else []), *CORES_CASES[case]]
-        walls = {}
-        for w in (workers or "default",) if once else (workers or "default", "1"):
+        walls, runs = {}, {}
+        sizes = [f"ray{r}" for r in ray or []]
+        for w in [*((workers or "default",) if once else (workers or "default", "1")), *sizes]:
             tmp = tempfile.TemporaryDirectory()
             saved = [str(Path(tmp.name) / "rollouts.parquet")] if args[-1:] == ["--save-rollouts"] else []
             cmd = [sys.executable, "-m", "pemviz.cli"] if pays_s is None else [sys.executable, "-c", _PAYS % pays_s]
+            cmd = [sys.executable, "-c", _RAY % int(w[3:])] if w.startswith("ray") else cmd
             cmd += ["run", "--no-record", *args, *saved]
-            cmd += [] if w == "default" else ["--workers", w]
+            cmd += [] if w == "default" else ["--executor", "ray"] if w.startswith("ray") else ["--workers", w]
             peaks: dict[int, float] = {}
             done = threading.Event()
             t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -215,6 +241,8 @@ def cores(cases: list[str], n: int, workers: str | None, once: bool = False, pay
             tmp.cleanup()
             if proc.returncode != 0:
                 raise SystemExit(f"{case} --workers {w} failed:\n{err[-3000:]}")
+            own = RUN_SECONDS.search(out + err)
+            runs[w] = float(own.group(1)) if own else float("nan")
             first = re.search(r"run ~([\d.]+ (?:s|min|h)) left", err)
             est = _seconds(first.group(1)) if first else float("nan")
             run_mb = peaks.pop(proc.pid, float("nan"))
@@ -229,6 +257,16 @@ def cores(cases: list[str], n: int, workers: str | None, once: bool = False, pay
         if once:
             continue
         print(f"{case:>17}: wall with {first_w} workers / with 1 = {walls[first_w] / walls['1']:.2f}", flush=True)
+        cpus = len(os.sched_getaffinity(0))
+        for w in sizes:
+            ideal = min(int(w[3:]), cpus)
+            run_up, wall_up = runs["1"] / runs[w], walls["1"] / walls[w]
+            print(
+                f"{case:>17}: Ray cluster of {w[3:]}: speed-up over 1 worker {run_up:.2f} (the run's seconds "
+                f"{runs[w]:.1f} / {runs['1']:.1f}), {wall_up:.2f} by the process's wall; ideal {ideal} on {cpus} "
+                f"cores: {run_up / ideal:.2f} of it ({wall_up / ideal:.2f} by wall)",
+                flush=True,
+            )
 
 
 def _timed_child(extra: list[str], what: str) -> tuple[float, dict, int]:
@@ -264,12 +302,15 @@ def main() -> int:
     ap.add_argument(
         "--pays-s", type=float, default=None, help="--cores: start the pool where the blocks left take this CPU (s)"
     )
+    ap.add_argument("--ray", type=int, nargs="+", default=None, help="--cores: also on local Ray clusters of W workers")
     args = ap.parse_args()
     if args.child is not None:
         _child(args.child)
         return 0
     if args.cores:
-        cores(args.cases, args.cores_n, args.workers, args.once, args.pays_s)
+        if args.ray and args.once:
+            raise SystemExit("--ray needs the --workers 1 run to compare with: leave out --once")
+        cores(args.cases, args.cores_n, args.workers, args.once, args.pays_s, args.ray)
         return 0
     os.environ.setdefault("RERUN_ANALYTICS", "false")
     print(f"{os.cpu_count()} cores; times in seconds, per simulation in microseconds")
