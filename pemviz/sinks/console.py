@@ -292,10 +292,7 @@ class AdviceText:
     within_s: float | None = None
     committor: bool | None = None
 
-    @staticmethod
-    def time(n: float, s_per: float | None) -> str:
-        """``, ~26 s``: ``n`` simulations at ``s_per`` seconds each; ``""`` unmeasured."""
-        return _time(n, s_per)
+    time = staticmethod(_time)
 
     def tail(self) -> str:
         """`` --max-time 60`` for a route that must fit in ``within_s`` seconds, else ``""``."""
