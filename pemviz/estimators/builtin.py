@@ -16,11 +16,9 @@ from pemviz.core.plan import RunPlan
 from pemviz.methods.adaptive import plain_fallback_most, retry_n
 from pemviz.settings import setting_of
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # light to import: a config's checks read these hooks
     from pemviz.config import ExperimentConfig
     from pemviz.core.problems import Problem
-
-if TYPE_CHECKING:  # light to import: a config's checks read these hooks
     from pemviz.estimators.base import Check, Estimator
     from pemviz.sinks.console import AdviceText
 
