@@ -12,8 +12,12 @@ breaks the contract (:func:`pemviz.studies.reproducibility.compare`).
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
 import sys
 import time
+from typing import Any
 
 from pemviz.studies import reproducibility as rp
 
@@ -22,6 +26,27 @@ CASES = {
     "braking, N_e 20,000": ["--n-final", "20000"],  # a final batch of 3 blocks of 8,192: Ray splits it into tasks
     "cut-in": ["--scenario", "cut-in"],
 }
+
+
+def fingerprint_in_subprocess(args: list[str], env: dict[str, str], timeout_s: float = 300.0) -> dict[str, Any]:
+    """:func:`pemviz.studies.reproducibility.fingerprint` of ``python -m pemviz.studies.reproducibility ARGS`` run
+    with ``env`` added to this process's environment.
+
+    Raises:
+        RuntimeError: the run failed or printed no fingerprint (the message holds its stderr's tail).
+        subprocess.TimeoutExpired: it ran past ``timeout_s`` seconds.
+    """
+    proc = subprocess.run(
+        [sys.executable, "-m", "pemviz.studies.reproducibility", *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **env},
+        timeout=timeout_s,
+    )
+    lines = proc.stdout.strip().splitlines()
+    if proc.returncode != 0 or not lines:
+        raise RuntimeError(f"reproducibility run {args} under {env} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    return json.loads(lines[-1])
 
 
 def row(label: str, fp: dict, seconds: float, problems: list[str]) -> str:
@@ -53,7 +78,7 @@ def main() -> int:
                 if executor == "ray" and chunk is not None:
                     continue  # Ray deals whole blocks of 8,192 rollouts into tasks; --chunk streams serial stages
                 t0 = time.perf_counter()
-                fp = rp.fingerprint_in_subprocess(
+                fp = fingerprint_in_subprocess(
                     [*args, "--executor", executor, *([] if chunk is None else ["--chunk", str(chunk)])], {}, 900
                 )
                 problems = [] if first is None else rp.compare(first, fp, same_machine=True)
@@ -66,7 +91,7 @@ def main() -> int:
     first = None
     for setting, env in rp.DISPATCH_SETTINGS.items():
         t0 = time.perf_counter()
-        fp = rp.fingerprint_in_subprocess([], env)
+        fp = fingerprint_in_subprocess([], env)
         problems = [] if first is None else rp.compare(first, fp, same_machine=False)
         first = first or fp
         bad += bool(problems)

@@ -1,21 +1,21 @@
 """Sub-commands of the ``pemviz`` command line; each module exposes ``register(subparsers)``.
 
 This module holds what the commands share (and :mod:`pemviz.cli` uses): :class:`UsageError`, :class:`Terminated`,
-the output folder check, and the argument helpers of ``validate`` and ``tables``; it imports no command.
+the output folder check and the argument helpers; it imports no command. What the studies ``validate`` and ``tables``
+share besides is :mod:`pemviz.commands.study`'s.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
-import sys
 import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, cast
 
-from pemviz.config import ConfigError, ExperimentConfig, default_of
-from pemviz.io.files import check_output_path, write_text_atomic
+from pemviz.config import ConfigError, default_of
+from pemviz.io.files import check_output_path
 from pemviz.settings import SETTINGS, Setting
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -168,65 +168,9 @@ def _number(s: Setting) -> Callable[[str], int | float | None]:
     return parse
 
 
-SAMPLER_SETTINGS = ("n_stages", "n_per_stage", "n_final", "ce_epochs", "pretrain_epochs", "pem")
-"""The settings ``validate`` and ``tables`` take from the command line."""
-
-
-def add_study_arguments(
-    p: argparse.ArgumentParser, name: str, files: str, jobs: int | None, jobs_note: str = ""
-) -> None:
-    """The arguments ``validate`` and ``tables`` share: the sampler sizes (--k, --n, --n-final, --ce-epochs, ...),
-    ``--jobs`` (default ``jobs``; None: every usable CPU, :func:`pemviz.engine.resources.usable_cpus`) and ``--out``
-    (default ``name``: the folder of ``files`` and the runs file)."""
-    from pemviz.studies.validation import RUNS_FILE
-
-    for setting in SAMPLER_SETTINGS:
-        add_setting(p, setting)
-    said = "every usable core" if jobs is None else jobs
-    p.add_argument("--jobs", type=int, default=jobs, help=f"worker processes (default {said}{jobs_note})")
-    p.add_argument(
-        "--out",
-        default=name,
-        metavar="DIR",
-        help=f"folder for {files} and {RUNS_FILE} (each run as it ends; an existing folder resumes: finished runs are "
-        f"not run again) (default {name})",
-    )
-
-
-def say(text: str) -> None:
-    """A progress line of ``validate`` or ``tables``, on stderr."""
-    print(text, file=sys.stderr, flush=True)
-
-
-def write_study(out: Path, name: str, text: str, csv_text: str) -> None:
-    """Print a study's report and write it as ``<name>.md`` and ``<name>.csv`` into ``out`` (atomically)."""
-    from pemviz.studies.validation import RUNS_FILE
-
-    print(text)
-    write_text_atomic(out / f"{name}.md", text)
-    write_text_atomic(out / f"{name}.csv", csv_text)
-    say(f"wrote {out / f'{name}.md'}, {out / f'{name}.csv'} and {out / RUNS_FILE}")
-
-
 def setting_error(exc: ConfigError) -> UsageError:
     """A config's error as the command line says it: ``--alpha: smoothing (alpha) = 2.0 is invalid: ...``."""
     return UsageError(f"{SETTINGS[exc.field].flag}: {exc}" if exc.field in SETTINGS else str(exc))
-
-
-def base_fields(args: argparse.Namespace) -> dict[str, Any]:
-    """Config fields given on the command line (validated by building a config; ``--pem`` by
-    :func:`pem_argument`).
-
-    Raises:
-        UsageError: a value outside its setting's range, or a ``--pem`` that is neither shipped nor a file.
-    """
-    fields = {k: getattr(args, k) for k in SAMPLER_SETTINGS if getattr(args, k, None) is not None}
-    try:
-        ExperimentConfig.of(**fields)
-    except ConfigError as exc:
-        raise setting_error(exc) from None
-    pem_argument(fields.get("pem"))
-    return fields
 
 
 def pem_argument(value: str | None, flag: str = "--pem") -> str | None:

@@ -21,20 +21,11 @@ import argparse
 import math
 import time
 
-from pemviz.commands import (
-    UsageError,
-    add_command,
-    add_study_arguments,
-    base_fields,
-    output_folder,
-    say,
-    split_choices,
-    write_study,
-)
+from pemviz.commands import UsageError, add_command, output_folder
+from pemviz.commands.study import add_presets, add_study_arguments, base_fields, presets_of, run_study, say, write_study
 from pemviz.core.estimate import format_probability
 from pemviz.engine.resources import cap_jobs
 from pemviz.io.files import check_output_folder
-from pemviz.presets import PRESETS
 from pemviz.scenarios.problems import PROBLEMS, build_problem
 from pemviz.studies.exact_answers import ExactAnswer, exact_answer
 from pemviz.studies.paper_tables import (
@@ -46,7 +37,7 @@ from pemviz.studies.paper_tables import (
     tables_rows,
     write_recording,
 )
-from pemviz.studies.validation import RUNS_FILE, RunRecord, run_jobs
+from pemviz.studies.validation import RunRecord
 
 DESCRIPTION = """
 Table II (MC, naive-50, adaptive) and Table III (robustness metrics) with repetitions, mean +- standard error,
@@ -60,12 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "tables", DESCRIPTION)
     p.add_argument("--problem", default="main", help=f"one of {', '.join(PROBLEMS)} (default main)")
     p.add_argument("--reps", type=int, default=10, help="repetitions per row (default 10)")
-    p.add_argument(
-        "--extra",
-        default="paper,authors-code",
-        help=f"extra adaptive rows with these presets, from {', '.join(PRESETS)} "
-        "(default paper,authors-code; '' for none)",
-    )
+    add_presets(p, "extra", "paper,authors-code", "extra adaptive rows with these presets", "; '' for none")
     p.add_argument("--mc-large", type=int, default=10000, help="rollouts of the large MC row (default 10000)")
     p.add_argument("--naive-large", type=int, default=1000, help="rollouts of the large naive-50 row (default 1000)")
     add_study_arguments(p, "tables", "tables.md, tables.csv, tables.rrd", 2, ": the CI machine's cores")
@@ -76,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     if args.problem not in PROBLEMS:
         raise UsageError(f"--problem {args.problem!r}: use one of {', '.join(PROBLEMS)}")
-    extra = split_choices(args.extra, PRESETS, "extra") if args.extra.strip() else ()
+    extra = presets_of(args.extra, "extra")
     if args.reps < 2:
         raise UsageError("--reps must be >= 2 (the standard error needs two repetitions)")
     if args.jobs < 1 or args.mc_large < 1 or args.naive_large < 1:
@@ -93,7 +79,6 @@ def main(args: argparse.Namespace) -> int:
     say(f"  exact p_fail {math.exp(truth.log_p_fail):.6g} ({truth.source})")
     specs = row_specs(base, extra, args.mc_large, args.naive_large)
     jobs = table_jobs(args.problem, specs, args.reps, args.pem)
-    say(f"{len(jobs)} runs on {n_jobs} process(es)")
 
     def on_record(r: RunRecord) -> None:
         say(
@@ -101,7 +86,7 @@ def main(args: argparse.Namespace) -> int:
             f"{r.wall_s:.1f} s"
         )
 
-    done = run_jobs(jobs, n_jobs, on_record, runs_file=out / RUNS_FILE, progress=True)
+    done = run_study(jobs, n_jobs, on_record, out)
     by_label = records_by_row(specs, done)
     rows_all = tables_rows(specs, by_label, truth.log_p_fail, extra)
     text = report(args.problem, args.reps, base, truth, rows_all, n_jobs, time.perf_counter() - t0)

@@ -17,30 +17,20 @@ import math
 import time
 from pathlib import Path
 
-from pemviz.commands import (
-    UsageError,
-    add_command,
-    add_study_arguments,
-    base_fields,
-    output_folder,
-    say,
-    split_choices,
-    write_study,
-)
+from pemviz.commands import UsageError, add_command, output_folder, split_choices
+from pemviz.commands.study import add_presets, add_study_arguments, base_fields, presets_of, run_study, say, write_study
 from pemviz.core.estimate import format_probability, relative_error
 from pemviz.engine.resources import cap_jobs, usable_cpus
 from pemviz.io.files import check_output_folder
-from pemviz.presets import DEFAULT_PRESET, PRESETS
+from pemviz.presets import DEFAULT_PRESET
 from pemviz.scenarios.problems import PROBLEMS
 from pemviz.studies.exact_answers import ExactAnswer, exact_answer, problem_description, validation_problems
 from pemviz.studies.validation import (
     BASELINES,
     DEFAULT_PROBLEMS,
-    RUNS_FILE,
     RunRecord,
     methods_for,
     report,
-    run_jobs,
     study_jobs,
     summaries_csv,
     summarise,
@@ -62,11 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"comma-separated, from {', '.join(PROBLEMS)} or a registered scenario with an exact answer "
         f"(default {','.join(DEFAULT_PROBLEMS)})",
     )
-    p.add_argument(
-        "--presets",
-        default=f"{DEFAULT_PRESET},paper",
-        help=f"adaptive-sampler presets to compare, from {', '.join(PRESETS)} " f"(default {DEFAULT_PRESET},paper)",
-    )
+    add_presets(p, "presets", f"{DEFAULT_PRESET},paper", "adaptive-sampler presets to compare")
     p.add_argument(
         "--baselines",
         default="mc,naive50,ams",
@@ -80,7 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def main(args: argparse.Namespace) -> int:
     problems = split_choices(args.problems, validation_problems(), "problems")
-    presets = split_choices(args.presets, PRESETS, "presets") if args.presets.strip() else ()
+    presets = presets_of(args.presets, "presets")
     from pemviz.methods import BUILTIN_METHODS, method_names
 
     others = tuple(m for m in method_names() if m not in BUILTIN_METHODS)  # plugins' methods
@@ -104,7 +90,6 @@ def main(args: argparse.Namespace) -> int:
         truths[name] = exact_answer(name, args.pem, progress=say)
         say(f"  truth {math.exp(truths[name].log_p_fail):.6g} ({truths[name].source})")
     jobs = study_jobs(problems, methods, args.seeds, args.pem)
-    say(f"{len(jobs)} runs on {n_jobs} process(es)")
 
     def on_record(r: RunRecord) -> None:
         err = relative_error(r.log_mu_hat, truths[r.problem].log_p_fail)
@@ -113,7 +98,7 @@ def main(args: argparse.Namespace) -> int:
             f"(rel. error {err:.3f}), {r.n_failures}/{r.n} failures, {r.wall_s:.1f} s"
         )
 
-    records = run_jobs(jobs, n_jobs, on_record, runs_file=out_dir / RUNS_FILE, progress=True)
+    records = run_study(jobs, n_jobs, on_record, out_dir)
     summaries = summarise(records, truths)
     text = report(problems, truths, summaries, args.seeds, time.perf_counter() - t0)
     write_study(out_dir, "validate", text, summaries_csv(summaries))

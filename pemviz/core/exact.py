@@ -217,7 +217,11 @@ def log1p(t: np.ndarray) -> np.ndarray:
     """log(1 + t) for t in [0, 1], float64 [...], to 3 ulp, from correctly rounded operations alone:
     ``2 atanh(s)``, s = t / (2 + t) <= 1/3, by its series to s^35 (Abramowitz & Stegun 4.1.29)."""
     t = np.asarray(t, dtype=np.float64)
-    s = t / (2.0 + t)
+    return _two_atanh(t / (2.0 + t))
+
+
+def _two_atanh(s: np.ndarray) -> np.ndarray:
+    """2 atanh(s) for |s| <= 1/3, float64 [...], by its series to s^35 (Abramowitz & Stegun 4.1.29), Horner's."""
     s2 = s * s
     p = np.full_like(s, _ATANH_TERMS[17])
     for c in _ATANH_TERMS[16::-1]:
@@ -235,13 +239,7 @@ def log(x: np.ndarray) -> np.ndarray:
     m, e = np.frexp(np.where(np.isfinite(x) & (x > 0.0), x, 1.0))
     low = m < math.sqrt(0.5)
     m, e = np.where(low, 2.0 * m, m), np.where(low, e - 1, e).astype(np.float64)
-    s = (m - 1.0) / (m + 1.0)
-    s2 = s * s
-    p = np.full_like(s, _ATANH_TERMS[17])
-    for c in _ATANH_TERMS[16::-1]:
-        p *= s2
-        p += c
-    out = e * _LN2_HI + (e * _LN2_LO + 2.0 * s * p)
+    out = e * _LN2_HI + (e * _LN2_LO + _two_atanh((m - 1.0) / (m + 1.0)))
     return np.where(x > 0.0, np.where(np.isinf(x), np.inf, out), np.where(x == 0.0, -np.inf, np.nan))
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from pemviz.core.estimate import KHAT_UNRELIABLE, MIN_ESS_RELIABLE, MIN_FAILURES, VERDICTS, khat_threshold
+from pemviz.core.estimate import KHAT_UNRELIABLE, MIN_ESS_RELIABLE, MIN_FAILURES, khat_threshold
 
 SAMPLINGS = ("importance", "plain", "splitting")
 """How an estimate's rollouts were drawn: importance sampling (weights p / q), plain Monte Carlo (the PEM itself,
@@ -103,10 +103,3 @@ def _khat_check(n: int, n_failures: int, ess: float, khat: float, sampling: str)
         return Check(name, found, "a fitted k-hat " + rule, False, "doubtful")
     worst = "unreliable: a few weights dominate" if khat > KHAT_UNRELIABLE and ess < MIN_ESS_RELIABLE else "doubtful"
     return Check(name, f"k-hat {khat:.2f}", rule, khat <= threshold, worst)
-
-
-def worst_of(checks: list[Check]) -> str:
-    """The best verdict the failed checks allow: ``reliable`` when none failed, else the worst of their
-    :attr:`Check.fails_to` (its first word)."""
-    failed = [c.fails_to.split(":")[0] for c in checks if c.passed is False]
-    return max(failed, key=VERDICTS.index) if failed else "reliable"

@@ -34,19 +34,7 @@ from pemviz.core.detectors import ArrayRQMC, Detector
 from pemviz.core.estimate import Estimate
 from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.engine.events import (
-    Event,
-    FinalEstimate,
-    Listener,
-    RolloutChunk,
-    RolloutsSampled,
-    RunCancelled,
-    RunFinished,
-    RunStarted,
-    StageFinished,
-    StageResult,
-    StageStarted,
-)
+from pemviz.engine import events as ev
 from pemviz.engine.executors import get_executor
 from pemviz.engine.odd_map import OddMapCollector
 from pemviz.estimators import build_estimator
@@ -57,7 +45,8 @@ from pemviz.settings import METRICS
 
 
 class Cancelled(Exception):
-    """Raised inside the engine when the cancel token is set; the run ends with :class:`RunCancelled`."""
+    """Raised inside the engine when the cancel token is set; the run ends with
+    :class:`~pemviz.engine.events.RunCancelled`."""
 
 
 STREAM_ABOVE = 20_000
@@ -175,7 +164,7 @@ class Experiment:
     def __init__(
         self,
         config: ExperimentConfig,
-        listeners: Iterable[Listener] = (),
+        listeners: Iterable[ev.Listener] = (),
         cancel: threading.Event | None = None,
         *,
         problem: Problem,
@@ -184,15 +173,15 @@ class Experiment:
         self.listeners = list(listeners)
         self.cancel = cancel or threading.Event()
         self.problem = problem
-        self.stages: list[StageResult] = []
+        self.stages: list[ev.StageResult] = []
         self.n_simulations = 0
         self.seen_failures = SeenFailures()
         """The probability of the distinct failures drawn in any stage: a lower bound the final verdict checks."""
         self._odd_map = OddMapCollector(problem) if getattr(problem, "odd", None) is not None else None
         """Over an operating design domain: the final stage's rollouts, for the map the final estimate carries."""
 
-    def emit(self, event: Event) -> None:
-        if self._odd_map is not None and isinstance(event, RolloutChunk):
+    def emit(self, event: ev.Event) -> None:
+        if self._odd_map is not None and isinstance(event, ev.RolloutChunk):
             self._odd_map.add(event)
         for listener in self.listeners:
             listener(event)
@@ -201,13 +190,13 @@ class Experiment:
         if self.cancel.is_set():
             raise Cancelled("cancelled by the user")
 
-    def run(self) -> RunFinished | RunCancelled:
+    def run(self) -> ev.RunFinished | ev.RunCancelled:
         """Run the whole experiment; returns the last event emitted (see the module docstring for the events)."""
         cfg, pb = self.config, self.problem
         t_start = time.perf_counter()
         estimator = build_estimator(cfg, pb, self._check_cancel)  # it seeds its streams, the rollouts' included
         self.emit(
-            RunStarted(
+            ev.RunStarted(
                 cfg,
                 str(pb.formula),
                 pb.curve_grid,
@@ -223,7 +212,7 @@ class Experiment:
             while (plan := estimator.next_stage()) is not None:
                 self._stage(estimator, plan)
         except Cancelled as exc:
-            event = RunCancelled(tuple(self.stages), str(exc))
+            event = ev.RunCancelled(tuple(self.stages), str(exc))
             self.emit(event)
             return event
         est, used = estimator.result()
@@ -232,7 +221,7 @@ class Experiment:
         seen = self.seen_failures.log_p
         pooled, cap = said.pooling, said.verdict_cap
         est = est.below_seen(seen)
-        final = FinalEstimate(
+        final = ev.FinalEstimate(
             est,
             n_sim,
             time.perf_counter() - t_start,
@@ -251,15 +240,15 @@ class Experiment:
             self._odd_map.result(cap) if self._odd_map is not None else None,
         )
         self.emit(final)
-        done = RunFinished(final, tuple(self.stages))
+        done = ev.RunFinished(final, tuple(self.stages))
         self.emit(done)
         return done
 
-    def _stage(self, estimator: Estimator, plan: StagePlan) -> StageResult:
+    def _stage(self, estimator: Estimator, plan: StagePlan) -> ev.StageResult:
         """Draw the planned batch, show it to the estimator and the listeners, close the stage."""
         t0 = time.perf_counter()
         self._check_cancel()
-        self.emit(StageStarted(plan.stage, plan.kind, plan.n))
+        self.emit(ev.StageStarted(plan.stage, plan.kind, plan.n))
         pb, cfg = self.problem, self.config
         target = pb.target if plan.target is None else plan.target
         parts = plan.parts  # (rollouts, detector) in the order drawn
@@ -286,11 +275,12 @@ class Experiment:
             failed = pb.failed(batch, by_metric["classic"])
             self.seen_failures.add(pb, batch, failed)
             log_w = estimator.observe(batch, failed, by_metric[cfg.metric])
-            self.emit(RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler, tuple(plan.parts), pb.target))
+            chunk = ev.RolloutChunk(plan.stage, plan.kind, 0, batch, log_w, plan.sampler, tuple(plan.parts), pb.target)
+            self.emit(chunk)
             self._sampled(plan, batch, by_metric, failed, log_w, target=target)
         self.n_simulations += plan.n
         out = estimator.finish()
-        res = StageResult(
+        res = ev.StageResult(
             plan.stage,
             plan.kind,
             out.gamma,
@@ -301,7 +291,7 @@ class Experiment:
             time.perf_counter() - t0,
         )
         self.stages.append(res)
-        self.emit(StageFinished(res))
+        self.emit(ev.StageFinished(res))
         return res
 
     def _streamed(
@@ -330,7 +320,7 @@ class Experiment:
             self.seen_failures.add(pb, batch, failed)
             log_w = estimator.observe(batch, failed, robustness)
             self.emit(
-                RolloutChunk(
+                ev.RolloutChunk(
                     plan.stage, plan.kind, sample.seen, batch, log_w, plan.sampler, tuple(plan.parts), pb.target
                 )
             )
@@ -359,11 +349,12 @@ class Experiment:
         log_w: np.ndarray,
         **streamed: Any,
     ) -> None:
-        """Show the listeners a stage's rollouts (:class:`RolloutsSampled`; ``streamed``: its ``target``, and for a
-        streamed stage's sample its ``n_total``, ``index`` and the whole stage's robustness and log-weights)."""
+        """Show the listeners a stage's rollouts (:class:`~pemviz.engine.events.RolloutsSampled`; ``streamed``: its
+        ``target``, and for a streamed stage's sample its ``n_total``, ``index`` and the whole stage's robustness and
+        log-weights)."""
         rho = by_metric[self.config.metric]
         self.emit(
-            RolloutsSampled(plan.stage, plan.kind, batch, rho, by_metric, failed, log_w, plan.sampler, **streamed)
+            ev.RolloutsSampled(plan.stage, plan.kind, batch, rho, by_metric, failed, log_w, plan.sampler, **streamed)
         )
 
 

@@ -10,18 +10,17 @@ their weights at the failure step with ``config.weights_until_failure``, like th
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from pemviz.core.plan import RunPlan
 from pemviz.methods.adaptive import plain_fallback_most, retry_n
 from pemviz.settings import setting_of
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # light to import: a config's checks read these hooks
     from pemviz.config import ExperimentConfig
     from pemviz.core.problems import Problem
-
-if TYPE_CHECKING:  # light to import: a config's checks read these hooks
     from pemviz.estimators.base import Check, Estimator
+    from pemviz.sinks.console import AdviceText
 
 
 def adaptive_then_most(config: ExperimentConfig, simulations: int) -> tuple[int, str]:
@@ -146,14 +145,7 @@ def ams_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | 
     return None
 
 
-def adaptive_more_budget(
-    config: ExperimentConfig,
-    n_simulations: int | None,
-    s_per: float | None,
-    wall_s: float | None,
-    within_s: float | None,
-    text: Any,
-) -> str | None:
+def adaptive_more_budget(config: ExperimentConfig, text: AdviceText) -> str | None:
     """The cross-entropy sampler's route (:attr:`Method.more_budget <pemviz.methods.Method>`): a run at
     4 N (pretraining, K stages of 4 N and the final batch) or a precision target."""
     from pemviz.config import has_final_batch
@@ -161,43 +153,28 @@ def adaptive_more_budget(
     n = int(getattr(config, "n_per_stage", 100))
     final = setting_of(config, "n_final", 0) if has_final_batch(config) else 0
     sims = setting_of(config, "pretrain_rollouts", 0) + setting_of(config, "n_stages", 0) * 4 * n + final
-    return text.importance_route(config, n_simulations, s_per, within_s, sims)
+    return text.importance_route(config, sims)
 
 
-def tilt_more_budget(
-    config: ExperimentConfig,
-    n_simulations: int | None,
-    s_per: float | None,
-    wall_s: float | None,
-    within_s: float | None,
-    text: Any,
-) -> str | None:
+def tilt_more_budget(config: ExperimentConfig, text: AdviceText) -> str | None:
     """The tilted proposal's route: more batches of it to a 20 % interval."""
-    m = text.cap(config, n_simulations, s_per, within_s)
+    m = text.cap(config)
     if m is None:
         return None
     return (
-        f"more tilted batches (--rel-error 0.2 --max-sims {m}{text.tail(within_s)}: up to {m:,} simulations"
-        f"{text.time(m, s_per)})"
+        f"more tilted batches (--rel-error 0.2 --max-sims {m}{text.tail()}: up to {m:,} simulations"
+        f"{text.time(m, text.s_per)})"
     )
 
 
-def ams_more_budget(
-    config: ExperimentConfig,
-    n_simulations: int | None,
-    s_per: float | None,
-    wall_s: float | None,
-    within_s: float | None,
-    text: Any,
-) -> str | None:
+def ams_more_budget(config: ExperimentConfig, text: AdviceText) -> str | None:
     """Splitting's route: no final batch to add to, so more particles (about 4 times the time), or a graded score the
     scene has: its learned committor (``text.committor``: the scene has one; None: not known), else the nominal
     look-ahead, which any scene that splits can rank by (:mod:`pemviz.estimators.lookahead_score`)."""
     n = int(getattr(config, "n_per_stage", 100))
-    more = f"more particles (--n {4 * n}{text.time(4.0, wall_s) if wall_s else ''})"
+    more = f"more particles (--n {4 * n}{text.time(4.0, text.wall_s) if text.wall_s else ''})"
     score = setting_of(config, "ams_score", "robustness")
-    committor = getattr(text, "committor", None)
-    if committor and score != "committor":
+    if text.committor and score != "committor":
         return f"{more}, or particles ranked by the scenario's learned committor (--ams-score committor)"
     if score == "robustness":
         return (

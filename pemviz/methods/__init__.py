@@ -82,10 +82,10 @@ class Method:
         validate: optional, ``validate(config, n_objects) -> (setting, what is allowed) | None``: the first of the
             method's own settings that conflicts with another in ``config`` (its scene perceiving ``n_objects``
             objects a step), checked when the config is made; None: none. A :data:`Ref`.
-        more_budget: optional, ``more_budget(config, n_simulations, s_per, wall_s, within_s, text) -> str | None``:
-            the method's own route to a decided answer after a run that is not ``reliable`` (the console's ``next:``
-            line; ``text`` is :class:`pemviz.sinks.console.AdviceText`, its wording helpers); None: more rollouts or a
-            precision target. A :data:`Ref`.
+        more_budget: optional, ``more_budget(config, text) -> str | None``: the method's own route to a decided
+            answer after a run that is not ``reliable`` (the console's ``next:`` line; ``text`` is
+            :class:`pemviz.sinks.console.AdviceText`, the run's figures and the wording helpers); None: more rollouts
+            or a precision target. A :data:`Ref`.
         no_failure_advice: optional, ``no_failure_advice(n) -> str``: what to try after a run of ``n`` rollouts
             without a failure (the panel's); None: more rollouts or the adaptive method. A :data:`Ref`.
         cost_model: how :mod:`pemviz.engine.cost` predicts a stage's seconds: ``plain`` (rollouts of a detector),

@@ -116,13 +116,14 @@ def fold_state_dict(
     in_dim: int = N_FEATURES,
     out_dim: int = 1,
 ) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-    """:func:`fold_layers` of the :class:`MLNN` with this state, computed in numpy, bit for bit: affine layers
+    """The layers of the :class:`MLNN` with this state, folded in numpy, bit for bit as in torch: affine layers
     ``(W float64 [out, in], b float64 [out])``, each BatchNorm (eval mode, ``eps`` :data:`BATCH_NORM_EPS`) folded
     into the Linear before it, ``gamma * (W x + b - mean) / sqrt(var + eps) + beta``; a ReLU follows every layer but
     the last.
 
     The weights are first rounded to float32, as loading them into the module's float32 parameters does, then widened
-    to float64 (exact), and the fold takes the same float64 operations in the same order as :func:`fold_layers`.
+    to float64 (exact), and the fold takes the same float64 operations in the same order as the torch module's fold
+    (``fold_layers`` in the tests).
 
     Args:
         state: numpy arrays under :func:`mlnn_shapes`'s keys (e.g. :func:`as_arrays` of a module's ``state_dict()``).
@@ -149,34 +150,6 @@ def fold_state_dict(
             b = scale * (b - f64(f"{bn}.running_mean")) + f64(f"{bn}.bias")
             w = scale[:, None] * w
         folded.append((np.ascontiguousarray(w), np.ascontiguousarray(b)))
-    return tuple(folded)
-
-
-def fold_layers(module: MLNN) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-    """Affine layers ``(W [out, in], b [out])`` in float64 of a torch :class:`MLNN`, each BatchNorm (eval mode)
-    folded into the Linear before it; a ReLU follows every layer but the last. (The numpy form of the same, which
-    pemviz uses: :func:`fold_state_dict`.)"""
-    import torch
-    from torch import nn
-
-    folded: list[tuple[np.ndarray, np.ndarray]] = []
-    mods = list(module.ff_nn)
-    for i, mod in enumerate(mods):
-        if isinstance(mod, nn.Linear):
-            w = mod.weight.detach().to(torch.float64).numpy().copy()
-            b = mod.bias.detach().to(torch.float64).numpy().copy()
-            nxt = mods[i + 1] if i + 1 < len(mods) else None
-            if isinstance(nxt, nn.BatchNorm1d):
-                assert nxt.running_mean is not None and nxt.running_var is not None
-                scale = nxt.weight.detach().to(torch.float64).numpy() / np.sqrt(
-                    nxt.running_var.detach().to(torch.float64).numpy() + nxt.eps
-                )
-                b = (
-                    scale * (b - nxt.running_mean.detach().to(torch.float64).numpy())
-                    + nxt.bias.detach().to(torch.float64).numpy()
-                )
-                w = scale[:, None] * w
-            folded.append((np.ascontiguousarray(w), np.ascontiguousarray(b)))
     return tuple(folded)
 
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol, cast
 
 from pemviz.scenarios.braking.simulator import BrakingParams
-from pemviz.settings import SCENARIOS, scenario_names
+from pemviz.settings import scenario_names
 
 
 class DataclassInstance(Protocol):
@@ -355,22 +355,6 @@ def as_pairs(value: object) -> tuple[tuple[str, Value], ...]:
     if isinstance(value, list) and all(isinstance(x, list) and len(x) == 2 for x in value):
         return tuple((str(x[0]), x[1]) for x in value)
     return value  # type: ignore[return-value]
-
-
-def parameter_table() -> str:
-    """The Markdown table of every scenario's parameters (the user guide's, ``docs/cli.md``, which a test keeps
-    equal): one row per name, its kind and unit, and its default in each scenario (``-``: not one of its)."""
-    rows: dict[str, dict[str, Parameter]] = {}
-    for scenario in SCENARIOS:
-        for p in scenario_parameters(scenario):
-            rows.setdefault(p.name, {})[scenario] = p
-    head = "| parameter | type | unit | " + " | ".join(SCENARIOS) + " |"
-    lines = [head, "|---|---|---|" + "---:|" * len(SCENARIOS)]
-    for name, by in rows.items():
-        first = next(iter(by.values()))
-        cells = [f"`{by[s].default!r}`" if s in by else "-" for s in SCENARIOS]
-        lines.append(f"| `{name}` | {first.kind} | {first.unit or '-'} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
 
 
 def scenario_params_text(scenario: str, pairs: tuple[tuple[str, Value], ...]) -> str:

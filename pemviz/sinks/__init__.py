@@ -8,11 +8,13 @@ run that the console and the panel predict a stage's and the whole run's time le
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, get_args
 
 from pemviz.core.plan import RunPlan
+from pemviz.engine import events as ev
 from pemviz.engine.cost import (
     COST,
     N_STEPS,
@@ -23,18 +25,6 @@ from pemviz.engine.cost import (
     mc_rollouts,
     stage_cost,
     with_drift,
-)
-from pemviz.engine.events import (
-    Event,
-    FinalEstimate,
-    RolloutChunk,
-    RolloutsSampled,
-    RunCancelled,
-    RunFinished,
-    RunStarted,
-    StageFinished,
-    StageResult,
-    StageStarted,
 )
 
 if TYPE_CHECKING:
@@ -49,51 +39,45 @@ SCALE_PRIOR = 0.25
 the first, short stages move the scale of what is left only as far as their share of the run warrants."""
 
 HANDLERS: dict[type, str] = {
-    RunStarted: "on_run_started",
-    StageStarted: "on_stage_started",
-    RolloutChunk: "on_rollout_chunk",
-    RolloutsSampled: "on_rollouts_sampled",
-    StageFinished: "on_stage_finished",
-    FinalEstimate: "on_final_estimate",
-    RunFinished: "on_run_finished",
-    RunCancelled: "on_run_cancelled",
+    kind: "on_" + re.sub("(?<!^)(?=[A-Z])", "_", kind.__name__).lower() for kind in get_args(ev.Event)
 }
-"""Event type -> the :class:`Sink` method that takes it."""
+"""Event type (:data:`pemviz.engine.events.Event`) -> the :class:`Sink` method that takes it: ``RunStarted`` ->
+``on_run_started``."""
 
 
 class Sink:
     """An engine listener: calling it with an event calls the method for the event's type (:data:`HANDLERS`); each
     does nothing unless a sink overrides it. An object of another type is ignored."""
 
-    def __call__(self, event: Event) -> None:
+    def __call__(self, event: ev.Event) -> None:
         for kind in type(event).__mro__:
             name = HANDLERS.get(kind)
             if name is not None:
                 getattr(self, name)(event)
                 return
 
-    def on_run_started(self, event: RunStarted) -> None:
+    def on_run_started(self, event: ev.RunStarted) -> None:
         """The run starts: its config, plan (:class:`~pemviz.core.plan.RunPlan`) and problem view."""
 
-    def on_stage_started(self, event: StageStarted) -> None:
+    def on_stage_started(self, event: ev.StageStarted) -> None:
         """A stage starts drawing its rollouts."""
 
-    def on_rollout_chunk(self, event: RolloutChunk) -> None:
+    def on_rollout_chunk(self, event: ev.RolloutChunk) -> None:
         """A chunk of a stage's rollouts has been simulated and weighed."""
 
-    def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
+    def on_rollouts_sampled(self, event: ev.RolloutsSampled) -> None:
         """A stage's rollouts (or a bounded sample of a streamed stage) with their robustness and weights."""
 
-    def on_stage_finished(self, event: StageFinished) -> None:
+    def on_stage_finished(self, event: ev.StageFinished) -> None:
         """A stage has its threshold, elites, fit and estimate."""
 
-    def on_final_estimate(self, event: FinalEstimate) -> None:
+    def on_final_estimate(self, event: ev.FinalEstimate) -> None:
         """The run's answer."""
 
-    def on_run_finished(self, event: RunFinished) -> None:
+    def on_run_finished(self, event: ev.RunFinished) -> None:
         """The run has ended with its answer."""
 
-    def on_run_cancelled(self, event: RunCancelled) -> None:
+    def on_run_cancelled(self, event: ev.RunCancelled) -> None:
         """The run was stopped before its answer."""
 
 
@@ -154,8 +138,8 @@ class StageClock(Sink):
         self._config: ExperimentConfig | None = None
         self._n_steps, self._look_ahead_s = N_STEPS, 0.0
         self.predicted: dict[int, StageCost] = {}
-        self.current: StageStarted | None = None
-        self.done: list[StageResult] = []
+        self.current: ev.StageStarted | None = None
+        self.done: list[ev.StageResult] = []
         self._measured: dict[str, list[float]] = {}  # part ("simulate", or "after:" + kind) -> [measured, predicted s]
         self._planned: dict[str, float] = {}  # part ("simulate", "after") -> the plan's predicted seconds
         self.follow: FollowOn | None = None
@@ -163,7 +147,7 @@ class StageClock(Sink):
         self._phases: dict[str, list[tuple[int, str]]] = {}  # "plan", "retry" -> (stage, kind) of each stage
         self._rollouts: dict[int, int] = {}  # stage -> its rollouts, as started
 
-    def on_run_started(self, event: RunStarted) -> None:
+    def on_run_started(self, event: ev.RunStarted) -> None:
         self.t0 = self.stage_t0 = self.now()
         self.sampled_t, self.current, self.done = None, None, []
         self.plan = event.plan
@@ -194,7 +178,7 @@ class StageClock(Sink):
             "after": sum(c.after_s for c in self.predicted.values()),
         }
 
-    def on_stage_started(self, event: StageStarted) -> None:
+    def on_stage_started(self, event: ev.StageStarted) -> None:
         self.stage_t0, self.sampled_t, self.current = self.now(), None, event
         self._rollouts[event.stage] = event.n_rollouts
 
@@ -205,13 +189,13 @@ class StageClock(Sink):
             return "plan"
         return "retry" if stage <= self.follow.retry_last else "plain"
 
-    def on_rollouts_sampled(self, event: RolloutsSampled) -> None:
+    def on_rollouts_sampled(self, event: ev.RolloutsSampled) -> None:
         self.sampled_t = self.now()
         if self.current is not None and self.current.stage == event.stage:  # all of a streamed stage's rollouts
             predicted = self._model(event.kind, event.n_rollouts, event.stage).simulate_s
             self._add(self._part(event.stage), self.sampled_t - self.stage_t0, predicted)
 
-    def on_stage_finished(self, event: StageFinished) -> None:
+    def on_stage_finished(self, event: ev.StageFinished) -> None:
         self.done = self.done + [event.result]
         if self.current is not None and self.sampled_t is not None and self.current.stage == event.result.stage:
             cost = self._model(self.current.kind, self.current.n_rollouts, self.current.stage)

@@ -279,64 +279,53 @@ def _time(n: float, s_per: float | None) -> str:
     return f", ~{duration_text(n * s_per)}"
 
 
+@dataclass(frozen=True)
 class AdviceText:
-    """The wording helpers a method's own route (:attr:`pemviz.methods.Method.more_budget`) is given, and
-    ``committor``: whether the scene has a learned committor (``--ams-score committor``; None: not known)."""
+    """What a method's own route (:attr:`pemviz.methods.Method.more_budget`) is given: the run's ``n_simulations``
+    and ``wall_s`` (seconds), ``s_per`` (seconds a simulation; None: unmeasured), ``within_s`` (seconds the route
+    must fit in; None: any), ``committor`` (whether the scene has a learned committor, ``--ams-score committor``;
+    None: not known), and the wording helpers."""
 
-    def __init__(self, committor: bool | None = None) -> None:
-        self.committor = committor
+    n_simulations: int | None = None
+    s_per: float | None = None
+    wall_s: float | None = None
+    within_s: float | None = None
+    committor: bool | None = None
 
-    @staticmethod
-    def time(n: float, s_per: float | None) -> str:
-        """``, ~26 s``: ``n`` simulations at ``s_per`` seconds each; ``""`` unmeasured."""
-        return _time(n, s_per)
+    time = staticmethod(_time)
 
-    @staticmethod
-    def tail(within_s: float | None) -> str:
+    def tail(self) -> str:
         """`` --max-time 60`` for a route that must fit in ``within_s`` seconds, else ``""``."""
-        return f" --max-time {within_s:g}" if within_s is not None else ""
+        return f" --max-time {self.within_s:g}" if self.within_s is not None else ""
 
-    @staticmethod
-    def cap(
-        config: ExperimentConfig, n_simulations: int | None, s_per: float | None, within_s: float | None
-    ) -> int | None:
+    def cap(self, config: ExperimentConfig) -> int | None:
         """The ``--max-sims`` a precision target is given: four times the run's simulations rounded up, at least
         :data:`IS_MAX_SIMS`; with ``within_s`` what fits in it (None: not half as much again as the run)."""
-        m = max(IS_MAX_SIMS, _round_up(4 * (n_simulations or 0)))
-        if within_s is None:
+        m = max(IS_MAX_SIMS, _round_up(4 * (self.n_simulations or 0)))
+        if self.within_s is None:
             return m
-        if s_per is None:
+        if self.s_per is None:
             return None
-        m = int(within_s / s_per)
-        if m <= 1.5 * (n_simulations or 0) or m < config.n_simulations:
+        m = int(self.within_s / self.s_per)
+        if m <= 1.5 * (self.n_simulations or 0) or m < config.n_simulations:
             return None
         return int(float(f"{m:.2g}"))
 
-    def importance_route(
-        self,
-        config: ExperimentConfig,
-        n_simulations: int | None,
-        s_per: float | None,
-        within_s: float | None,
-        sims: int | None = None,
-    ) -> str | None:
+    def importance_route(self, config: ExperimentConfig, sims: int | None = None) -> str | None:
         """An importance sampler's route: a run at 4 N (``sims`` simulations; None: 4 N) or a precision target, each
         with its time at ``s_per`` seconds a simulation; with ``within_s`` the target alone, if it fits."""
-        m = self.cap(config, n_simulations, s_per, within_s)
+        m = self.cap(config)
         if m is None:
             return None
         target = (
-            f"a precision target (--rel-error 0.1 --max-sims {m}{self.tail(within_s)}: final batches up to "
-            f"{m:,} simulations{_time(m, s_per)})"
+            f"a precision target (--rel-error 0.1 --max-sims {m}{self.tail()}: final batches up to "
+            f"{m:,} simulations{_time(m, self.s_per)})"
         )
-        if within_s is not None:
+        if self.within_s is not None:
             return target
         n = config.n_per_stage
         sims = 4 * n if sims is None else sims
-        return f"more budget (--n {4 * n}: {sims:,} simulations{_time(sims, s_per)}) or {target}"
-
-
-ADVICE_TEXT = AdviceText()
+        return f"more budget (--n {4 * n}: {sims:,} simulations{_time(sims, self.s_per)}) or {target}"
 
 
 def _more_budget(
@@ -350,10 +339,11 @@ def _more_budget(
     """The method's own route (:attr:`pemviz.methods.Method.more_budget`; an importance sampler's by
     default: a larger run or a precision target), with simulations and time at ``s_per`` seconds a simulation; with
     ``within_s`` (seconds) only what fits in it (None: nothing more fits)."""
+    text = AdviceText(n_simulations, s_per, wall_s, within_s, committor)
     method = config.method_record
     if method.more_budget is not None:
-        return resolve(method.more_budget)(config, n_simulations, s_per, wall_s, within_s, AdviceText(committor))
-    return ADVICE_TEXT.importance_route(config, n_simulations, s_per, within_s)
+        return resolve(method.more_budget)(config, text)
+    return text.importance_route(config)
 
 
 def next_step(

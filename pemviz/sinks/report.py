@@ -108,12 +108,6 @@ def _estimate_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
     return rows
 
 
-def _severity_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
-    """Each point of the curve: its level and what the run says of it, the console's words
-    (:meth:`pemviz.core.severity.SeverityCurve.says`)."""
-    return [(pt["text"], pt["says"]) for pt in (doc.get("severity") or {}).get("points", [])]
-
-
 def _marker(kind: str, x: float, y: float, colour: str, tip: str = "") -> str:
     """One mark of the severity chart: ``filled`` / ``hollow`` circle (an estimate), ``bound`` (an upward triangle: a
     lower bound alone), ``unreached`` (a downward triangle on the floor) or ``exact`` (a cross)."""
@@ -436,7 +430,7 @@ def _sections(doc: dict[str, Any]) -> list[Section]:
                 "Severity",
                 f"{title.removeprefix('severity: ')}: how deep the failures go.",
                 ("level", "what this run says (the console's words)"),
-                _severity_rows(doc),
+                [(pt["text"], pt["says"]) for pt in doc["severity"].get("points", [])],  # SeverityCurve.says
             )
         )
     failures = doc.get("failures")

@@ -238,14 +238,6 @@ def _levels(values: np.ndarray) -> str:
     return " / ".join(f"{v:.3f}" for v in values)
 
 
-def _bands() -> list[str]:
-    edges = RANGE_BANDS_M
-    return [
-        f"{edges[i]:g}-{edges[i + 1]:g} m" if np.isfinite(edges[i + 1]) else f">= {edges[i]:g} m"
-        for i in range(len(edges) - 1)
-    ]
-
-
 def format_markdown(result: NoiseEvalResult) -> str:
     """The noise PEMs' table as Markdown: mean over folds of the NLL (total and per dimension), the coverage of the
     central 50 / 80 / 90 / 95 % intervals and the ICE per dimension, per-fold NLL; then the 90 % coverage by range."""
@@ -273,7 +265,8 @@ def format_markdown(result: NoiseEvalResult) -> str:
             f"| {name} | {m.mean('nll'):.4f} | {nll_dims[0]:.4f} | {nll_dims[1]:.4f} | {_levels(coverage[:, 0])} "
             f"| {_levels(coverage[:, 1])} | {ice[0]:.4f} | {ice[1]:.4f} | {per_fold} | {m.mean('fit_s'):.1f} |"
         )
-    bands = _bands()
+    edges = RANGE_BANDS_M
+    bands = [f"{a:g}-{b:g} m" if np.isfinite(b) else f">= {a:g} m" for a, b in zip(edges[:-1], edges[1:], strict=True)]
     lines += [
         "",
         "Out-of-fold coverage of the central 90 % interval by range (loc_z), range / lateral:",

@@ -28,9 +28,6 @@ import argparse
 import hashlib
 import json
 import math
-import os
-import subprocess
-import sys
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -138,27 +135,6 @@ def fingerprint(config: ExperimentConfig) -> dict[str, Any]:
         "chunks": chunks[0],
         "dispatch": dispatch_in_use(),
     }
-
-
-def fingerprint_in_subprocess(args: list[str], env: dict[str, str], timeout_s: float = 300.0) -> dict[str, Any]:
-    """:func:`fingerprint` of ``python -m pemviz.studies.reproducibility ARGS`` run with ``env`` added to this
-    process's environment.
-
-    Raises:
-        RuntimeError: the run failed or printed no fingerprint (the message holds its stderr's tail).
-        subprocess.TimeoutExpired: it ran past ``timeout_s`` seconds.
-    """
-    proc = subprocess.run(
-        [sys.executable, "-m", "pemviz.studies.reproducibility", *args],
-        capture_output=True,
-        text=True,
-        env={**os.environ, **env},
-        timeout=timeout_s,
-    )
-    lines = proc.stdout.strip().splitlines()
-    if proc.returncode != 0 or not lines:
-        raise RuntimeError(f"reproducibility run {args} under {env} failed ({proc.returncode}): {proc.stderr[-2000:]}")
-    return json.loads(lines[-1])
 
 
 def compare(a: dict[str, Any], b: dict[str, Any], same_machine: bool) -> list[str]:

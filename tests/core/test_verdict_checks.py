@@ -9,8 +9,15 @@ import math
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from pemviz.core.estimate import _verdict
-from pemviz.core.verdict_checks import verdict_checks, worst_of
+from pemviz.core.estimate import VERDICTS, _verdict
+from pemviz.core.verdict_checks import Check, verdict_checks
+
+
+def worst_of(checks: list[Check]) -> str:
+    """The best verdict the failed checks allow: ``reliable`` when none failed, else the worst of their
+    :attr:`Check.fails_to` (its first word)."""
+    failed = [c.fails_to.split(":")[0] for c in checks if c.passed is False]
+    return max(failed, key=VERDICTS.index) if failed else "reliable"
 
 
 def test_a_reliable_run_s_checks_read_as_passed():

@@ -337,16 +337,43 @@ def test_the_torch_modules_have_one_import_path() -> None:
 # ------------------------------------------------------------------------------ the fold, against torch's
 
 
+def fold_layers(module: Any) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """Affine layers ``(W [out, in], b [out])`` in float64 of a torch :class:`MLNN`, each BatchNorm (eval mode)
+    folded into the Linear before it, in torch: the reference of the numpy fold pemviz uses
+    (:func:`pemviz.pem.network.fold_state_dict`)."""
+    from torch import nn
+
+    folded: list[tuple[np.ndarray, np.ndarray]] = []
+    mods = list(module.ff_nn)
+    for i, mod in enumerate(mods):
+        if isinstance(mod, nn.Linear):
+            w = mod.weight.detach().to(torch.float64).numpy().copy()
+            b = mod.bias.detach().to(torch.float64).numpy().copy()
+            nxt = mods[i + 1] if i + 1 < len(mods) else None
+            if isinstance(nxt, nn.BatchNorm1d):
+                assert nxt.running_mean is not None and nxt.running_var is not None
+                scale = nxt.weight.detach().to(torch.float64).numpy() / np.sqrt(
+                    nxt.running_var.detach().to(torch.float64).numpy() + nxt.eps
+                )
+                b = (
+                    scale * (b - nxt.running_mean.detach().to(torch.float64).numpy())
+                    + nxt.bias.detach().to(torch.float64).numpy()
+                )
+                w = scale[:, None] * w
+            folded.append((np.ascontiguousarray(w), np.ascontiguousarray(b)))
+    return tuple(folded)
+
+
 def _torch_folded(state_pem: Any, build: Any) -> Any:
     """``build()`` with :func:`pemviz.pem.network.fold_state_dict` replaced by the torch module's fold
-    (:func:`pemviz.pem.network.fold_layers` of the :class:`MLNN` loaded with the state): the path before the numpy
+    (:func:`fold_layers` of the :class:`MLNN` loaded with the state): the path before the numpy
     fold."""
     original = network.fold_state_dict
 
     def via_torch(state: Any, hidden: Any, *, batch_norm: bool = True, in_dim: int = 14, out_dim: int = 1) -> Any:
         module = MLNN(in_dim, hidden, batch_norm=batch_norm, out_dim=out_dim)
         module.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
-        return network.fold_layers(module.eval())
+        return fold_layers(module.eval())
 
     network.fold_state_dict = via_torch
     noise.fold_state_dict = via_torch
@@ -396,7 +423,7 @@ def test_shipped_pem_logits_are_bit_identical_to_the_torch_fold(index: int) -> N
             temperature=p.temperature,
         ),
     )
-    torch_layers = network.fold_layers(p.to_module())
+    torch_layers = fold_layers(p.to_module())
     assert all(_same_bits(a, c) and _same_bits(b, d) for (a, b), (c, d) in zip(p._layers, torch_layers, strict=False))
     raw = _raw(3000, index)
     gaps = np.concatenate([np.linspace(-20, 200, 5001), p._gap_knots, np.nextafter(p._gap_knots, np.inf)])

@@ -15,10 +15,10 @@ from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.cut_in.scenario import RARITY_SETTINGS, CutInParams
 from pemviz.scenarios.parameters import (
+    Parameter,
     ParameterError,
     apply_parameters,
     as_pairs,
-    parameter_table,
     parse_assignment,
     scenario_parameters,
 )
@@ -272,6 +272,22 @@ def test_the_command_line_refuses_any_bad_param_text_with_one_config_error(text)
 
 
 # -- the docs -----------------------------------------------------------------------------------------------------
+
+
+def parameter_table() -> str:
+    """The Markdown table of every scenario's parameters (the user guide's, ``docs/cli.md``): one row per name, its
+    kind and unit, and its default in each scenario (``-``: not one of its)."""
+    rows: dict[str, dict[str, Parameter]] = {}
+    for scenario in SCENARIOS:
+        for p in scenario_parameters(scenario):
+            rows.setdefault(p.name, {})[scenario] = p
+    head = "| parameter | type | unit | " + " | ".join(SCENARIOS) + " |"
+    lines = [head, "|---|---|---|" + "---:|" * len(SCENARIOS)]
+    for name, by in rows.items():
+        first = next(iter(by.values()))
+        cells = [f"`{by[s].default!r}`" if s in by else "-" for s in SCENARIOS]
+        lines.append(f"| `{name}` | {first.kind} | {first.unit or '-'} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def test_the_user_guide_s_table_is_the_schema():

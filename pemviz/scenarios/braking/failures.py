@@ -90,9 +90,10 @@ class Severity:
         closing at 1.20 m/s)``."""
         if self.breach_step is None:  # not self.failed
             return f"{self.short} (at {self.min_gap_step * self.dt_s:.2f} s): the {self.crash_gap_m:g} m margin held"
+        v = self.breach_closing_mps
+        speed = f"{v:.2f} m/s" if math.isfinite(v) else "an unknown speed (breached at the start)"
         crossed = (
-            f"the {self.crash_gap_m:g} m margin crossed at {self.breach_step * self.dt_s:.2f} s, closing at "
-            f"{_speed(self.breach_closing_mps)}"
+            f"the {self.crash_gap_m:g} m margin crossed at {self.breach_step * self.dt_s:.2f} s, closing at {speed}"
         )
         if self.contact_step is not None:  # self.contact
             return f"{self.short} at {self.contact_step * self.dt_s:.2f} s ({crossed})"
@@ -104,10 +105,6 @@ class Severity:
         if self.contact:
             return 1000.0 + (self.contact_speed_mps if math.isfinite(self.contact_speed_mps) else 0.0)
         return -self.min_gap_m
-
-
-def _speed(v: float) -> str:
-    return f"{v:.2f} m/s" if math.isfinite(v) else "an unknown speed (breached at the start)"
 
 
 def severity(gap_m: np.ndarray, params: BrakingParams | None = None) -> Severity:
@@ -404,13 +401,6 @@ def _times(steps: np.ndarray, dt: float, most: int = 4) -> str:
     return (", ".join(parts[:-1]) + " and " + parts[-1] if len(parts) > 1 else "".join(parts)) + " s"
 
 
-def _clear(gap: float, margin: float) -> str:
-    """``min gap 2.80 m, 0.80 m clear of the 2 m margin``."""
-    room = gap - margin
-    room_text = f"{room:.2f} m" if room >= 0.01 else "less than 1 cm"
-    return f"min gap {gap:.2f} m, {room_text} clear of the {margin:g} m margin"
-
-
 def describe(
     detected: np.ndarray,
     sev: Severity,
@@ -455,7 +445,10 @@ def describe(
         lines.append(f"The gap fell below {p.crash_gap_m:g} m before the lead came within braking distance.")
 
     def clear(gap: float) -> str:
-        return _clear(gap, p.crash_gap_m)
+        """``min gap 2.80 m, 0.80 m clear of the 2 m margin``."""
+        room = gap - p.crash_gap_m
+        room_text = f"{room:.2f} m" if room >= 0.01 else "less than 1 cm"
+        return f"min gap {gap:.2f} m, {room_text} clear of the {p.crash_gap_m:g} m margin"
 
     if cf.last_saving_step is not None:
         t = cf.last_saving_step
