@@ -30,7 +30,7 @@ CHROMIUM_ARGS = [
 
 RUNS = {
     "braking": ["run"],
-    "cut-in": ["run", "--scenario", "cut-in", "--n", "3000"],
+    "cut-in": ["run", "--scenario", "cut-in", "--n", "1000"],  # 260 failures at seed 0, as 777 at 3,000
 }
 
 

@@ -13,8 +13,6 @@ from pemviz.core.estimate import Estimate, Reference, estimate
 from pemviz.estimators.cross_entropy import CrossEntropy
 from pemviz.sinks.console import next_step
 
-from conftest import run_cli
-
 CUT_IN_REFERENCE = Reference(866, 10_000_000, "plain Monte Carlo, shipped PEMs")
 CUT_IN_ROLLOUTS = math.ceil(1.96**2 * (1 - 866 / 10_000_000) / (0.04 * 866 / 10_000_000))  # a 20 % interval: 1,108,911
 CUT_IN_MAX_SIMS = math.ceil(1.2 * CUT_IN_ROLLOUTS)  # --max-sims: 1.2 times it, for the exact interval's width
@@ -109,10 +107,12 @@ def test_the_paper_s_whole_rollout_fit_never_claims_reliable(preset):
     assert est.log_mu_hat == good.log_mu_hat and est.log_ci == good.log_ci  # the numbers stay
 
 
-def test_the_verdict_cap_reaches_the_console(tmp_path):
-    proc = run_cli("run", "--preset", "authors-code", "--n", "100", "--seed", "1", "--no-record", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("mu_hat = 4.620e-18"))
+def test_the_verdict_cap_reaches_the_console(capsys, monkeypatch, tmp_path):
+    from pemviz.cli import main  # in this process: the console's line is the subject, not the console script
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "--preset", "authors-code", "--n", "100", "--seed", "1", "--no-record"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("mu_hat = 4.620e-18"))
     # its ESS (13.8 < 20) already makes it doubtful, before the cap (which test_the_paper_s_whole_rollout_fit_...
     # checks)
     assert ": doubtful (ESS 13.8 < 20: too few effective failures" in line

@@ -26,14 +26,16 @@ def test_per_rollout_gaps_match_highway_env_started_at_each_gap():
     detected, noise = random_inputs(P, len(GAPS), seed=3)
     detected, noise = detected[:, :n_steps], noise[:, :n_steps]
     sim = BatchedCutIn(P, len(GAPS), gap_shift_m=GAPS - P.cut_in_gap_m)
+    # highway-env started at each gap, its whole run on rollout i's inputs (step t's rows are recorded before step t)
+    refs = [
+        highway_env_replay(dataclasses.replace(P, cut_in_gap_m=float(gap)), detected[i : i + 1], noise[i : i + 1])
+        for i, gap in enumerate(GAPS)
+    ]
     for t in range(n_steps):
         if t == 30:  # a snapshot keeps the per-rollout gaps' state; restoring it changes nothing
             sim.restore(sim.snapshot())
         obs, objs = sim.observation(), sim.objects()
-        for i, gap in enumerate(GAPS):
-            ref_obs, ref_objs = highway_env_replay(
-                dataclasses.replace(P, cut_in_gap_m=float(gap)), detected[i : i + 1, : t + 1], noise[i : i + 1, : t + 1]
-            )
+        for i, (gap, (ref_obs, ref_objs)) in enumerate(zip(GAPS, refs, strict=True)):
             np.testing.assert_allclose(obs[i], ref_obs[0, t], rtol=0, atol=1e-9, err_msg=f"gap {gap}, step {t}")
             np.testing.assert_allclose(objs[i], ref_objs[0, t], rtol=0, atol=1e-9, err_msg=f"gap {gap}, step {t}")
         sim.step(detected[:, t], noise[:, t])

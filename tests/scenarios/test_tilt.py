@@ -95,13 +95,17 @@ def test_the_cut_ins_committor_ranks_splitting_particles_as_a_function_of_the_st
     assert scored.size > 30 and (scored >= 0.0).all() and (sp.running[:, -1] >= SCORE_FLOOR).sum() >= 25
 
 
-def test_the_cut_in_runs_the_tilt_by_default_and_counts_its_look_aheads():
+def test_the_cut_in_runs_the_tilt_by_default_and_counts_its_look_aheads(monkeypatch):
     """``pemviz run --scenario cut-in``'s settings name the tilt; a small run's simulations are its rollouts plus its
     look-aheads' steps over T, the solve's included; a second run of the same scene and PEMs in the process reuses the
     solved proposal, says so, gives the same estimate bit for bit and counts no solve."""
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
+    from pemviz.engine import experiment
     from pemviz.scenarios.cut_in import tilt as tilt_module
+
+    # each doubtful run times plain rollouts for its advice, which no line here reads: 20, not 1,000 (a sixth of it)
+    monkeypatch.setattr(experiment, "PLAIN_PROBE", 20)
 
     cfg = config_from_args(build_parser("run").parse_args(["run", "--scenario", "cut-in"]))
     assert (cfg.method, cfg.n_per_stage) == ("tilt", 7_280)  # the cut-in record's run_defaults

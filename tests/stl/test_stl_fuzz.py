@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from pemviz.stl import parse
 from pemviz.stl.parser import MAX_DEPTH, STLSyntaxError
@@ -123,8 +123,12 @@ def test_stl_parse_of_any_unicode_text_raises_only_stl_syntax_errors(text: str) 
     check(text)
 
 
-@settings(max_examples=100, deadline=None, derandomize=True)
+@settings(max_examples=40, deadline=None, derandomize=True)
 @given(nested)
+@example("(" * (MAX_DEPTH - 2) + "d >= 2" + ")" * (MAX_DEPTH - 2))  # the deepest that must parse, each kind
+@example("G[0,1](" * (MAX_DEPTH // 2 - 1) + "d >= 2" + ")" * (MAX_DEPTH // 2 - 1))
+@example("!(" * (MAX_DEPTH // 2 - 1) + "d >= 2" + ")" * (MAX_DEPTH // 2 - 1))
+@example("F(" * (MAX_DEPTH // 2 - 1) + "d >= 2" + ")" * (MAX_DEPTH // 2 - 1))
 def test_deep_nesting_is_a_syntax_error_past_the_limit_and_parses_within_it(text: str) -> None:
     depth = text.count("(")
     try:
