@@ -363,18 +363,29 @@ PLAIN_PROBE = 1000
 own on the shipped scenes with objects (e.g. 0.063 vs 0.066 ms on the crossing, on a 2-core machine); 200
 over-estimate it 3 times (each step's fixed cost spread over fewer rollouts)."""
 
+PROBE_PILOT, PROBE_BUDGET_S = 50, 1.0
+""":func:`plain_probe` first times this many rollouts; where they say the whole probe would take more than this many
+seconds (a simulator whose cost is per rollout, not per batched step, e.g. highway-env's: 1,000 of its rollouts take
+13-15 CPU seconds), their own seconds a rollout are the answer."""
+
 
 def plain_probe(problem: Problem, config: ExperimentConfig, estimate: Estimate) -> float | None:
     """Seconds a plain rollout of ``problem`` takes here now: :data:`PLAIN_PROBE` rollouts of its target drawn and
     timed (a stream of their own, seed 0: the run's streams are untouched), where the run's advice will size plain Monte
     Carlo (its verdict is not ``reliable`` and its method is not ``mc``, whose own speed is measured); else None. A
     run's own seconds a simulation hold what its method adds (fits, look-aheads, replayed prefixes): up to 10 times a
-    plain rollout's."""
+    plain rollout's. A pilot of :data:`PROBE_PILOT` rollouts comes first: where the probe would take more than
+    :data:`PROBE_BUDGET_S` seconds at its rate, the pilot's rate is the answer."""
     if estimate.verdict == "reliable" or config.method_record.plain:
         return None
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(1, user_api="blas"):
-        t0 = time.perf_counter()
-        problem.simulate(PLAIN_PROBE, problem.target, problem.target, np.random.default_rng(0))
-        return (time.perf_counter() - t0) / PLAIN_PROBE
+        per = None
+        for n in (PROBE_PILOT, PLAIN_PROBE):
+            t0 = time.perf_counter()
+            problem.simulate(n, problem.target, problem.target, np.random.default_rng(0))
+            per = (time.perf_counter() - t0) / n
+            if per * PLAIN_PROBE > PROBE_BUDGET_S:
+                break
+        return per

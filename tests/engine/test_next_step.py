@@ -146,6 +146,32 @@ def test_the_engine_probes_a_plain_rollout_only_where_the_advice_needs_it():
     )
 
 
+def test_the_probe_of_a_slow_simulator_stops_at_its_pilot():
+    """A simulator whose rollouts cost 2 ms each (a per-rollout simulator, as highway-env's is) is timed on the pilot
+    alone: 1,000 of them would take 2 s, past the probe's budget of 1 s; a fast one is timed on the whole probe."""
+    import time as clock
+
+    from pemviz.engine import experiment
+    from pemviz.scenarios.problems import build_problem
+
+    problem = build_problem("toy")
+    asked, simulate = [], problem.simulate
+
+    def slow(n, *args, **kwargs):
+        asked.append(n)
+        clock.sleep(0.002 * n)
+        return simulate(n, *args, **kwargs)
+
+    s = experiment.plain_probe(
+        dataclasses.replace(problem, simulate=slow), ExperimentConfig.of(method="adaptive"), made(math.log(1e-3))
+    )
+    assert asked == [experiment.PROBE_PILOT] and 0.002 <= s < 0.05
+    counted = dataclasses.replace(problem, simulate=lambda n, *a, **k: asked.append(n) or simulate(n, *a, **k))
+    asked.clear()
+    experiment.plain_probe(counted, ExperimentConfig.of(method="adaptive"), made(math.log(1e-3)))
+    assert asked == [experiment.PROBE_PILOT, experiment.PLAIN_PROBE]
+
+
 def test_a_max_time_that_plain_monte_carlo_does_not_fit_says_so_and_what_is_left():
     cfg = ExperimentConfig.of(scenario="cut-in", rel_error=0.1, max_time_s=60.0)
     n, plain = mc_count(866 / 10_000_000), plain_rollout_seconds(cfg, 1e-3)  # 1,108,911 rollouts, this run at 1 ms
