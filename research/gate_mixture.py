@@ -306,10 +306,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
-
-
 def _replayed(pb: Any, batch: Any) -> tuple[Any, np.ndarray, np.ndarray]:
     """``batch`` with its state features replayed, its object rows [F, T, O, G], standardised errors z [F, T, O, D]."""
     from pemviz.core.features import with_state
@@ -322,3 +318,7 @@ def _replayed(pb: Any, batch: Any) -> tuple[Any, np.ndarray, np.ndarray]:
     loc, log_scale = pb.target.noise_params(np.ascontiguousarray(own))
     z = ((noise.reshape(-1, noise.shape[-1]) - loc) * np.exp(-log_scale)).reshape(noise.shape)
     return b, rows, z
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
