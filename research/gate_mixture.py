@@ -67,7 +67,8 @@ PILOT_SEED = 1_000_003
 REFIT_SEED = 2_000_003
 """The refit round's stream (``--refit``) is ``seed + REFIT_SEED``."""
 ESTIMATE_SEED = 3_000_017
-"""The estimate at the i-th N_e of ``--n-final`` draws from stream ``seed + i ESTIMATE_SEED`` (the first: ``seed``)."""
+"""The estimate at the i-th N_e of ``--n-final`` (from 0) draws from stream ``seed + (i + --first-stream)
+ESTIMATE_SEED`` (by default the first from ``seed``)."""
 
 
 @dataclass(frozen=True)
@@ -211,7 +212,8 @@ def one_seed(a: argparse.Namespace, seed: int, pb: Any, log_ref: float) -> list[
     out = []
     for i, n_final in enumerate(a.n_final):
         t1 = time.perf_counter()
-        final, simulated, ev = estimate(seed + i * ESTIMATE_SEED, gates, a.param, a.share, a.n_stage, n_final)
+        stream = seed + (a.first_stream + i) * ESTIMATE_SEED
+        final, simulated, ev = estimate(stream, gates, a.param, a.share, a.n_stage, n_final)
         e = final.estimate
         lo, hi = e.shown_log_ci
         holds = e.interval_backed and lo <= log_ref <= hi
@@ -288,6 +290,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--refit-gates", type=int, default=2, help="the gates the refit round adds")
     ap.add_argument(
         "--n-final", type=int, nargs="+", default=[8000], help="N_e, the rollouts of the estimate (several: one each)"
+    )
+    ap.add_argument(
+        "--first-stream", type=int, default=0, help="the i-th N_e draws from stream seed + (this + i) ESTIMATE_SEED"
     )
     a = ap.parse_args(argv)
     from threadpoolctl import threadpool_limits
