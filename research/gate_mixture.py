@@ -38,6 +38,17 @@ Commands whose figures were recorded (one process, ``nice -n 10``, seeds 1-5; 1-
         --refit 4000 --refit-gates 2
     python research/gate_mixture.py --seeds 1 2 3 4 5 --pilots 3 --particles 100 --killed 10 \\
         --param brake_ttc_s=1.5 --reference 1.294e-4
+    python research/gate_mixture.py --seeds 1 2 3 4 5 --pilots 3 --particles 100 --killed 10 \\
+        --param brake_ttc_s=1.5 --reference 1.294e-4 --n-final 8000 16000 32000    # 16 min
+    python research/gate_mixture.py --seeds 6 7 8 9 10 --pilots 3 --particles 100 --killed 10 \\
+        --param brake_ttc_s=1.5 --reference 1.294e-4 --n-final 8000 16000 32000
+    python research/gate_mixture.py --seeds 1 2 3 4 5 --pilots 3 --particles 100 --killed 10 \\
+        --param brake_ttc_s=1.5 --reference 1.294e-4 --n-final 64000 --first-stream 3
+
+``--n-final N1 N2 ...``: one pilot and fit per seed, then an estimate at each N_e, each from a stream of its own
+(:data:`ESTIMATE_SEED`; the first from ``seed``, so that ``--n-final 8000`` alone gives the same numbers); each
+line shows the estimate's failures, ESS, k-hat and its largest failure weight's share of the failures' weights, and
+counts the pilot in its cost as a run of that N_e alone would.
 
 ``--refit N1``: a round of N1 rollouts from the pilot's mixture (its own stream) whose failures, weighted by their
 exact importance weights, fit ``--refit-gates`` more gates, each to the failures the mixture so far covers least
