@@ -38,6 +38,17 @@ Commands whose figures were recorded (one process, ``nice -n 10``, seeds 1-5; 1-
         --refit 4000 --refit-gates 2
     python research/gate_mixture.py --seeds 1 2 3 4 5 --pilots 3 --particles 100 --killed 10 \\
         --param brake_ttc_s=1.5 --reference 1.294e-4
+    python research/gate_mixture.py --seeds 1 2 3 4 5 --pilots 3 --particles 100 --killed 10 \\
+        --param brake_ttc_s=1.5 --reference 1.294e-4 --n-final 8000 16000 32000    # 16 min
+    python research/gate_mixture.py --seeds 6 7 8 9 10 --pilots 3 --particles 100 --killed 10 \\
+        --param brake_ttc_s=1.5 --reference 1.294e-4 --n-final 8000 16000 32000
+    python research/gate_mixture.py --seeds 1 2 3 4 5 --pilots 3 --particles 100 --killed 10 \\
+        --param brake_ttc_s=1.5 --reference 1.294e-4 --n-final 64000 --first-stream 3
+
+``--n-final N1 N2 ...``: one pilot and fit per seed, then an estimate at each N_e, each from a stream of its own
+(:data:`ESTIMATE_SEED`; the first from ``seed``, so that ``--n-final 8000`` alone gives the same numbers); each
+line shows the estimate's failures, ESS, k-hat and its largest failure weight's share of the failures' weights, and
+counts the pilot in its cost as a run of that N_e alone would.
 
 ``--refit N1``: a round of N1 rollouts from the pilot's mixture (its own stream) whose failures, weighted by their
 exact importance weights, fit ``--refit-gates`` more gates, each to the failures the mixture so far covers least
@@ -66,6 +77,9 @@ PILOT_SEED = 1_000_003
 """The pilot's stream is ``seed + PILOT_SEED``: apart from the estimate's (``seed``)."""
 REFIT_SEED = 2_000_003
 """The refit round's stream (``--refit``) is ``seed + REFIT_SEED``."""
+ESTIMATE_SEED = 3_000_017
+"""The estimate at the i-th N_e of ``--n-final`` (from 0) draws from stream ``seed + (i + --first-stream)
+ESTIMATE_SEED`` (by default the first from ``seed``)."""
 
 
 @dataclass(frozen=True)
@@ -151,7 +165,22 @@ def estimate(
         else:
             StateCrossEntropy.verdict_cap = cap  # type: ignore[method-assign]
         restore()
-    return final, sum(int(np.asarray(ev.failed).size) for ev in seen), seen[-1]
+    return final, sum(int(np.asarray(ev.failed).size if ev.n_total is None else ev.n_total) for ev in seen), seen[-1]
+
+
+def largest_share(ev: Any, n_failures: int) -> float:
+    """The largest failure weight's share of the failures' weights in the final batch ``ev`` (a
+    :class:`pemviz.engine.events.RolloutsSampled`; a streamed stage's every log-weight and robustness), nan where
+    its failures are not the estimate's ``n_failures`` (a pooled estimate)."""
+    from scipy.special import logsumexp
+
+    if ev.n_total is None:
+        lw = np.asarray(ev.log_weight, np.float64)[np.asarray(ev.failed, bool)]
+    else:
+        lw = np.asarray(ev.stage_log_weight, np.float64)[np.asarray(ev.stage_robustness) < 0.0]
+    if lw.size != n_failures or not lw.size:
+        return math.nan
+    return float(math.exp(lw.max() - logsumexp(lw)))
 
 
 def weighted_failures(pb: Any, ev: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -167,19 +196,21 @@ def weighted_failures(pb: Any, ev: Any) -> tuple[np.ndarray, np.ndarray, np.ndar
     return rows, np.asarray(b.detected, bool), z, w / w.sum() if w.size else w
 
 
-def one_seed(a: argparse.Namespace, seed: int, pb: Any, log_ref: float) -> dict[str, Any]:
-    """Pilot, fit and estimate for ``seed``; prints its line and returns its numbers."""
+def one_seed(a: argparse.Namespace, seed: int, pb: Any, log_ref: float) -> list[dict[str, Any]]:
+    """Pilot and fit for ``seed``, then an estimate at each N_e of ``--n-final`` from a stream of its own (the same
+    gates: the pilot only chooses the q_j); prints a line per estimate and returns their numbers."""
     t0 = time.perf_counter()
     pilots = [pilot(pb, seed + PILOT_SEED + 7919 * r, a.particles, a.killed) for r in range(a.pilots)]
     pl = pilots[0] if len(pilots) == 1 else pooled(pilots)
     print(
         f"seed {seed}: pilot {pl.rows.shape[0]} failures from {pl.families} families, its p x"
-        f"{math.exp(pl.log_p - log_ref):.3g} of the reference, {pl.cost:,} rollout-eq."
+        f"{math.exp(pl.log_p - log_ref):.3g} of the reference, {pl.cost:,} rollout-eq.",
+        flush=True,
     )
     gates = state_gate.mixture_of_gates(pb, pl.rows, pl.detected, pl.z, a.depth, a.gates, label="  gate")
     if not gates:
         print(f"seed {seed}: no gate fitted")
-        return {"seed": seed, "ratio": math.nan}
+        return [{"seed": seed, "n_final": n, "ratio": math.nan} for n in a.n_final]
     refit, replays = 0, 0
     if a.refit:  # a round from the pilot's mixture; its failures, weighted exactly, fit more gates
         _, refit, ev = estimate(seed + REFIT_SEED, gates, a.param, a.share, a.n_stage, a.refit)
@@ -189,47 +220,66 @@ def one_seed(a: argparse.Namespace, seed: int, pb: Any, log_ref: float) -> dict[
             gates = (*gates, *more)
         print(f"seed {seed}: refit round {int(w.size)} failures, ESS {1.0 / float(np.sum(w**2)) if w.size else 0:.1f}")
         replays = refit + int(w.size)  # the round's replays in the run, and its failures' for the fit
-    final, simulated, _ = estimate(seed, gates, a.param, a.share, a.n_stage, a.n_final)
-    e = final.estimate
-    lo, hi = e.shown_log_ci
-    holds = e.interval_backed and lo <= log_ref <= hi
-    sim = pl.cost - pl.rows.shape[0] + refit + simulated  # replays (of features, no simulation) in total only
-    total = pl.cost + refit + replays + 2 * simulated
-    ratio = math.exp(e.log_mu_hat - log_ref)
-    interval = f"[{math.exp(lo):.3g}, {math.exp(hi):.3g}]" if e.interval_backed else "no interval"
-    print(
-        f"seed {seed}: {math.exp(e.log_mu_hat):.4g} {interval} x{ratio:.3g} of p, ESS {e.ess:.1f}, k-hat "
-        f"{e.khat:.2f}, {e.verdict}, {len(gates)} gates, cost {sim:,} sim / {total:,} + replays, "
-        f"{time.perf_counter() - t0:.0f} s ({e.reason})"
-    )
-    return {
-        "seed": seed,
-        "ratio": ratio,
-        "holds": holds,
-        "interval": e.interval_backed,
-        "verdict": e.verdict,
-        "ess": e.ess,
-        "sim": sim,
-        "total": total,
-    }
+    out = []
+    for i, n_final in enumerate(a.n_final):
+        t1 = time.perf_counter()
+        stream = seed + (a.first_stream + i) * ESTIMATE_SEED
+        final, simulated, ev = estimate(stream, gates, a.param, a.share, a.n_stage, n_final)
+        e = final.estimate
+        lo, hi = e.shown_log_ci
+        holds = e.interval_backed and lo <= log_ref <= hi
+        sim = pl.cost - pl.rows.shape[0] + refit + simulated  # replays (of features, no simulation) in total only
+        total = pl.cost + refit + replays + 2 * simulated
+        ratio = math.exp(e.log_mu_hat - log_ref)
+        top = largest_share(ev, e.n_failures)
+        interval = f"[{math.exp(lo):.3g}, {math.exp(hi):.3g}]" if e.interval_backed else "no interval"
+        print(
+            f"seed {seed} N_e {n_final}: {math.exp(e.log_mu_hat):.4g} {interval} x{ratio:.3g} of p, "
+            f"{e.n_failures} failures, ESS {e.ess:.1f}, k-hat {e.khat:.2f}, largest weight {top:.3f} of the "
+            f"failures', {e.verdict}, {len(gates)} gates, cost {sim:,} sim / {total:,} + replays, "
+            f"{time.perf_counter() - t1:.0f} s ({time.perf_counter() - t0:.0f} s the seed) ({e.reason})",
+            flush=True,
+        )
+        out.append(
+            {
+                "seed": seed,
+                "n_final": n_final,
+                "ratio": ratio,
+                "holds": holds,
+                "interval": e.interval_backed,
+                "verdict": e.verdict,
+                "ess": e.ess,
+                "khat": e.khat,
+                "top": top,
+                "sim": sim,
+                "total": total,
+            }
+        )
+    return out
 
 
 def summary(rows: list[dict[str, Any]], p: float) -> None:
-    """The seeds' median relative error, within x2, intervals holding p, and the cost against plain Monte Carlo's
-    for the same median error (its relative error sqrt((1 - p) / (n p)))."""
+    """The seeds' median relative error, within x2, intervals holding p, ``reliable`` outside x2, the ESS and k-hat
+    (median, range) and the cost against plain Monte Carlo's for the same median error (its relative error
+    sqrt((1 - p) / (n p))), for the estimates of one N_e."""
     ok = [r for r in rows if math.isfinite(r["ratio"])]
     rel = np.array([abs(r["ratio"] - 1.0) for r in ok] + [1.0] * (len(rows) - len(ok)))
     med = float(np.median(rel))
     within = sum(0.5 <= r["ratio"] <= 2.0 for r in ok)
     holds = sum(bool(r.get("holds")) for r in ok)
     printed = sum(bool(r.get("interval")) for r in ok)
+    wrong = sum(r.get("verdict") == "reliable" and not 0.5 <= r["ratio"] <= 2.0 for r in ok)
     verdicts = {v: sum(r.get("verdict") == v for r in ok) for v in ("reliable", "doubtful", "unreliable")}
     sim, total = (float(np.mean([r[k] for r in ok])) if ok else math.nan for k in ("sim", "total"))
+    ess, khat = (np.array([r[k] for r in ok], dtype=np.float64) for k in ("ess", "khat"))
     mc = (1.0 - p) / (p * med**2) if med > 0 else math.inf
+    spread = ", ".join(f"{np.nanmedian(x):.2f} ({np.nanmin(x):.2f}-{np.nanmax(x):.2f})" for x in (ess, khat))
+    n_final = ok[0]["n_final"] if ok else rows[0]["n_final"]
     print(
-        f"{len(rows)} seeds: median rel. error {med:.3f}, within x2 {within}/{len(rows)}, intervals printed "
-        f"{printed}, holding p {holds}; verdicts {verdicts}; mean cost {sim:,.0f} sim / {total:,.0f} + replays; "
-        f"plain MC for that error {mc:,.0f}: ratio {sim / mc:.3f} / {total / mc:.3f}"
+        f"N_e {n_final}, {len(rows)} seeds: median rel. error {med:.3f}, within x2 {within}/{len(rows)}, intervals "
+        f"printed {printed}, holding p {holds}, reliable outside x2 {wrong}; verdicts {verdicts}; ESS, k-hat: "
+        f"{spread}; mean cost {sim:,.0f} sim / {total:,.0f} + replays; plain MC for that error {mc:,.0f}: ratio "
+        f"{sim / mc:.3f} / {total / mc:.3f}"
     )
 
 
@@ -249,7 +299,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-stage", type=int, default=50, help="the estimate stage's one CE stage (fits nothing)")
     ap.add_argument("--refit", type=int, default=0, help="a round of this many rollouts whose failures fit more gates")
     ap.add_argument("--refit-gates", type=int, default=2, help="the gates the refit round adds")
-    ap.add_argument("--n-final", type=int, default=8000, help="N_e, the rollouts of the estimate")
+    ap.add_argument(
+        "--n-final", type=int, nargs="+", default=[8000], help="N_e, the rollouts of the estimate (several: one each)"
+    )
+    ap.add_argument(
+        "--first-stream", type=int, default=0, help="the i-th N_e draws from stream seed + (this + i) ESTIMATE_SEED"
+    )
     a = ap.parse_args(argv)
     from threadpoolctl import threadpool_limits
 
@@ -261,13 +316,10 @@ def main(argv: list[str] | None = None) -> int:
     else:
         log_ref = math.log(pb.reference.n_failures / pb.reference.n)
     with threadpool_limits(1):
-        rows = [one_seed(a, s, pb, log_ref) for s in a.seeds]
-    summary(rows, math.exp(log_ref))
+        rows = [r for s in a.seeds for r in one_seed(a, s, pb, log_ref)]
+    for n_final in a.n_final:
+        summary([r for r in rows if r["n_final"] == n_final], math.exp(log_ref))
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
 
 
 def _replayed(pb: Any, batch: Any) -> tuple[Any, np.ndarray, np.ndarray]:
@@ -282,3 +334,7 @@ def _replayed(pb: Any, batch: Any) -> tuple[Any, np.ndarray, np.ndarray]:
     loc, log_scale = pb.target.noise_params(np.ascontiguousarray(own))
     z = ((noise.reshape(-1, noise.shape[-1]) - loc) * np.exp(-log_scale)).reshape(noise.shape)
     return b, rows, z
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
