@@ -10,7 +10,7 @@ their weights at the failure step with ``config.weights_until_failure``, like th
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from pemviz.core.plan import RunPlan
 from pemviz.methods.adaptive import plain_fallback_most, retry_n
@@ -20,7 +20,6 @@ if TYPE_CHECKING:  # light to import: a config's checks read these hooks
     from pemviz.config import ExperimentConfig
     from pemviz.core.problems import Problem
     from pemviz.estimators.base import Check, Estimator
-    from pemviz.sinks.console import AdviceText
 
 
 def adaptive_then_most(config: ExperimentConfig, simulations: int) -> tuple[int, str]:
@@ -145,7 +144,7 @@ def ams_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | 
     return None
 
 
-def adaptive_more_budget(config: ExperimentConfig, text: AdviceText) -> str | None:
+def adaptive_more_budget(config: ExperimentConfig, text: Any) -> str | None:
     """The cross-entropy sampler's route (:attr:`Method.more_budget <pemviz.methods.Method>`): a run at
     4 N (pretraining, K stages of 4 N and the final batch) or a precision target."""
     from pemviz.config import has_final_batch
@@ -156,7 +155,7 @@ def adaptive_more_budget(config: ExperimentConfig, text: AdviceText) -> str | No
     return text.importance_route(config, sims)
 
 
-def tilt_more_budget(config: ExperimentConfig, text: AdviceText) -> str | None:
+def tilt_more_budget(config: ExperimentConfig, text: Any) -> str | None:
     """The tilted proposal's route: more batches of it to a 20 % interval."""
     m = text.cap(config)
     if m is None:
@@ -167,7 +166,7 @@ def tilt_more_budget(config: ExperimentConfig, text: AdviceText) -> str | None:
     )
 
 
-def ams_more_budget(config: ExperimentConfig, text: AdviceText) -> str | None:
+def ams_more_budget(config: ExperimentConfig, text: Any) -> str | None:
     """Splitting's route: no final batch to add to, so more particles (about 4 times the time), or a graded score the
     scene has: its learned committor (``text.committor``: the scene has one; None: not known), else the nominal
     look-ahead, which any scene that splits can rank by (:mod:`pemviz.estimators.lookahead_score`)."""

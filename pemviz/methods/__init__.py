@@ -95,6 +95,9 @@ class Method:
             ``plus the branches' continuations``); empty: nothing.
         proposal_curves: each stage ends with a fitted proposal whose q(detect | d) curve is worth keeping (a
             validation study's curves).
+        feature_view: its stages' proposals read the state the stack acts on (:mod:`pemviz.core.features`): the
+            recording and the panel show, per stage, q(detect) against the PEM over the feature that moved it most
+            (:mod:`pemviz.core.feature_view`).
         describe: optional, ``describe(config, plan, window) -> str``: one Markdown sentence on a run of ``config``
             and its :class:`~pemviz.core.plan.RunPlan` (``window``: the sampler window's words), the recording's
             description of the method; None: its plan's stages. A :data:`Ref`.
@@ -127,6 +130,7 @@ class Method:
     cost_model: str = "plain"
     run_adds: str = ""
     proposal_curves: bool = False
+    feature_view: bool = False
     then: Ref = None
     then_most: Ref = None
     then_plan: Ref = None
@@ -409,6 +413,7 @@ for _record in (
         validate="pemviz.estimators.builtin:state_conflict",
         run_adds="plus the replay of each batch's state features",
         baseline=True,
+        feature_view=True,
     ),
 ):
     register_method(_record)

@@ -98,7 +98,6 @@ from pemviz.core.plan import RunPlan
 from pemviz.core.problem_view import ProblemView
 from pemviz.core.proposal_view import batch_proposal_view, bins_over, object_detect_probabilities
 from pemviz.engine.events import FinalEstimate, RolloutsSampled, RunCancelled, RunStarted, StageFinished, StageResult
-from pemviz.methods import STATE_METHOD
 from pemviz.sinks import Sink
 from pemviz.sinks import colours as C
 from pemviz.sinks.population import FailureGroups, SharedGroups, log_failures
@@ -371,7 +370,7 @@ class RerunSink(Sink):
 
     # -- run started ----------------------------------------------------------------------------------
     def on_run_started(self, ev: RunStarted) -> None:
-        cfg, state = ev.config, ev.config.method == STATE_METHOD  # a state proposal: its feature view
+        cfg, state = ev.config, ev.config.method_record.feature_view  # a state proposal: its feature view
         self.plan, self.view, self.drawing = ev.plan, ev.problem, ev.problem.drawing
         if self._groups.problem is None:  # its own; a shared one knows the run's problem already
             self._groups.drawing, self._groups.problem = ev.problem.drawing, self.problem

@@ -220,12 +220,15 @@ def test_a_method_s_then_most_is_the_cost_line_s_last_words(defensive):
     from dataclasses import replace
 
     from pemviz.app.form import run_cost
+    from pemviz.engine.cost import LOAD_WORDS
 
     register_method(replace(defensive, name="checked", then_most=f"{__name__}:user_then_most"))
     try:
         text = run_cost(ExperimentConfig.of(method="checked", n_per_stage=400)).text()
         assert text.startswith("400 simulations, ") and text.endswith(" with 1,200 checks of its own")
-        assert "up to" not in run_cost(ExperimentConfig.of(method="defensive-mc", n_per_stage=400)).text()
+        plain = run_cost(ExperimentConfig.of(method="defensive-mc", n_per_stage=400)).text()
+        # nothing may follow its stages: a range only from the load's drift, where the machine is loaded
+        assert "checks of its own" not in plain and ("up to" not in plain or plain.endswith(LOAD_WORDS)), plain
     finally:
         unregister_method("checked")
 
