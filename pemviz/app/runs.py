@@ -30,7 +30,7 @@ from pemviz.config import ExperimentConfig
 from pemviz.core.counterfactuals import LikelyFailure, LogPParts, scoring_detector
 from pemviz.core.counterfactuals import most_likely_failure as pick_most_likely
 from pemviz.core.estimate import Reference
-from pemviz.core.feature_view import FeatureCurve, stage_feature_curve
+from pemviz.core.feature_view import FeatureCurve, evenly_spaced, stage_feature_curve
 from pemviz.core.population import FailureShares
 from pemviz.core.proposal_view import ProposalView, batch_proposal_view, object_detect_probabilities, proposal_view
 from pemviz.core.rollouts import RolloutBatch
@@ -107,7 +107,7 @@ def object_proposal_view(
         or batch.n == 0
     ):
         return None
-    pick = np.unique(np.linspace(0, batch.n - 1, min(batch.n, max_rollouts)).round().astype(np.int64))
+    pick = evenly_spaced(batch.n, max_rollouts)
     rows = np.asarray(batch.objects[pick, :, obj, :], dtype=np.float64)  # [n, T, G]
     seen = rows[..., names.index(axis.visible_column)] > 0.5
     if not seen.any():

@@ -84,12 +84,10 @@ class FeatureCurve:
         return float(self.effects[self.column])
 
 
-def _spread(values: np.ndarray) -> np.ndarray:
-    """At most :data:`MAX_EFFECT_ROWS` of ``values``' rows, evenly spaced (all of them where there are no more)."""
-    n = values.shape[0]
-    if n <= MAX_EFFECT_ROWS:
-        return values
-    return values[np.unique(np.linspace(0, n - 1, MAX_EFFECT_ROWS).round().astype(np.int64))]
+def evenly_spaced(n: int, most: int) -> np.ndarray:
+    """At most ``most`` of the indices 0..n-1, evenly spaced and increasing, int64 [min(n, most)] (all of them where
+    there are no more); ``n`` = 0 gives none."""
+    return np.unique(np.linspace(0, n - 1, min(n, most)).round().astype(np.int64))
 
 
 def feature_effects(proposal: Any, target: Any, rows: np.ndarray, own_columns: int) -> np.ndarray:
@@ -111,7 +109,7 @@ def feature_effects(proposal: Any, target: Any, rows: np.ndarray, own_columns: i
     x = np.asarray(rows, dtype=np.float64)
     if x.ndim != 2 or not 1 <= own_columns <= x.shape[1]:
         raise ValueError(f"feature_effects: rows [N, C] with 1 <= own_columns <= C, got {x.shape} and {own_columns}")
-    x = _spread(x)
+    x = x[evenly_spaced(x.shape[0], MAX_EFFECT_ROWS)] if x.shape[0] > MAX_EFFECT_ROWS else x
     sd = x.std(axis=0) if x.shape[0] else np.zeros(x.shape[1])
 
     def shift(at: np.ndarray) -> np.ndarray:
@@ -211,7 +209,7 @@ def stage_feature_curve(
     proposal = state_proposal_of(sampler)
     if proposal is None or features is None or batch.n == 0:
         return None
-    keep = np.unique(np.linspace(0, batch.n - 1, min(batch.n, max_rollouts)).round().astype(np.int64))
+    keep = evenly_spaced(batch.n, max_rollouts)
     part = batch.select(keep) if keep.size < batch.n else batch
     replayed = features(part, None)
     if replayed is None:
