@@ -308,6 +308,8 @@ def main() -> int:
         _child(args.child)
         return 0
     if args.cores:
+        if args.ray and min(args.ray) < 1:
+            raise SystemExit(f"--ray: cluster sizes of at least 1 worker, got {args.ray}")
         if args.ray and args.once:
             raise SystemExit("--ray needs the --workers 1 run to compare with: leave out --once")
         cores(args.cases, args.cores_n, args.workers, args.once, args.pays_s, args.ray)
