@@ -173,6 +173,7 @@ class RobustnessOutcome:
 
 
 def state_colour(detected: bool, seen: bool) -> str:
+    """An object's colour at a step: green detected, orange missed (visible to the camera), grey unseen."""
     return GREEN if detected else (ORANGE if seen else UNSEEN)
 
 

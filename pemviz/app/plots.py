@@ -61,6 +61,7 @@ SERIES_STYLE: dict[str, up.Series] = {
 
 
 def run_colour(run_id: int) -> str:
+    """Series colour of run number ``run_id`` (from 1; :data:`RUN_COLOURS`, cycling)."""
     return RUN_COLOURS[(run_id - 1) % len(RUN_COLOURS)]
 
 
@@ -303,6 +304,7 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str, ca
 
 
 def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHandle:
+    """An empty per-stage chart titled ``title`` (y axis ``y_label``, 0 to 1 until a run fills it), added to ``gui``."""
     return add_chart(
         gui,
         data=(np.arange(2, dtype=np.float64), np.full(2, np.nan)),
@@ -533,4 +535,5 @@ def move_strip_marker(plots: dict[str, viser.GuiUplotHandle], step: int) -> None
 
 
 def finite_or_dash(x: float | None, spec: str) -> str:
+    """``x`` formatted with ``spec`` (e.g. ``".1f"``), or ``-`` where it is None or not finite."""
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
