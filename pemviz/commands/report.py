@@ -91,7 +91,7 @@ def main(args: argparse.Namespace) -> int:
 
     Raises:
         UsageError: a page or twin that cannot be written (or exists without ``--overwrite``), or a result document
-        that lacks a field.
+            that lacks a field.
     """
     src = Path(args.result)
     doc = read_result(src)
