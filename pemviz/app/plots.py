@@ -469,11 +469,14 @@ def fill_strip_plots(
     threshold and sampler window (:attr:`pemviz.core.problem_view.ProblemView.thresholds`; None: no such lines).
 
     Args:
+        plots: the strip charts by name (:func:`strip_plots`: ``gap``, ``detect``, ``weight``).
         lines: the first chart's lines (:meth:`pemviz.app.drawing.LanePanel.strip_series`), the ``main`` one first:
             the marker follows it; float64 [T] each.
         detected: bool [T] the detections taken.
         ex: the rollout explained (:meth:`pemviz.app.drawing.LanePanel.lane_explanation`).
+        step: the step marked.
         title: the rollout's name (the first chart's caption).
+        thresholds: the problem's failure threshold and sampler window, or None.
         what: the first chart's title (:attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`).
     """
     t = ex.time_s

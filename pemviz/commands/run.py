@@ -258,8 +258,9 @@ def result_lines(
     process writes the file.
 
     Args:
-        cfg: the run's config; problem: its :class:`pemviz.core.problems.Problem`; final: its
-            :class:`pemviz.engine.events.FinalEstimate`.
+        cfg: the run's config.
+        problem: its :class:`pemviz.core.problems.Problem`.
+        final: its :class:`pemviz.engine.events.FinalEstimate`.
         why: the errors that decided the most likely failure (a line), or None.
         failures: the final estimate's failures in groups (:func:`pemviz.sinks.population.grouping_document`), or
             None.
