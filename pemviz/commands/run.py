@@ -72,6 +72,7 @@ def add_method_settings(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``pemviz run`` and its flags (the settings and the outputs) to the sub-command parsers ``sub``."""
     p = sub.add_parser(
         "run",
         help=COMMANDS["run"][1],
@@ -257,8 +258,9 @@ def result_lines(
     process writes the file.
 
     Args:
-        cfg: the run's config; problem: its :class:`pemviz.core.problems.Problem`; final: its
-            :class:`pemviz.engine.events.FinalEstimate`.
+        cfg: the run's config.
+        problem: its :class:`pemviz.core.problems.Problem`.
+        final: its :class:`pemviz.engine.events.FinalEstimate`.
         why: the errors that decided the most likely failure (a line), or None.
         failures: the final estimate's failures in groups (:func:`pemviz.sinks.population.grouping_document`), or
             None.
@@ -321,6 +323,14 @@ def write_results(
 
 
 def main(args: argparse.Namespace) -> int:
+    """``pemviz run``: build the config from the flags, check every output, run the experiment and record it.
+
+    Returns:
+        The exit status of the run (:func:`_run_experiment`).
+
+    Raises:
+        UsageError: a bad setting, PEM or output path, or ``--executor ray`` without Ray.
+    """
     from pemviz import cli
 
     if cli.AS_PROGRAM:  # scipy.special, which the PEM's modules import, without numpy's unused submodules

@@ -151,7 +151,9 @@ def feature_curve(
     """q(detect) against the PEM's p(detect) over the feature that moved q most from the PEM (module docstring).
 
     Args:
-        proposal, target, own_columns: as :func:`feature_effects`.
+        proposal: the sampler's proposal, as :func:`feature_effects`.
+        target: the PEM, as :func:`feature_effects`.
+        own_columns: as :func:`feature_effects`.
         rows: float64 [N, C] the object rows a stage drew with their state features (e.g.
             :func:`pemviz.core.features.with_state`'s, flattened over rollouts, steps and objects); rows with a value
             that is not finite or where the PEM's logit is not (an object out of sight: p = q = 0) are left out.
