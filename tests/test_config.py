@@ -150,10 +150,11 @@ def cli_error(argv: list[str]) -> str:
 
 
 def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choice_is_explained():
-    """At most 10 fields of the config's own besides its groups and a method of one's own's settings
-    (``method_settings``); a method's settings are a dataclass in the method's home, its group;
-    every setting one field of the config or of one group, its owner's (the run's groups hold the run's)."""
+    """At most 10 fields of the config's own besides its groups and the method's own settings
+    (``method_settings``); a method's settings are a dataclass in the method's home, its group or its own (the state
+    method's); every setting one field of the config or of one group, its owner's (the run's groups hold the run's)."""
     from pemviz.config import GROUP_OF, GROUPS
+    from pemviz.methods import get_method
 
     own = [f.name for f in dataclasses.fields(ExperimentConfig) if f.name != "method_settings"]
     assert len([name for name in own if name not in GROUPS]) <= 10 and set(GROUPS) <= set(own)
@@ -161,13 +162,12 @@ def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choi
     assert sorted(fields) == sorted(SETTINGS) and len(fields) == len(set(fields))
     assert GROUPS["adaptive"].__module__ == "pemviz.methods.adaptive"
     assert GROUPS["ams"].__module__ == "pemviz.methods.ams"
-    assert GROUPS["state"].__module__ == "pemviz.methods.state"
+    assert "state" not in GROUPS and get_method("state").settings.__module__ == "pemviz.methods.state"
+    assert not set(dataclasses.fields(get_method("state").settings)) & set(SETTINGS)  # the method's, not the table's
     defaults = ExperimentConfig.of()
     for name, s in SETTINGS.items():
-        assert s.name == name and s.owner in (RUN, "adaptive", "ams", "state"), name
-        assert (
-            GROUP_OF.get(name) == s.owner if s.owner != RUN else GROUP_OF.get(name) not in ("adaptive", "ams", "state")
-        )
+        assert s.name == name and s.owner in (RUN, "adaptive", "ams"), name
+        assert GROUP_OF.get(name) == s.owner if s.owner != RUN else GROUP_OF.get(name) not in ("adaptive", "ams")
         assert s.accepts(defaults.value(name)), name  # the default is inside its own range
         if s.kind == "choice":
             assert [v for v, _ in s.choice_help] == list(s.choices), f"{name}: a hint for every choice, in order"
@@ -251,8 +251,10 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
     from pemviz.estimators.cross_entropy import CrossEntropy
     from pemviz.estimators.state import StateCrossEntropy
+    from pemviz.methods.state import StateSettings
 
-    fields = set(SETTINGS) | {"has_final_batch", "n_simulations"}
+    own = {f.name for f in dataclasses.fields(StateSettings)}  # the state method's own settings
+    fields = set(SETTINGS) | own | {"has_final_batch", "n_simulations"}
     # the cross-entropy method is its estimator and what runs after its stages (its Method's ``then``, whose retry's N
     # its settings' module gives)
     for modules, cls, owner in (
@@ -263,7 +265,7 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
         source = "".join(open(str(module.__file__)).read() for module in modules)
         read = set(
             re.findall(
-                r"\b(?:cfg|config|ce)(?:\.adaptive|\.ams|\.state|\.stop|\.execution|\.perception)?\.([a-z_]+)\b",
+                r"\b(?:cfg|config|ce|own)(?:\.adaptive|\.ams|\.stop|\.execution|\.perception)?\.([a-z_]+)\b",
                 source,
             )
         )
@@ -275,12 +277,10 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
             read - set(cls.SETTINGS) - set(settings_of(RUN)),
         )
         assert set(cls.SETTINGS) <= read, (owner, set(cls.SETTINGS) - read)  # no setting claimed and never read
-    assert not set(settings_of("adaptive")) & set(settings_of("ams")) and not set(settings_of("state")) & set(
-        settings_of("adaptive")
-    )
+    assert not set(settings_of("adaptive")) & set(settings_of("ams")) and not own & set(settings_of("adaptive"))
     # every setting is read by the run or by one of the estimators checked above: an owner misspelt in SETTINGS
     # (or a method's settings without an estimator reading them) would leave its settings read by nobody
-    assert {s.owner for s in SETTINGS.values()} == {RUN, "adaptive", "ams", "state"}
+    assert {s.owner for s in SETTINGS.values()} == {RUN, "adaptive", "ams"}
 
 
 def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with():

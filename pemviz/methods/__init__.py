@@ -24,11 +24,13 @@ holds as a group: :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adapti
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from pemviz.methods.rows import ROW as ROW
+from pemviz.methods.rows import setting as setting
+from pemviz.methods.state import StateSettings
 from pemviz.plugins import Plugins, Ref, resolve
 
 PLUGIN_VARIABLE = "PEMVIZ_METHODS"
@@ -172,20 +174,6 @@ class Method:
             "pemviz.core.plan:RunPlan"
         )  # by its path: the core (its stage kinds) sits above the registry
         return run_plan.of([(1, "final", int(config.n_per_stage))])
-
-
-ROW = "pemviz.setting"
-"""The key of a method's setting's row in its dataclass field's metadata (:func:`setting`)."""
-
-
-def setting(default: Any, words: str, help: str, **row: Any) -> Any:
-    """A field of a method's settings dataclass (:attr:`Method.settings`, or a built-in method's group such as
-    :class:`pemviz.methods.adaptive.CrossEntropySettings`) and its row of the settings table
-    (:class:`pemviz.settings.Setting`): ``default``, then what the row says of it (``words``, ``help`` and any of
-    ``kind``, ``symbol``, ``short``, ``unit``, ``lo``, ``hi``, ``lo_open``, ``hi_open``, ``optional``, ``choices``,
-    ``choice_help``, ``flags``, ``panel``: the place of a built-in method's setting in the panel's form); the field's
-    name is the setting's (and the key a run records it by), the method's name its owner."""
-    return dataclasses.field(default=default, metadata={ROW: {"words": words, "help": help, **row}})
 
 
 COST_MODELS = ("plain", "proposal", "look-ahead", "splitting")
@@ -414,6 +402,7 @@ for _record in (
         run_adds="plus the replay of each batch's state features",
         baseline=True,
         feature_view=True,
+        settings=StateSettings,
     ),
 ):
     register_method(_record)
