@@ -283,6 +283,45 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     assert {s.owner for s in SETTINGS.values()} == {RUN, "adaptive", "ams"}
 
 
+def test_the_state_methods_settings_are_its_own_and_recorded_where_runs_always_recorded_them():
+    """The state method's settings are its record's (``Method.settings``), held as ``method_settings``; every run
+    records them after splitting's, a state run its own values; a recorded config makes the same config again; given
+    to another method they are refused in one line (the config's and the flag's)."""
+    from pemviz.methods import get_method
+    from pemviz.methods.state import StateSettings
+
+    cfg = ExperimentConfig.of(method="state", state_share=0.3, state_model="network")
+    assert get_method("state").settings is StateSettings and not hasattr(cfg, "state")
+    assert cfg.method_settings == StateSettings(state_share=0.3, state_model="network", state_fit_errors=False)
+    assert (cfg.value("state_share"), cfg.replace(state_fit_errors=True).method_settings.state_fit_errors) == (
+        0.3,
+        True,
+    )
+    keys = list(ExperimentConfig.of().flat())
+    assert keys[-4:] == ["ams_score", "state_share", "state_model", "state_fit_errors"] and list(cfg.flat()) == keys
+    assert [cfg.flat()[k] for k in keys[-3:]] == [0.3, "network", False]
+    assert [ExperimentConfig.of(method=m).flat()[k] for m in ("mc", "ams") for k in keys[-3:]] == [
+        0.1,
+        "glm",
+        False,
+    ] * 2
+    assert (
+        ExperimentConfig.of(**cfg.flat()) == cfg
+        and ExperimentConfig.of(**ExperimentConfig.of().flat()).method_settings is None
+    )
+    assert cfg.replace(method="adaptive").method_settings is None
+    with pytest.raises(ConfigError, match=r"^state_share is a setting of method state: give it with method = 'state'$"):
+        ExperimentConfig.of(state_share=0.3)
+    with pytest.raises(ConfigError, match=r"^state_share = 0.95 is invalid: state_share \+ plain_share must be <= 1$"):
+        ExperimentConfig.of(method="state", state_share=0.95, plain_share=0.1)
+    assert (
+        cli_error(["--state-share", "0.3"]) == "--state-share is a setting of method state: give it with --method state"
+    )
+    assert cli_error(["--method", "state", "--state-share", "1"]).endswith(
+        "the PEM's share of the state proposal's mixture must be a number in (0, 1)"
+    )
+
+
 def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with():
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
     from pemviz.estimators.cross_entropy import CrossEntropy

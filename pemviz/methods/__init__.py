@@ -16,10 +16,11 @@ my_package.my_method``, comma-separated, each module registering at import) or a
 This module imports no estimator: a builder (and every hook) may be given as the text ``"package.module:name"``
 (imported when first used), so listing the methods loads no torch. It sits below the config, which asks a method's
 record to check its settings (:attr:`Method.validate`), and below the estimators, which it names only by such texts.
-Each built-in method's settings are a frozen dataclass in a module of this package, light to import, which the config
-holds as a group: :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
-``adaptive``), :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``) and
-:mod:`pemviz.methods.state` (:class:`~pemviz.methods.state.StateSettings`, its ``state``).
+Each built-in method's settings are a frozen dataclass in a module of this package, light to import: the config holds
+two as groups, :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
+``adaptive``) and :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``); the state
+method's, :class:`pemviz.methods.state.StateSettings`, are its record's :attr:`Method.settings`, as a plugin's are (each
+field made by :func:`pemviz.methods.rows.setting`).
 """
 
 from __future__ import annotations
@@ -112,8 +113,8 @@ class Method:
             :func:`pemviz.settings.setting`, are its rows of the settings table (symbol, range, unit, help, flag). A
             run of the method holds them as :attr:`pemviz.config.ExperimentConfig.method_settings`, takes them by
             their names (``ExperimentConfig.of(coin_share=0.2)``), records them with the run's other settings and
-            ``pemviz run`` takes each as a flag; None: it has none (the built-in methods' settings are the config's
-            groups).
+            ``pemviz run`` takes each as a flag; None: it has none (the cross-entropy sampler's and splitting's settings
+            are the config's groups).
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """
