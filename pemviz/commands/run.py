@@ -49,15 +49,15 @@ has a flag, in the table's order (a method of one's own adds its own: :func:`add
 
 def add_method_settings(p: argparse.ArgumentParser) -> None:
     """A flag for each setting of each registered method's own settings (:attr:`pemviz.methods.Method.settings`; the
-    method plugins loaded first), its help led by the method's name; a flag ``pemviz run`` has already is left out (the
-    setting is still the config's by its name). A plugin that cannot be loaded, or a settings class without rows, is
-    left to :func:`config_from_args`, which says why in one line."""
+    method plugins loaded first), a plugin's help led by the method's name (a built-in method's rows name it); a flag
+    ``pemviz run`` has already is left out (the setting is still the config's by its name). A plugin that cannot be
+    loaded, or a settings class without rows, is left to :func:`config_from_args`, which says why in one line."""
     from pemviz.methods import MethodPluginError, load_method_plugins, records
 
     try:
         load_method_plugins()
     except MethodPluginError:
-        return
+        pass  # the built-in methods' flags all the same
     taken = {flag for action in p._actions for flag in action.option_strings}
     for record in records():
         if record.settings is None:
@@ -68,7 +68,8 @@ def add_method_settings(p: argparse.ArgumentParser) -> None:
             continue
         for row in rows.values():
             if not taken & {*(row.flags or (row.flag,))}:
-                add_row(p, row, getattr(defaults, row.name), lead=f"method {record.name}'s ")
+                lead = "" if record.name in BUILTIN_METHODS else f"method {record.name}'s "
+                add_row(p, row, getattr(defaults, row.name), lead=lead)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

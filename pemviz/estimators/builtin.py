@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from pemviz.core.plan import RunPlan
 from pemviz.methods.adaptive import plain_fallback_most, retry_n
+from pemviz.methods.state import state_settings
 from pemviz.settings import setting_of
 
 if TYPE_CHECKING:  # light to import: a config's checks read these hooks
@@ -130,7 +131,7 @@ def adaptive_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, st
 def state_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | None:
     """The state method's settings: the cross-entropy sampler's (:func:`adaptive_conflict`), and the PEM's share with
     the plain proposal's at most all of a stage."""
-    if config.state.state_share + config.adaptive.plain_share > 1.0:
+    if state_settings(config).state_share + config.adaptive.plain_share > 1.0:
         return "state_share", "state_share + plain_share must be <= 1"
     return adaptive_conflict(config, n_objects)
 

@@ -30,7 +30,8 @@ from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import FeatureProposal, Proposal
 from pemviz.estimators.base import Check
 from pemviz.estimators.cross_entropy import CrossEntropy
-from pemviz.methods import CROSS_ENTROPY_METHOD, STATE_METHOD
+from pemviz.methods import CROSS_ENTROPY_METHOD
+from pemviz.methods.state import StateSettings, state_settings
 from pemviz.settings import settings_of
 
 if TYPE_CHECKING:
@@ -100,21 +101,22 @@ def reports_state(problem: Problem) -> bool:
 
 class StateCrossEntropy(CrossEntropy):
     """The cross-entropy sampler with the state-dependent proposal (module docstring); settings: the adaptive sampler's
-    and :class:`pemviz.methods.state.StateSettings`.
+    and the method's own, :class:`pemviz.methods.state.StateSettings` (:func:`pemviz.methods.state.state_settings`).
 
     Raises:
         ValueError: the problem's simulator reports no state features (:func:`no_features_refusal`).
     """
 
-    SETTINGS = (*settings_of(CROSS_ENTROPY_METHOD), *settings_of(STATE_METHOD))
+    SETTINGS = (*settings_of(CROSS_ENTROPY_METHOD), *StateSettings.__dataclass_fields__)
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         if not reports_state(problem):
             raise ValueError(no_features_refusal(problem))
         self._first = FirstColumns(problem.target)
         super().__init__(config, dataclasses.replace(problem, target=self._first), check)
-        self.ce = dataclasses.replace(self.ce, target_share=float(config.state.state_share))
-        self.fits_errors = bool(config.state.state_fit_errors)
+        self.own = state_settings(config)
+        self.ce = dataclasses.replace(self.ce, target_share=float(self.own.state_share))
+        self.fits_errors = bool(self.own.state_fit_errors)
         self.replayed = 0
         """Rollouts whose state features were replayed for the fits and weights (rollout-equivalents)."""
 
@@ -136,7 +138,7 @@ class StateCrossEntropy(CrossEntropy):
         rows, _ = batch.events()
         scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])]
         shape = (tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
-        if self.config.state.state_model == "glm":
+        if self.own.state_model == "glm":
             from pemviz.estimators.state_glm import StateGLM
 
             return StateGLM(*shape, self._first)

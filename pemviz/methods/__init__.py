@@ -16,19 +16,22 @@ my_package.my_method``, comma-separated, each module registering at import) or a
 This module imports no estimator: a builder (and every hook) may be given as the text ``"package.module:name"``
 (imported when first used), so listing the methods loads no torch. It sits below the config, which asks a method's
 record to check its settings (:attr:`Method.validate`), and below the estimators, which it names only by such texts.
-Each built-in method's settings are a frozen dataclass in a module of this package, light to import, which the config
-holds as a group: :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
-``adaptive``), :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``) and
-:mod:`pemviz.methods.state` (:class:`~pemviz.methods.state.StateSettings`, its ``state``).
+Each built-in method's settings are a frozen dataclass in a module of this package, light to import: the config holds
+two as groups, :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
+``adaptive``) and :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``); the state
+method's, :class:`pemviz.methods.state.StateSettings`, are its record's :attr:`Method.settings`, as a plugin's are (each
+field made by :func:`pemviz.methods.rows.setting`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from pemviz.methods.rows import ROW as ROW
+from pemviz.methods.rows import setting as setting
+from pemviz.methods.state import StateSettings
 from pemviz.plugins import Plugins, Ref, resolve
 
 PLUGIN_VARIABLE = "PEMVIZ_METHODS"
@@ -110,8 +113,8 @@ class Method:
             :func:`pemviz.settings.setting`, are its rows of the settings table (symbol, range, unit, help, flag). A
             run of the method holds them as :attr:`pemviz.config.ExperimentConfig.method_settings`, takes them by
             their names (``ExperimentConfig.of(coin_share=0.2)``), records them with the run's other settings and
-            ``pemviz run`` takes each as a flag; None: it has none (the built-in methods' settings are the config's
-            groups).
+            ``pemviz run`` takes each as a flag; None: it has none (the cross-entropy sampler's and splitting's settings
+            are the config's groups).
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """
@@ -172,20 +175,6 @@ class Method:
             "pemviz.core.plan:RunPlan"
         )  # by its path: the core (its stage kinds) sits above the registry
         return run_plan.of([(1, "final", int(config.n_per_stage))])
-
-
-ROW = "pemviz.setting"
-"""The key of a method's setting's row in its dataclass field's metadata (:func:`setting`)."""
-
-
-def setting(default: Any, words: str, help: str, **row: Any) -> Any:
-    """A field of a method's settings dataclass (:attr:`Method.settings`, or a built-in method's group such as
-    :class:`pemviz.methods.adaptive.CrossEntropySettings`) and its row of the settings table
-    (:class:`pemviz.settings.Setting`): ``default``, then what the row says of it (``words``, ``help`` and any of
-    ``kind``, ``symbol``, ``short``, ``unit``, ``lo``, ``hi``, ``lo_open``, ``hi_open``, ``optional``, ``choices``,
-    ``choice_help``, ``flags``, ``panel``: the place of a built-in method's setting in the panel's form); the field's
-    name is the setting's (and the key a run records it by), the method's name its owner."""
-    return dataclasses.field(default=default, metadata={ROW: {"words": words, "help": help, **row}})
 
 
 COST_MODELS = ("plain", "proposal", "look-ahead", "splitting")
@@ -414,6 +403,7 @@ for _record in (
         run_adds="plus the replay of each batch's state features",
         baseline=True,
         feature_view=True,
+        settings=StateSettings,
     ),
 ):
     register_method(_record)
