@@ -61,10 +61,25 @@ class Executor(Protocol):
     ) -> RolloutBatch: ...
 
     def stream(
-        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator, **size: Any
+        self,
+        problem: Any,
+        n: int,
+        sampler: Detector,
+        target: Detector,
+        rng: np.random.Generator,
+        chunk_size: int | None = None,
+        keep_rows: bool | None = None,
     ) -> Iterator[RolloutBatch]: ...
 
     def close(self) -> None: ...
+
+
+def stream_size(chunk_size: int | None, keep_rows: bool | None) -> dict[str, Any]:
+    """The keyword arguments of ``problem.stream`` for ``chunk_size`` and ``keep_rows``, those that are not None."""
+    size: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
+    if keep_rows is not None:
+        size["keep_rows"] = keep_rows
+    return size
 
 
 class SerialExecutor:
@@ -81,10 +96,18 @@ class SerialExecutor:
         return problem.simulate(n, sampler, target, rng)
 
     def stream(
-        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator, **size: Any
+        self,
+        problem: Any,
+        n: int,
+        sampler: Detector,
+        target: Detector,
+        rng: np.random.Generator,
+        chunk_size: int | None = None,
+        keep_rows: bool | None = None,
     ) -> Iterator[RolloutBatch]:
-        """``problem.stream(n, sampler, target, rng, **size)``: its chunks in order."""
-        return problem.stream(n, sampler, target, rng, **size)
+        """``problem.stream(n, sampler, target, rng, chunk_size=..., keep_rows=...)`` (those given): its chunks in
+        order."""
+        return problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
 
     def close(self) -> None:
         pass
@@ -189,10 +212,7 @@ def stream_block(
     ``rng_state``, streamed as one chunk (its object rows elided when ``keep_rows`` is False): the batch
     [stop - start, T], the draws made and the uniforms per rollout (as :func:`simulate_chunk`)."""
     uniforms = ChunkUniforms(rng_state, n, start, stop)
-    size: dict[str, Any] = {"chunk_size": stop - start}
-    if keep_rows is not None:
-        size["keep_rows"] = keep_rows
-    batches = list(problem.stream(stop - start, sampler, target, uniforms, **size))
+    batches = list(problem.stream(stop - start, sampler, target, uniforms, **stream_size(stop - start, keep_rows)))
     batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
     return batch, uniforms.calls, uniforms.per_rollout
 
@@ -414,10 +434,7 @@ class RayExecutor:
         last chunk is handed out. A Ray task a block, at most :attr:`in_flight` ahead of the chunk handed out; a
         block is dropped once its chunks are (in the driver when N is one block, :func:`splittable`)."""
         if not splittable(n, rng, problem):
-            size: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
-            if keep_rows is not None:
-                size["keep_rows"] = keep_rows
-            return problem.stream(n, sampler, target, rng, **size)
+            return problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
         blocks = self._blocks(problem, n, sampler, target, rng.bit_generator.state, stream=True, keep_rows=keep_rows)
         return stream_chunks(problem, n, rng, blocks, chunk_size)
 

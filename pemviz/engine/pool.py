@@ -45,6 +45,7 @@ from pemviz.engine.executors import (
     splittable,
     stream_block,
     stream_chunks,
+    stream_size,
 )
 from pemviz.engine.resources import ONE_THREAD_ENV, usable_cpus
 
@@ -200,11 +201,8 @@ class LocalExecutor:
         (None: one block): the same rollouts, bit for bit; ``rng`` is left where the serial stream leaves it once the
         last chunk is handed out. The first block is simulated here and timed; the others here too, or in the pool,
         at most two per worker ahead, where they pay for it (:meth:`_pays`)."""
-        size: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
-        if keep_rows is not None:
-            size["keep_rows"] = keep_rows
         if not self.eligible(n, rng, problem):
-            yield from problem.stream(n, sampler, target, rng, **size)
+            yield from problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
             return
         blocks = self._blocks(problem, n, sampler, target, rng.bit_generator.state, keep_rows)
         yield from stream_chunks(problem, n, rng, blocks, chunk_size)
