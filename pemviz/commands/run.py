@@ -422,10 +422,9 @@ def _run_experiment(args, cfg: ExperimentConfig, target, outputs: RunOutputs, ea
     from pemviz.sinks.most_likely import MostLikelyFailure
     from pemviz.sinks.population import FailureGroups, grouping_document
 
-    serial = cfg.execution.executor != "ray"  # streams large stages (engine.experiment.streams_locally)
     opened = open_load_window()  # the load is read from here to the run's start: over the problem's build
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
-    check_run_memory(cfg, problem.n_steps or N_STEPS, stream_above=stream_above(cfg) if serial else None)
+    check_run_memory(cfg, problem.n_steps or N_STEPS, stream_above=stream_above(cfg))
     try:
         check_runnable(cfg, problem)  # a sampler that cannot run on this scenario: before any output or rollout
     except ValueError as exc:
