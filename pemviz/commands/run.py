@@ -64,8 +64,10 @@ def add_method_settings(p: argparse.ArgumentParser) -> None:
         if record.settings is None:
             continue
         try:
-            rows, defaults = rows_of(record.settings, record.name), record.settings()
-        except (TypeError, ValueError):
+            kind = record.settings_class()
+            assert kind is not None  # its settings are given
+            rows, defaults = rows_of(kind, record.name), kind()
+        except (TypeError, ValueError, ImportError, AttributeError):
             continue
         for row in rows.values():
             if not taken & {*(row.flags or (row.flag,))}:
@@ -190,7 +192,8 @@ def method_settings_of(args: argparse.Namespace, method: str) -> dict[str, Any]:
 
     given: dict[str, Any] = {}
     for record in records():
-        for row in () if record.settings is None else rows_of(record.settings, record.name).values():
+        kind = record.settings_class()
+        for row in () if kind is None else rows_of(kind, record.name).values():
             value = getattr(args, row.name, None)
             if value is not None and record.name != method:
                 raise ConfigError(
