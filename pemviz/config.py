@@ -201,16 +201,17 @@ class ExperimentConfig:
                 TypeError: a name that is no setting.
         """
         method = method_or_none(settings.get("method", DEFAULT_METHOD))  # None: refused when the config is checked
-        mine = [f.name for f in dataclasses.fields(method.settings)] if method and method.settings else []
+        kind = method.settings_class() if method else None  # the method's own settings class, or None
+        mine = [f.name for f in dataclasses.fields(kind)] if kind else []
         own = {k: v for k, v in settings.items() if k not in GROUP_OF and k not in mine}
         for name in [k for k in own if k in OWN_DEFAULTS]:  # another built-in method's, as a run records it
             if own.pop(name) != OWN_DEFAULTS[name]:
-                owner = next(r.name for r in records() if r.settings and name in _names(r.settings))
+                owner = next(r.name for r in records() if name in _names(r.settings_class()))
                 raise ConfigError(f"{name} is a setting of method {owner}: give it with method = {owner!r}", name)
         if mine:  # the method's own settings by their names, over the instance given (of its class) or its defaults
-            assert method is not None and method.settings is not None  # mine is empty otherwise
+            assert kind is not None  # mine is empty otherwise
             given = own.get("method_settings")
-            base: Any = given if isinstance(given, method.settings) else method.settings()
+            base: Any = given if isinstance(given, kind) else kind()
             own["method_settings"] = dataclasses.replace(base, **{k: settings[k] for k in mine if k in settings})
         elif "method_settings" in own:  # another method's settings: not this one's
             own["method_settings"] = None
@@ -298,15 +299,16 @@ class ExperimentConfig:
             "give one stop rule: a requirement (--require) or a precision target (--rel-error)",
         )
         method = self.method_record  # its own settings, then against the others (Method.validate)
-        if method.settings is None:
+        kind = method.settings_class()
+        if kind is None:
             if self.method_settings is not None:
                 raise ConfigError(f"method {method.name} has no settings of its own; give none", "method_settings")
         else:
             if self.method_settings is None:  # made without them: the method's defaults
-                object.__setattr__(self, "method_settings", method.settings())
-            if not isinstance(self.method_settings, method.settings):
+                object.__setattr__(self, "method_settings", kind())
+            if not isinstance(self.method_settings, kind):
                 raise ConfigError(
-                    f"method {method.name}'s settings are a {method.settings.__name__}, got "
+                    f"method {method.name}'s settings are a {kind.__name__}, got "
                     f"{type(self.method_settings).__name__}",
                     "method_settings",
                 )
@@ -407,9 +409,9 @@ GROUP_OF: dict[str, str] = {f.name: g for g, cls in GROUPS.items() for f in data
 a setting not here is a field of the config itself."""
 
 
-def _names(settings: type) -> tuple[str, ...]:
-    """The field names of a settings dataclass."""
-    return tuple(f.name for f in dataclasses.fields(settings))
+def _names(settings: type | None) -> tuple[str, ...]:
+    """The field names of a settings dataclass (none for None)."""
+    return () if settings is None else tuple(f.name for f in dataclasses.fields(settings))
 
 
 def has_final_batch(config: ExperimentConfig) -> bool:

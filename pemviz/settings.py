@@ -403,8 +403,8 @@ SETTINGS: dict[str, Setting] = {**_NAMED, **_ADDED}
 OWN_DEFAULTS: dict[str, Any] = {
     name: value
     for record in records()
-    if record.name in BUILTIN_METHODS and record.settings is not None
-    for name, value in dataclasses.asdict(record.settings()).items()
+    if record.name in BUILTIN_METHODS and (kind := record.settings_class()) is not None
+    for name, value in dataclasses.asdict(kind()).items()
 }
 """The built-in methods' own settings (:attr:`pemviz.methods.Method.settings`: the state method's) at their defaults,
 by name: what a run of another method records for them (every run has recorded them since they were the config's)."""

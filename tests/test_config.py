@@ -162,8 +162,10 @@ def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choi
     assert sorted(fields) == sorted(SETTINGS) and len(fields) == len(set(fields))
     assert GROUPS["adaptive"].__module__ == "pemviz.methods.adaptive"
     assert GROUPS["ams"].__module__ == "pemviz.methods.ams"
-    assert "state" not in GROUPS and get_method("state").settings.__module__ == "pemviz.methods.state"
-    assert not set(dataclasses.fields(get_method("state").settings)) & set(SETTINGS)  # the method's, not the table's
+    assert "state" not in GROUPS and get_method("state").settings_class().__module__ == "pemviz.methods.state"
+    assert not set(dataclasses.fields(get_method("state").settings_class())) & set(
+        SETTINGS
+    )  # the method's, not the table's
     defaults = ExperimentConfig.of()
     for name, s in SETTINGS.items():
         assert s.name == name and s.owner in (RUN, "adaptive", "ams"), name
@@ -246,12 +248,12 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     import pemviz.estimators.ams as ams
     import pemviz.estimators.cross_entropy as ce
     import pemviz.estimators.fallback as fallback
-    import pemviz.estimators.state as state
     import pemviz.methods.adaptive as adaptive
+    import pemviz.methods.state.estimator as state
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
     from pemviz.estimators.cross_entropy import CrossEntropy
-    from pemviz.estimators.state import StateCrossEntropy
     from pemviz.methods.state import StateSettings
+    from pemviz.methods.state.estimator import StateCrossEntropy
 
     own = {f.name for f in dataclasses.fields(StateSettings)}  # the state method's own settings
     fields = set(SETTINGS) | own | {"has_final_batch", "n_simulations"}
@@ -291,7 +293,7 @@ def test_the_state_methods_settings_are_its_own_and_recorded_where_runs_always_r
     from pemviz.methods.state import StateSettings
 
     cfg = ExperimentConfig.of(method="state", state_share=0.3, state_model="network")
-    assert get_method("state").settings is StateSettings and not hasattr(cfg, "state")
+    assert get_method("state").settings_class() is StateSettings and not hasattr(cfg, "state")
     assert cfg.method_settings == StateSettings(state_share=0.3, state_model="network", state_fit_errors=False)
     assert (cfg.value("state_share"), cfg.replace(state_fit_errors=True).method_settings.state_fit_errors) == (
         0.3,

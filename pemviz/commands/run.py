@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pemviz import commands
 from pemviz.commands import (
     COMMANDS,
     UsageError,
@@ -63,8 +64,10 @@ def add_method_settings(p: argparse.ArgumentParser) -> None:
         if record.settings is None:
             continue
         try:
-            rows, defaults = rows_of(record.settings, record.name), record.settings()
-        except (TypeError, ValueError):
+            kind = record.settings_class()
+            assert kind is not None  # its settings are given
+            rows, defaults = rows_of(kind, record.name), kind()
+        except (TypeError, ValueError, ImportError, AttributeError):
             continue
         for row in rows.values():
             if not taken & {*(row.flags or (row.flag,))}:
@@ -189,7 +192,8 @@ def method_settings_of(args: argparse.Namespace, method: str) -> dict[str, Any]:
 
     given: dict[str, Any] = {}
     for record in records():
-        for row in () if record.settings is None else rows_of(record.settings, record.name).values():
+        kind = record.settings_class()
+        for row in () if kind is None else rows_of(kind, record.name).values():
             value = getattr(args, row.name, None)
             if value is not None and record.name != method:
                 raise ConfigError(
@@ -332,9 +336,7 @@ def main(args: argparse.Namespace) -> int:
     Raises:
         UsageError: a bad setting, PEM or output path, or ``--executor ray`` without Ray.
     """
-    from pemviz import cli
-
-    if cli.AS_PROGRAM:  # scipy.special, which the PEM's modules import, without numpy's unused submodules
+    if commands.AS_PROGRAM:  # scipy.special, which the PEM's modules import, without numpy's unused submodules
         from pemviz.sinks.process import import_scipy_special_lean
 
         import_scipy_special_lean()
@@ -365,7 +367,7 @@ def main(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     if (
-        cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.execution.executor != "ray"
+        commands.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.execution.executor != "ray"
     ):  # "save": the child's
         from pemviz.sinks.process import settle_pyarrow_without_pandas
 
@@ -374,7 +376,7 @@ def main(args: argparse.Namespace) -> int:
     if target == "connect":
         args.url = probe_viewer(args.url)
     early = None
-    if target == "save" and cli.AS_PROGRAM and cfg.execution.executor != "ray":
+    if target == "save" and commands.AS_PROGRAM and cfg.execution.executor != "ray":
         from pemviz.sinks.recording_process import RecordingProcess  # rerun imported beside the run, not before it
 
         assert save_path is not None  # plan_outputs names the file of a recording saved

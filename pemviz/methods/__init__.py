@@ -20,7 +20,9 @@ Each built-in method's settings are a frozen dataclass in a module of this packa
 two as groups, :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
 ``adaptive``) and :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``); the state
 method's, :class:`pemviz.methods.state.StateSettings`, are its record's :attr:`Method.settings`, as a plugin's are (each
-field made by :func:`pemviz.methods.rows.setting`).
+field made by :func:`pemviz.methods.rows.setting`). A method's own folder (``pemviz/methods/state/``: its settings,
+estimator, fits and hooks) sits above the estimators, the core and the config, which it imports: the registry names
+its code by text only, so that nothing here imports it when loaded (``scripts/import_cycles.py`` checks the layers).
 """
 
 from __future__ import annotations
@@ -31,7 +33,6 @@ from typing import Any
 
 from pemviz.methods.rows import ROW as ROW
 from pemviz.methods.rows import setting as setting
-from pemviz.methods.state import StateSettings
 from pemviz.plugins import Plugins, Ref, resolve
 
 PLUGIN_VARIABLE = "PEMVIZ_METHODS"
@@ -114,7 +115,8 @@ class Method:
             run of the method holds them as :attr:`pemviz.config.ExperimentConfig.method_settings`, takes them by
             their names (``ExperimentConfig.of(coin_share=0.2)``), records them with the run's other settings and
             ``pemviz run`` takes each as a flag; None: it has none (the cross-entropy sampler's and splitting's settings
-            are the config's groups).
+            are the config's groups). A :data:`Ref` (a built-in method's names its folder's class by text, so that the
+            registry imports no method's folder): read it with :meth:`settings_class`.
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """
@@ -141,7 +143,7 @@ class Method:
     describe: Ref = None
     sampler: str | None = None
     baseline: bool = False
-    settings: type | None = None
+    settings: Ref = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -150,13 +152,26 @@ class Method:
             raise ValueError(f"Method {self.name}: description must be one line of text")
         if self.build is None:
             raise ValueError(f"Method {self.name}: a builder (config, problem, check) -> Estimator is needed")
-        params = getattr(self.settings, "__dataclass_params__", None)
-        if self.settings is not None and not (isinstance(self.settings, type) and params and params.frozen):
-            raise ValueError(f"Method {self.name}: settings must be a frozen dataclass, got {self.settings!r}")
+        if not isinstance(self.settings, str):  # a text is checked when it is first read
+            self.settings_class()
         if self.cost_model not in COST_MODELS:
             raise ValueError(
                 f"Method {self.name}: cost_model must be one of {', '.join(COST_MODELS)}, got " f"{self.cost_model!r}"
             )
+
+    def settings_class(self) -> type | None:
+        """The method's own settings class (:attr:`settings`, imported where a text names it), or None.
+
+        Raises:
+            ValueError: not a frozen dataclass. ImportError, AttributeError: a text naming nothing.
+        """
+        if self.settings is None:
+            return None
+        cls = resolve(self.settings)
+        params = getattr(cls, "__dataclass_params__", None)
+        if not (isinstance(cls, type) and params and params.frozen):
+            raise ValueError(f"Method {self.name}: settings must be a frozen dataclass, got {cls!r}")
+        return cls
 
     def conflict(self, config: Any, n_objects: int) -> tuple[str, str] | None:
         """(setting, what is allowed) of the first of this method's settings in ``config`` that conflicts with
@@ -398,12 +413,12 @@ for _record in (
         "cross-entropy importance sampling of each detection (and with --state-fit-errors each error's location and "
         "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
         "report them",
-        "pemviz.estimators.state:StateCrossEntropy",
-        validate="pemviz.estimators.builtin:state_conflict",
+        "pemviz.methods.state.estimator:StateCrossEntropy",
+        validate="pemviz.methods.state.hooks:state_conflict",
         run_adds="plus the replay of each batch's state features",
         baseline=True,
         feature_view=True,
-        settings=StateSettings,
+        settings="pemviz.methods.state:StateSettings",
     ),
 ):
     register_method(_record)
