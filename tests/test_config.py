@@ -370,3 +370,32 @@ def test_an_optional_number_s_messages_say_what_to_type_and_none_is_typed_as_suc
         SETTINGS["n_per_stage"].parse("none")  # not optional: none is no value of it
     assert build_parser().parse_args(["run", "--rel-error", "none"]).rel_error is None
     assert parse_number(FIELDS_BY_KEY["rel_error"], "none") == (None, "")
+
+
+def test_the_fallbacks_settings_are_a_group_of_their_own_read_whatever_the_method():
+    """The retry and plain Monte Carlo after the stages have their own settings (``config.fallback``), given by their
+    flat names to any method whose record names a ``then`` (the adaptive and state methods), checked in one line, and
+    no longer fields of the cross-entropy sampler's settings; the retry's N is theirs."""
+    from pemviz.methods import records
+    from pemviz.methods.adaptive import CrossEntropySettings
+    from pemviz.settings import RETRY_MOST_N, FallbackSettings
+
+    assert [r.name for r in records() if r.then] == ["adaptive", "state"]
+    cfg = ExperimentConfig.of(method="state", plain_fallback=7, retry_factor=3)
+    assert cfg.fallback == FallbackSettings(plain_fallback=7, retry_factor=3) and cfg.value("retry_factor") == 3
+    assert cfg.adaptive == CrossEntropySettings() and not {"plain_fallback", "retry_factor"} & {
+        f.name for f in dataclasses.fields(CrossEntropySettings)
+    }
+    # N x retry_factor, capped at 10,000; none with a stop rule, a factor below 2, no plain fallback or N at the cap
+    assert (cfg.fallback.retry_n(100), cfg.fallback.retry_n(4_000), cfg.fallback.retry_n(100, "rel_error")) == (
+        300,
+        RETRY_MOST_N,
+        None,
+    )
+    assert (
+        FallbackSettings(retry_factor=1).retry_n(100) is None
+        and FallbackSettings(plain_fallback=0).retry_n(100) is None
+    )
+    assert FallbackSettings().retry_n(RETRY_MOST_N) is None
+    with pytest.raises(ConfigError, match=r"^retry_factor = -1 is invalid: the retry's factor on N must be a whole"):
+        ExperimentConfig.of(method="state", retry_factor=-1)
