@@ -6,7 +6,9 @@ Each field's symbol, words, allowed range, unit, help, command-line flag and own
 it here. The allowed values of the choices (:data:`METRICS`, ...) and the numeric limits
 (:data:`MAX_SEED`, ...) live beside it; the cross-entropy sampler's rows are the fields of its settings
 (:class:`pemviz.methods.adaptive.CrossEntropySettings`, each made by :func:`pemviz.methods.setting`), with its
-choices and limits beside them.
+choices and limits beside them; the retry's and plain Monte Carlo's after any method's stages are the fields of
+:class:`FallbackSettings` here, with the retry's N (:meth:`FallbackSettings.retry_n`) and plain Monte Carlo's cap
+(:func:`plain_fallback_most`).
 """
 
 from __future__ import annotations
