@@ -23,7 +23,16 @@ from pemviz.core.requirement import RequirementError, parse_requirement
 from pemviz.methods import DEFAULT_METHOD, Method, extensible_names, method_or_none, records
 from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.ams import AmsSettings
-from pemviz.settings import DEFAULT_SCENARIO, OWN_DEFAULTS, RECORDED, SETTINGS, ConfigError, check_settings, rows_of
+from pemviz.settings import (
+    DEFAULT_SCENARIO,
+    OWN_DEFAULTS,
+    RECORDED,
+    SETTINGS,
+    ConfigError,
+    FallbackSettings,
+    check_settings,
+    rows_of,
+)
 
 
 def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
@@ -123,8 +132,9 @@ class ExperimentConfig:
 
     The defaults are the recommended sampler (preset :data:`pemviz.presets.DEFAULT_PRESET`);
     :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` gives the paper's own settings. Its fields are the run's own
-    settings, five groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, the cross-entropy sampler's and
-    splitting's settings (:attr:`adaptive`, :attr:`ams`), and the method's own settings (:attr:`method_settings`: the
+    settings, six groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, the cross-entropy sampler's and
+    splitting's settings (:attr:`adaptive`, :attr:`ams`), the fallback's after any method's stages (:attr:`fallback`),
+    and the method's own settings (:attr:`method_settings`: the
     state method's, a plugin's). Every setting has one flat name, its row of :data:`pemviz.settings.SETTINGS`
     (``smoothing``, ``executor``, ``ams_killed``) or of the method's settings (``state_share``): :meth:`of` makes a
     config from flat names, :meth:`value` reads one, :meth:`flat` gives them all (the result document's, the rollout
@@ -166,6 +176,8 @@ class ExperimentConfig:
         adaptive: the cross-entropy sampler's settings
             (:class:`pemviz.methods.adaptive.CrossEntropySettings`).
         ams: splitting's settings (:class:`pemviz.methods.ams.AmsSettings`).
+        fallback: the retry and plain Monte Carlo after the stages of a method whose record has a
+            :attr:`~pemviz.methods.Method.then` (:class:`pemviz.settings.FallbackSettings`).
         method_settings: the method's own settings, an instance of its :attr:`pemviz.methods.Method.settings` (the
             state method's :class:`pemviz.methods.state.StateSettings`, a method of one's own's; None: made from its
             defaults; for a method without them, None).
@@ -186,6 +198,7 @@ class ExperimentConfig:
     stop: StopRule = StopRule()
     adaptive: CrossEntropySettings = CrossEntropySettings()
     ams: AmsSettings = AmsSettings()
+    fallback: FallbackSettings = FallbackSettings()
     method_settings: Any = None
 
     @classmethod
@@ -373,7 +386,7 @@ class ExperimentConfig:
     def most_simulations(self) -> int | None:
         """The most simulations of the whole run (its stages, their added batches, a retry and plain Monte Carlo
         after them): ``max_sims``, else :data:`~pemviz.settings.DEFAULT_MAX_SIMS` with a stop rule, else None (the
-        planned budget, and the fallback's own cap, :func:`pemviz.methods.adaptive.plain_fallback_most`)."""
+        planned budget, and the fallback's own cap, :func:`pemviz.settings.plain_fallback_most`)."""
         from pemviz.settings import DEFAULT_MAX_SIMS
 
         if self.stop.max_sims is not None:
@@ -401,7 +414,8 @@ GROUPS: dict[str, type] = {
     f.name: type(f.default) for f in dataclasses.fields(ExperimentConfig) if dataclasses.is_dataclass(f.default)
 }
 """The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three, the
-cross-entropy sampler's and splitting's settings (a dataclass in the method's home); a method's own settings are its
+cross-entropy sampler's and splitting's settings (a dataclass in the method's home) and the fallback's
+(:class:`pemviz.settings.FallbackSettings`); a method's own settings are its
 :attr:`ExperimentConfig.method_settings`."""
 
 GROUP_OF: dict[str, str] = {f.name: g for g, cls in GROUPS.items() for f in dataclasses.fields(cls)}

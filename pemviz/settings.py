@@ -6,7 +6,9 @@ Each field's symbol, words, allowed range, unit, help, command-line flag and own
 it here. The allowed values of the choices (:data:`METRICS`, ...) and the numeric limits
 (:data:`MAX_SEED`, ...) live beside it; the cross-entropy sampler's rows are the fields of its settings
 (:class:`pemviz.methods.adaptive.CrossEntropySettings`, each made by :func:`pemviz.methods.setting`), with its
-choices and limits beside them.
+choices and limits beside them; the retry's and plain Monte Carlo's after any method's stages are the fields of
+:class:`FallbackSettings` here, with the retry's N (:meth:`FallbackSettings.retry_n`) and plain Monte Carlo's cap
+(:func:`plain_fallback_most`).
 """
 
 from __future__ import annotations
@@ -87,6 +89,85 @@ PANEL_PLACES = ("main", "advanced")
 
 RUN = "run"
 """The owner of a setting that the run itself reads, whatever its method (the engine, the problem, the seed)."""
+FALLBACK = "fallback"
+"""The owner of the fallback's settings (:class:`FallbackSettings`): what runs after the stages of any method whose
+record has a :attr:`~pemviz.methods.Method.then` (:func:`pemviz.estimators.fallback.with_plain_fallback`)."""
+
+
+RETRY_MOST_N = 10_000
+"""The most rollouts of a retry's stage: a run of larger N retries at this N, and one at it or above does not retry."""
+
+
+@dataclass(frozen=True)
+class FallbackSettings:
+    """The retry and plain Monte Carlo after a method's stages where their weights back no interval (a verdict other
+    than ``reliable``): :attr:`pemviz.config.ExperimentConfig.fallback` of a run, read by
+    :class:`pemviz.estimators.fallback.PlainFallback` whatever the method (the one its record's
+    :attr:`~pemviz.methods.Method.then` names: the adaptive and state methods'). Each field, made by :func:`setting`,
+    carries its row of :data:`SETTINGS` (owner :data:`FALLBACK`).
+
+    Attributes:
+    plain_fallback: plain Monte Carlo rollouts after the stages, at most this many times their simulations (the
+        default 500; :func:`plain_fallback_most`), never above :data:`PLAIN_FALLBACK_MOST` nor what the run's cap of
+        simulations leaves (``max_sims``; with a stop rule, by default 1,000,000 in all), to the run's precision
+        target (``rel_error``, else a 20 % interval) or requirement; the run's answer is then plain Monte Carlo's
+        where it saw a failure (:mod:`pemviz.estimators.fallback`). 0: none (the ``paper`` preset's). Not over an
+        operating design domain.
+    retry_factor: before that plain Monte Carlo, the stages once more, with N this many times as large
+        (:meth:`retry_n`; the default 4: 5,100 simulations after the default 2,100), from a stream of their own; their
+        answer is the run's where their weights back an interval. 0 or 1: no retry. Only with ``plain_fallback`` > 0
+        and no precision target or requirement.
+    """
+
+    plain_fallback: int = setting(
+        500,
+        "the plain Monte Carlo fallback",
+        "where the weights back no interval, plain Monte Carlo after the stages, at most this many times their "
+        "simulations, to the precision target or a 20 % interval (0: none)",
+        kind="int",
+        lo=0,
+        flags=("--plain-fallback",),
+        panel="advanced",
+    )
+    retry_factor: int = setting(
+        4,
+        "the retry's factor on N",
+        "where the weights back no interval, the stages once more before plain Monte Carlo, with N this many times "
+        "as large, from a stream of their own (0 or 1: no retry; none without the plain Monte Carlo fallback)",
+        kind="int",
+        lo=0,
+        flags=("--retry-factor",),
+        panel="advanced",
+    )
+
+    def retry_n(self, n: int, stop_rule: str | None = None) -> int | None:
+        """N of the retry of stages of ``n`` rollouts (:class:`pemviz.estimators.fallback.PlainFallback`): ``n`` times
+        ``retry_factor``, at most :data:`RETRY_MOST_N`; None where the run has none (``retry_factor`` < 2,
+        ``plain_fallback`` = 0, a ``stop_rule``, the run's precision target or requirement:
+        :attr:`pemviz.config.ExperimentConfig.stop_rule`, or ``n`` at :data:`RETRY_MOST_N` already)."""
+        factor, n = int(self.retry_factor), int(n)
+        if factor < 2 or self.plain_fallback <= 0 or stop_rule is not None or n >= RETRY_MOST_N:
+            return None
+        return min(factor * n, RETRY_MOST_N)
+
+
+PLAIN_FALLBACK_MOST = 1_000_000
+"""The most plain rollouts the fallback draws after any run, whatever its size (``plain_fallback`` times the stages'
+simulations below it: a large run of the stages gets no larger fallback)."""
+
+
+def plain_fallback_most(ratio: int, spent: int, max_sims: int | None = None) -> int:
+    """The most plain rollouts the fallback (:class:`pemviz.estimators.fallback.PlainFallback`) draws after stages that
+    simulated ``spent`` rollout-equivalents: ``ratio`` (``plain_fallback``) times ``spent`` (at least 1), at most
+    :data:`PLAIN_FALLBACK_MOST` and what the run's cap ``max_sims`` leaves
+    (:attr:`pemviz.config.ExperimentConfig.most_simulations`); 0 when ``ratio`` <= 0 or nothing is left.
+    """
+    if ratio <= 0:
+        return 0
+    most = min(int(ratio) * max(1, int(spent)), PLAIN_FALLBACK_MOST)
+    if max_sims is not None:  # the run's own cap holds for everything it simulates
+        most = min(most, int(max_sims) - int(spent))
+    return max(0, most)
 
 
 @dataclass(frozen=True)
@@ -119,7 +200,8 @@ class Setting:
         flags: the command-line flags, the first the one error messages name (empty: no flag).
         panel: where the panel's form shows it (:data:`PANEL_PLACES`: ``main``, or ``advanced``, the folder; empty:
             not shown); the form's fields are the rows that say so, in the table's order (:mod:`pemviz.app.form`).
-        owner: who reads it: :data:`RUN` (every method) or the method whose estimator reads it (``adaptive``:
+        owner: who reads it: :data:`RUN` (every method), :data:`FALLBACK` (the fallback after any method's stages:
+            :class:`pemviz.estimators.fallback.PlainFallback`) or the method whose estimator reads it (``adaptive``:
             :class:`pemviz.estimators.cross_entropy.CrossEntropy`; ``ams``:
             :class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`).
     """
@@ -274,11 +356,11 @@ def _rows(cls: type, owner: str) -> dict[str, Setting]:
 
 
 def _settings(*settings: Setting | str) -> tuple[dict[str, Setting], dict[str, Setting]]:
-    """The table: the run's and splitting's rows, and the cross-entropy sampler's, each named where the runs have
-    always recorded it (result documents, rollout files, ``runs.jsonl``: the keys keep their order), taken from its
-    field of :class:`~pemviz.methods.adaptive.CrossEntropySettings`; then the fields not named here (settings added
-    there), which follow every other row."""
-    own = _rows(CrossEntropySettings, CROSS_ENTROPY_METHOD)
+    """The table: the run's and splitting's rows, and the cross-entropy sampler's and the fallback's, each named where
+    the runs have always recorded it (result documents, rollout files, ``runs.jsonl``: the keys keep their order),
+    taken from its field of :class:`~pemviz.methods.adaptive.CrossEntropySettings` or :class:`FallbackSettings`; then
+    the fields not named here (settings added there), which follow every other row."""
+    own = {**_rows(CrossEntropySettings, CROSS_ENTROPY_METHOD), **_rows(FallbackSettings, FALLBACK)}
     table = {s.name: s for s in (own.pop(row) if isinstance(row, str) else row for row in settings)}
     return table, own
 
@@ -465,8 +547,9 @@ class MethodSettings:
 
 
 def settings_of(owner: str) -> tuple[str, ...]:
-    """The fields of the table that ``owner`` reads (:attr:`Setting.owner`): :data:`RUN`, ``adaptive`` or ``ams`` (a
-    method with settings of its own, :attr:`pemviz.methods.Method.settings`, reads those: :func:`rows_of`)."""
+    """The fields of the table that ``owner`` reads (:attr:`Setting.owner`): :data:`RUN`, :data:`FALLBACK`, ``adaptive``
+    or ``ams`` (a method with settings of its own, :attr:`pemviz.methods.Method.settings`, reads those:
+    :func:`rows_of`)."""
     return tuple(name for name, s in SETTINGS.items() if s.owner == owner)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import inspect
 import io
 import math
 import re
@@ -15,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.presets import PRESETS
-from pemviz.settings import RUN, SETTINGS, settings_of
+from pemviz.settings import FALLBACK, RUN, SETTINGS, settings_of
 
 
 @pytest.mark.parametrize(
@@ -162,13 +163,14 @@ def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choi
     assert sorted(fields) == sorted(SETTINGS) and len(fields) == len(set(fields))
     assert GROUPS["adaptive"].__module__ == "pemviz.methods.adaptive"
     assert GROUPS["ams"].__module__ == "pemviz.methods.ams"
+    assert GROUPS["fallback"].__module__ == "pemviz.settings"  # any method's, below every method's folder
     assert "state" not in GROUPS and get_method("state").settings_class().__module__ == "pemviz.methods.state"
     assert not set(dataclasses.fields(get_method("state").settings_class())) & set(
         SETTINGS
     )  # the method's, not the table's
     defaults = ExperimentConfig.of()
     for name, s in SETTINGS.items():
-        assert s.name == name and s.owner in (RUN, "adaptive", "ams"), name
+        assert s.name == name and s.owner in (RUN, "adaptive", "ams", FALLBACK), name
         assert GROUP_OF.get(name) == s.owner if s.owner != RUN else GROUP_OF.get(name) not in ("adaptive", "ams")
         assert s.accepts(defaults.value(name)), name  # the default is inside its own range
         if s.kind == "choice":
@@ -252,25 +254,30 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     import pemviz.methods.state.estimator as state
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
     from pemviz.estimators.cross_entropy import CrossEntropy
+    from pemviz.estimators.fallback import PlainFallback
     from pemviz.methods.state import StateSettings
     from pemviz.methods.state.estimator import StateCrossEntropy
+    from pemviz.settings import FallbackSettings
 
     own = {f.name for f in dataclasses.fields(StateSettings)}  # the state method's own settings
     fields = set(SETTINGS) | own | {"has_final_batch", "n_simulations"}
-    # the cross-entropy method is its estimator and what runs after its stages (its Method's ``then``, whose retry's N
-    # its settings' module gives)
+    # what runs after any method's stages (a Method's ``then``) reads the fallback's settings, whose retry's N and
+    # plain Monte Carlo's cap the settings' module gives, and no method's
     for modules, cls, owner in (
-        ((ce, fallback, adaptive), CrossEntropy, "adaptive"),
+        ((ce, adaptive), CrossEntropy, "adaptive"),
         ((ams,), AdaptiveMultilevelSplitting, "ams"),
-        ((ce, fallback, adaptive, state), StateCrossEntropy, "state"),  # the cross-entropy sampler's and its own
+        ((ce, adaptive, state), StateCrossEntropy, "state"),  # the cross-entropy sampler's and its own
+        ((fallback,), PlainFallback, FALLBACK),
     ):
         source = "".join(open(str(module.__file__)).read() for module in modules)
         read = set(
             re.findall(
-                r"\b(?:cfg|config|ce|own)(?:\.adaptive|\.ams|\.stop|\.execution|\.perception)?\.([a-z_]+)\b",
+                r"\b(?:cfg|config|ce|own)(?:\.adaptive|\.ams|\.fallback|\.stop|\.execution|\.perception)?\.([a-z_]+)\b",
                 source,
             )
         )
+        if cls is PlainFallback:  # the fallback's settings' own methods read them too (the retry's N)
+            read |= set(re.findall(r"\bself\.([a-z_]+)\b", inspect.getsource(FallbackSettings)))
         read &= fields
         read -= {"has_final_batch", "n_simulations"}
         assert cls.SETTINGS, owner  # an estimator that owns nothing would pass the two checks below vacuously
@@ -280,9 +287,10 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
         )
         assert set(cls.SETTINGS) <= read, (owner, set(cls.SETTINGS) - read)  # no setting claimed and never read
     assert not set(settings_of("adaptive")) & set(settings_of("ams")) and not own & set(settings_of("adaptive"))
+    assert not set(settings_of(FALLBACK)) & set(settings_of("adaptive"))
     # every setting is read by the run or by one of the estimators checked above: an owner misspelt in SETTINGS
     # (or a method's settings without an estimator reading them) would leave its settings read by nobody
-    assert {s.owner for s in SETTINGS.values()} == {RUN, "adaptive", "ams"}
+    assert {s.owner for s in SETTINGS.values()} == {RUN, "adaptive", "ams", FALLBACK}
 
 
 def test_the_state_methods_settings_are_its_own_and_recorded_where_runs_always_recorded_them():
@@ -362,3 +370,32 @@ def test_an_optional_number_s_messages_say_what_to_type_and_none_is_typed_as_suc
         SETTINGS["n_per_stage"].parse("none")  # not optional: none is no value of it
     assert build_parser().parse_args(["run", "--rel-error", "none"]).rel_error is None
     assert parse_number(FIELDS_BY_KEY["rel_error"], "none") == (None, "")
+
+
+def test_the_fallbacks_settings_are_a_group_of_their_own_read_whatever_the_method():
+    """The retry and plain Monte Carlo after the stages have their own settings (``config.fallback``), given by their
+    flat names to any method whose record names a ``then`` (the adaptive and state methods), checked in one line, and
+    no longer fields of the cross-entropy sampler's settings; the retry's N is theirs."""
+    from pemviz.methods import records
+    from pemviz.methods.adaptive import CrossEntropySettings
+    from pemviz.settings import RETRY_MOST_N, FallbackSettings
+
+    assert [r.name for r in records() if r.then] == ["adaptive", "state"]
+    cfg = ExperimentConfig.of(method="state", plain_fallback=7, retry_factor=3)
+    assert cfg.fallback == FallbackSettings(plain_fallback=7, retry_factor=3) and cfg.value("retry_factor") == 3
+    assert cfg.adaptive == CrossEntropySettings() and not {"plain_fallback", "retry_factor"} & {
+        f.name for f in dataclasses.fields(CrossEntropySettings)
+    }
+    # N x retry_factor, capped at 10,000; none with a stop rule, a factor below 2, no plain fallback or N at the cap
+    assert (cfg.fallback.retry_n(100), cfg.fallback.retry_n(4_000), cfg.fallback.retry_n(100, "rel_error")) == (
+        300,
+        RETRY_MOST_N,
+        None,
+    )
+    assert (
+        FallbackSettings(retry_factor=1).retry_n(100) is None
+        and FallbackSettings(plain_fallback=0).retry_n(100) is None
+    )
+    assert FallbackSettings().retry_n(RETRY_MOST_N) is None
+    with pytest.raises(ConfigError, match=r"^retry_factor = -1 is invalid: the retry's factor on N must be a whole"):
+        ExperimentConfig.of(method="state", retry_factor=-1)

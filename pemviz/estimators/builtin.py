@@ -14,8 +14,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from pemviz.core.plan import RunPlan
-from pemviz.methods.adaptive import plain_fallback_most, retry_n
-from pemviz.settings import setting_of
+from pemviz.settings import plain_fallback_most, setting_of
 
 if TYPE_CHECKING:  # light to import: a config's checks read these hooks
     from pemviz.config import ExperimentConfig
@@ -25,9 +24,9 @@ if TYPE_CHECKING:  # light to import: a config's checks read these hooks
 
 def adaptive_then_most(config: ExperimentConfig, simulations: int) -> tuple[int, str]:
     """The most rollouts the fallback (:func:`pemviz.estimators.fallback.with_plain_fallback`) may draw after stages of
-    ``simulations`` rollout-equivalents: the retry's (:func:`pemviz.methods.adaptive.retry_n`) and plain Monte Carlo's
-    (:func:`pemviz.methods.adaptive.plain_fallback_most`); 0 with ``plain_fallback`` = 0 or over an operating design
-    domain; and the cost line's words for them."""
+    ``simulations`` rollout-equivalents: the retry's (:meth:`pemviz.settings.FallbackSettings.retry_n`) and plain
+    Monte Carlo's (:func:`pemviz.settings.plain_fallback_most`); 0 with ``plain_fallback`` = 0 or over an operating
+    design domain; and the cost line's words for them."""
     _, most, words = _then(config, simulations, None)
     return most, words
 
@@ -35,7 +34,7 @@ def adaptive_then_most(config: ExperimentConfig, simulations: int) -> tuple[int,
 def adaptive_then_plan(config: ExperimentConfig) -> RunPlan | None:
     """The stages the fallback (:func:`pemviz.estimators.fallback.with_plain_fallback`) runs once more before plain
     Monte Carlo: the plan at the retry's N
-    (:func:`pemviz.methods.adaptive.retry_n`), or None where the run has no retry (or no fallback at all)."""
+    (:meth:`pemviz.settings.FallbackSettings.retry_n`), or None where the run has no retry (or no fallback at all)."""
     return _then(config, 0, None)[0]
 
 
@@ -53,18 +52,18 @@ def adaptive_then_drawn(
 def _then(config: ExperimentConfig, simulations: int, problem: Problem | None) -> tuple[RunPlan | None, int, str]:
     """(the retry's plan or None, the most simulations after the stages, their words); ``problem`` None: whatever
     the scene."""
-    if config.over_odd or config.adaptive.plain_fallback <= 0:
+    if config.over_odd or config.fallback.plain_fallback <= 0:
         return None, 0, ""
     from pemviz.estimators.ce_plan import adaptive_run_plan
 
-    again = retry_n(config)
+    again = config.fallback.retry_n(config.n_per_stage, config.stop_rule)
     if problem is not None:
         from pemviz.estimators.fallback import plain_cannot_decide, retry_refused, stated_log_p
 
         again = None if retry_refused(problem) is not None else again
     plan = None if again is None else adaptive_run_plan(config.replace(n_per_stage=again))
     retry = 0 if again is None else int(config.replace(n_per_stage=again).n_simulations)
-    most = plain_fallback_most(config.adaptive.plain_fallback, simulations + retry, config.most_simulations)
+    most = plain_fallback_most(config.fallback.plain_fallback, simulations + retry, config.most_simulations)
     if problem is not None and plain_cannot_decide(most, stated_log_p(problem), config.stop.require) is not None:
         most = 0
     when = "if the stages' weights back no interval"

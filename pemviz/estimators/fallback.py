@@ -9,7 +9,7 @@ importance weight can say by how much. Plain Monte Carlo can, at its own cost, w
 rollouts one is willing to draw: :class:`PlainFallback` draws them after the method's stages when its verdict is not
 ``reliable``, to the run's precision target (``rel_error``, else :data:`REL_ERROR`) or requirement, at most
 ``plain_fallback`` times the simulations the method spent and never more than
-:data:`~pemviz.methods.adaptive.PLAIN_FALLBACK_MOST` nor than what the run's cap of simulations leaves
+:data:`~pemviz.settings.PLAIN_FALLBACK_MOST` nor than what the run's cap of simulations leaves
 (``max_sims``; with a precision target or a requirement, by default 1,000,000 for the whole run) (the default 500: a
 million after the default run's 2,100; a quick run of a few hundred gets a proportionate few)
 (:class:`pemviz.estimators.precision.PrecisionTarget` on :func:`pemviz.estimators.fixed.monte_carlo`), from a stream
@@ -47,7 +47,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -62,7 +62,7 @@ from pemviz.estimators.extras import extras
 from pemviz.estimators.fixed import monte_carlo
 from pemviz.estimators.precision import PrecisionTarget, default_cap_words
 from pemviz.methods import PLAIN_METHOD
-from pemviz.methods.adaptive import PLAIN_FALLBACK_MOST, plain_fallback_most, retry_n
+from pemviz.settings import FALLBACK, PLAIN_FALLBACK_MOST, plain_fallback_most, settings_of
 
 REL_ERROR = 0.2
 """The relative half-width plain Monte Carlo is drawn to when the run has no precision target of its own."""
@@ -191,9 +191,9 @@ def retry_seed(seed: int) -> int:
 
 def retry_config(config: ExperimentConfig) -> ExperimentConfig | None:
     """The settings of the retry of ``config``'s stages: N times ``retry_factor`` (at most
-    :data:`~pemviz.methods.adaptive.RETRY_MOST_N`, :func:`pemviz.methods.adaptive.retry_n`) and :func:`retry_seed`;
+    :data:`~pemviz.settings.RETRY_MOST_N`, :meth:`pemviz.settings.FallbackSettings.retry_n`) and :func:`retry_seed`;
     None where it has none."""
-    n = retry_n(config)
+    n = config.fallback.retry_n(config.n_per_stage, config.stop_rule)
     return None if n is None else config.replace(n_per_stage=n, seed=retry_seed(config.seed))
 
 
@@ -201,7 +201,7 @@ def with_plain_fallback(estimator: Estimator, config: ExperimentConfig, problem:
     """``estimator`` followed by its retry and plain Monte Carlo where its verdict is not ``reliable``
     (:class:`PlainFallback`), or ``estimator`` itself with ``plain_fallback`` = 0 or over an operating design domain
     (whose verdict is capped anyway, and whose map is the sampler's)."""
-    ratio = int(config.adaptive.plain_fallback)
+    ratio = int(config.fallback.plain_fallback)
     if ratio <= 0 or getattr(problem, "odd", None) is not None:
         return estimator
     return PlainFallback(estimator, config, problem, ratio)
@@ -290,13 +290,17 @@ class PlainFallback(_Speaks):
     Args:
         inner: the method's estimator (with its stop rule's added batches, if any).
         config: the run's settings: ``seed``, ``weights_until_failure``, ``rel_error`` / ``require``, ``max_time_s``,
-            ``retry_factor``.
+            its :attr:`~pemviz.config.ExperimentConfig.fallback` (``retry_factor``).
         problem: what to estimate.
         ratio: the most plain rollouts per simulation of ``inner`` and its retry (>= 1).
         clock: seconds, monotonic (tests pass their own).
     Raises:
         ValueError: ``ratio`` < 1.
     """
+
+    SETTINGS: ClassVar[tuple[str, ...]] = settings_of(FALLBACK)
+    """The settings it reads, the run's fallback settings (:class:`pemviz.settings.FallbackSettings`), whatever the
+    method."""
 
     def __init__(
         self, inner: Estimator, config: ExperimentConfig, problem: Problem, ratio: int, clock: Any = time.perf_counter

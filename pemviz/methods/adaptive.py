@@ -8,7 +8,6 @@ is loaded."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 from pemviz.methods import setting
 
@@ -44,38 +43,6 @@ MAX_SMOOTHING_AT_FAILURE = 2.0
 tail decides the fit."""
 MAX_EPOCHS = 100_000
 """Largest Adam epochs per stage (paper 500, authors' code 1000; 10^5 epochs take ~10 min a stage)."""
-
-PLAIN_FALLBACK_MOST = 1_000_000
-"""The most plain rollouts the fallback draws after any run, whatever its size (``plain_fallback`` times the stages'
-simulations below it: a large run of the stages gets no larger fallback)."""
-
-
-def plain_fallback_most(ratio: int, spent: int, max_sims: int | None = None) -> int:
-    """The most plain rollouts the fallback (:class:`pemviz.estimators.fallback.PlainFallback`) draws after stages that
-    simulated ``spent`` rollout-equivalents: ``ratio`` (``plain_fallback``) times ``spent`` (at least 1), at most
-    :data:`PLAIN_FALLBACK_MOST` and what the run's cap ``max_sims`` leaves
-    (:attr:`pemviz.config.ExperimentConfig.most_simulations`); 0 when ``ratio`` <= 0 or nothing is left.
-    """
-    if ratio <= 0:
-        return 0
-    most = min(int(ratio) * max(1, int(spent)), PLAIN_FALLBACK_MOST)
-    if max_sims is not None:  # the run's own cap holds for everything it simulates
-        most = min(most, int(max_sims) - int(spent))
-    return max(0, most)
-
-
-RETRY_MOST_N = 10_000
-"""The most rollouts of a retry's stage: a run of larger N retries at this N, and one at it or above does not retry."""
-
-
-def retry_n(config: Any) -> int | None:
-    """N of the retry of ``config``'s stages (:class:`pemviz.estimators.fallback.PlainFallback`): N times
-    ``retry_factor``, at most :data:`RETRY_MOST_N`; None where the run has none (``retry_factor`` < 2,
-    ``plain_fallback`` = 0, a precision target or requirement, or N at :data:`RETRY_MOST_N` already)."""
-    factor, n = int(config.adaptive.retry_factor), int(config.n_per_stage)
-    if factor < 2 or config.adaptive.plain_fallback <= 0 or config.stop_rule is not None or n >= RETRY_MOST_N:
-        return None
-    return min(factor * n, RETRY_MOST_N)
 
 
 @dataclass(frozen=True)
@@ -167,16 +134,6 @@ class CrossEntropySettings:
     fit_tolerance: early stopping of the CE stages' ``adam`` fits: a fit stops once its loss (nats per step)
         fell by less than this over the last 50 epochs; None: every epoch. The pretraining fit of at most
         ``fit_rows`` steps runs every epoch; ``lbfgs`` stops at its own tolerance.
-    plain_fallback: when the stages' weights back no interval (a verdict other than ``reliable``), plain Monte Carlo
-        rollouts follow, at most this many times the stages' simulations (the default 500), never above 1,000,000
-        nor what the run's cap of simulations leaves (``max_sims``; with a stop rule, by default 1,000,000 in all),
-        to the run's precision target (``rel_error``, else a 20 % interval) or requirement; the run's answer is
-        then plain Monte Carlo's where it saw a failure (:mod:`pemviz.estimators.fallback`). 0: none (the
-        ``paper`` preset's). Not over an operating design domain.
-    retry_factor: before that plain Monte Carlo, the stages once more, with N this many times as large (the
-        default 4: 5,100 simulations after the default 2,100), from a stream of their own; their answer is the run's
-        where their weights back an interval. 0 or 1: no retry. Only with ``plain_fallback`` > 0 and no precision
-        target or requirement.
     """
 
     n_stages: int = setting(
@@ -440,26 +397,6 @@ class CrossEntropySettings:
         lo=0.0,
         lo_open=True,
         optional=True,
-    )
-    plain_fallback: int = setting(
-        500,
-        "the plain Monte Carlo fallback",
-        "where the weights back no interval, plain Monte Carlo after the stages, at most this many times their "
-        "simulations, to the precision target or a 20 % interval (0: none)",
-        kind="int",
-        lo=0,
-        flags=("--plain-fallback",),
-        panel="advanced",
-    )
-    retry_factor: int = setting(
-        4,
-        "the retry's factor on N",
-        "where the weights back no interval, the stages once more before plain Monte Carlo, with N this many times "
-        "as large, from a stream of their own (0 or 1: no retry; none without the plain Monte Carlo fallback)",
-        kind="int",
-        lo=0,
-        flags=("--retry-factor",),
-        panel="advanced",
     )
 
     @property

@@ -62,15 +62,15 @@ def test_a_bad_value_is_an_error_of_its_field_only(text, message):
 
 def test_the_plain_monte_carlo_fallback_is_a_field_of_its_own():
     # default 500; 0 turns it off; a negative number is that field's error alone
-    assert parse_form({}, {"scenario": "crowd"}).config.adaptive.plain_fallback == 500
+    assert parse_form({}, {"scenario": "crowd"}).config.fallback.plain_fallback == 500
     off = parse_form({"plain_fallback": "0"}, {"scenario": "crowd"})
-    assert off.config.adaptive.plain_fallback == 0
+    assert off.config.fallback.plain_fallback == 0
     assert run_label(1, off.config) == "run 1 · classic, scenario crowd, plain fallback 0"
     bad = parse_form({"plain_fallback": "-3"}, {"scenario": "crowd"})
     assert list(bad.errors) == ["plain_fallback"] and "the plain Monte Carlo fallback" in bad.errors["plain_fallback"]
     # the retry before it: default 4, 0 off, a fraction that field's error alone
-    assert parse_form({}, {"scenario": "crowd"}).config.adaptive.retry_factor == 4
-    assert parse_form({"retry_factor": "0"}, {"scenario": "crowd"}).config.adaptive.retry_factor == 0
+    assert parse_form({}, {"scenario": "crowd"}).config.fallback.retry_factor == 4
+    assert parse_form({"retry_factor": "0"}, {"scenario": "crowd"}).config.fallback.retry_factor == 0
     bad = parse_form({"retry_factor": "2.5"}, {"scenario": "crowd"})
     assert list(bad.errors) == ["retry_factor"] and "the retry's factor on N" in bad.errors["retry_factor"]
 

@@ -36,7 +36,7 @@ def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, brow
         # the stages alone, no retry and no plain Monte Carlo after them: the choice, the run and the exact answer
         # beside its estimate are what this test checks, not the estimate (2.9e-5 is rarely hit in 170 rollouts)
         record = tab.run({**TINY, "plain fallback": "0"}, timeout=120)
-        assert record.config.scenario == "my-car" and record.config.adaptive.plain_fallback == 0
+        assert record.config.scenario == "my-car" and record.config.fallback.plain_fallback == 0
         assert math.exp(record.exact_log_p) == pytest.approx(2.8576e-5, rel=1e-3)
         wait_until(
             lambda: ("exact answer 2.8576e-05" in tab.page.inner_text("body")),  # noqa: B023 (called within the iteration)

@@ -282,11 +282,18 @@ class _CoinSettings(MethodSettings):
 
 
 def test_the_forms_fields_are_the_settings_rows_that_name_a_panel_place():
-    # the default method's settings: exactly the fields whose row names a place are in the form, at that place
-    placed = {f.name: f.metadata[ROW].get("panel", "") for f in dataclasses.fields(CrossEntropySettings)}
-    shown = {s.name: s.panel for s in PANEL_ROWS if s.owner == CROSS_ENTROPY_METHOD}
-    assert shown == {name: where for name, where in placed.items() if where}
-    assert {"n_stages": "main", "retry_factor": "advanced"}.items() <= shown.items()
+    # the default method's settings and the fallback's: exactly the fields whose row names a place are in the form,
+    # at that place
+    from pemviz.settings import FALLBACK, FallbackSettings
+
+    for cls, owner, named in (
+        (CrossEntropySettings, CROSS_ENTROPY_METHOD, {"n_stages": "main"}),
+        (FallbackSettings, FALLBACK, {"plain_fallback": "advanced", "retry_factor": "advanced"}),
+    ):
+        placed = {f.name: f.metadata[ROW].get("panel", "") for f in dataclasses.fields(cls)}
+        shown = {s.name: s.panel for s in PANEL_ROWS if s.owner == owner}
+        assert shown == {name: where for name, where in placed.items() if where}
+        assert named.items() <= shown.items()
     assert {s.name for s in NUMBER_FIELDS} == {s.name for s in PANEL_ROWS} - {"weights", "final_estimate"}
     # a setting added to a method's settings class: its row alone puts it in the form, parsed by its own range
     rows = rows_of(_CoinSettings, "coin")

@@ -117,7 +117,7 @@ def test_a_retry_at_a_larger_n_answers_where_its_weights_back_an_interval():
 
 def test_the_retry_s_settings_n_times_its_factor_and_a_stream_of_its_own():
     from pemviz.estimators.fallback import retry_config, retry_seed
-    from pemviz.methods.adaptive import RETRY_MOST_N
+    from pemviz.settings import RETRY_MOST_N
 
     config = ExperimentConfig.of(scenario="toy", seed=5)
     again = retry_config(config)
@@ -174,7 +174,7 @@ def test_the_fallback_stays_within_the_run_s_max_sims_and_a_million():
     done, _ = run(seed=0, rel_error=0.2, max_sims=1030)
     assert done.final.n_simulations == 30
     assert "expects 1e-18 failures in 1,000 rollouts: it would end with no interval" in done.final.stop
-    from pemviz.methods.adaptive import PLAIN_FALLBACK_MOST as MOST
+    from pemviz.settings import PLAIN_FALLBACK_MOST as MOST
 
     assert MOST == 1_000_000
 
