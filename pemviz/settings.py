@@ -75,11 +75,13 @@ bit (:mod:`pemviz.engine.executors`)."""
 
 UNIFORMS = ("array-rqmc", "iid")
 """How a batch's rollouts draw their detections (:class:`~pemviz.config.ExperimentConfig` ``uniforms``)."""
-AMS_SCORES = ("robustness", "lookahead", "committor")
+AMS_SCORES = ("robustness", "lookahead", "learned", "committor")
 """What ranks the AMS particles (:class:`~pemviz.config.ExperimentConfig` ``ams_score``,
 :mod:`pemviz.estimators.ams`): the formula's classic robustness, the robustness of the nominal continuation from
-each step (any scene with snapshot/restore: :mod:`pemviz.estimators.lookahead_score`), or -log of the scenario's
-learned committor (:mod:`pemviz.scenarios.cut_in.splitting`)."""
+each step (any scene with snapshot/restore: :mod:`pemviz.estimators.lookahead_score`), the odds of failing of a
+logistic regression on the state features fitted on a pilot (any scene that reports them:
+:mod:`pemviz.estimators.learned_score`), or -log of the scenario's learned committor
+(:mod:`pemviz.scenarios.cut_in.splitting`)."""
 STATE_MODELS = ("network", "glm")
 """The state proposal's model of q(detect) (``state_model``, :class:`pemviz.methods.state.StateSettings`)."""
 
@@ -399,6 +401,7 @@ SETTINGS: dict[str, Setting] = _settings(
             owner=SPLITTING_METHOD, flags=("--ams-score",),
             choice_help=(("robustness", "the formula's classic robustness"),
                          ("lookahead", "the robustness of the nominal continuation from each step (any scene)"),
+                         ("learned", "the odds of failing fitted on a pilot's state features (any scene with them)"),
                          ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
     Setting("state_share", "the PEM's share of the state proposal's mixture", "the share of the rollouts drawn by the "
             "PEM itself in every stage after the failure level and in the final batch: each weight at most 1 / share",
