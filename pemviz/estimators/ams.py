@@ -410,7 +410,7 @@ def committor_score(problem: Problem, score: str, seed: int = 0) -> GradedScore 
     if score == "learned":
         from pemviz.estimators.learned_score import LearnedScore
 
-        return LearnedScore(problem, seed)
+        return LearnedScore(problem, seed, Splitting)
     tilt = problem.tilt() if problem.tilt is not None else None
     if tilt is None or not hasattr(tilt, "splitting_score"):
         raise ValueError(

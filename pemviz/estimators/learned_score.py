@@ -31,6 +31,8 @@ replay_features`).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -117,6 +119,8 @@ class LearnedScore(StateScore):
         problem: a problem with ``branch``, state features (:attr:`pemviz.core.problems.Problem.features`) and a
             ``G[a,b](state predicate)`` formula.
         seed: the run's seed; the pilot draws from ``(seed, 2)`` and ``(seed, 3)``.
+        splitting: :class:`pemviz.estimators.ams.Splitting` (its constructor; passed in, as that module builds this
+            score).
         pilot_particles, pilot_killed: the pilot splitting's N and k, 1 <= k < N.
 
     Attributes:
@@ -129,7 +133,12 @@ class LearnedScore(StateScore):
     """
 
     def __init__(
-        self, problem: Problem, seed: int = 0, pilot_particles: int = PILOT_PARTICLES, pilot_killed: int = PILOT_KILLED
+        self,
+        problem: Problem,
+        seed: int,
+        splitting: Callable[..., Any],
+        pilot_particles: int = PILOT_PARTICLES,
+        pilot_killed: int = PILOT_KILLED,
     ) -> None:
         if problem.branch is None:
             raise ValueError(no_branch_message(problem))
@@ -143,6 +152,7 @@ class LearnedScore(StateScore):
         self.problem, self.steps = problem, 0
         self.model: tuple[object, object] | None = None
         self.pilot_failures = self.pilot_rollouts = 0
+        self._splitting = splitting
         self._fit(seed, pilot_particles, pilot_killed)
 
     def _replayed(self, batch: RolloutBatch) -> StateFeatures:
@@ -156,19 +166,18 @@ class LearnedScore(StateScore):
 
     def _pilot(self, seed: int, n: int, k: int) -> _Recorder:
         """The pilot splitting (module docstring), run to its end; its cost added to :attr:`steps`."""
-        from pemviz.estimators.ams import Splitting
         from pemviz.estimators.lookahead_score import LookAheadScore
 
         rec = _Recorder(None)
         for inner in (LookAheadScore(self.problem), _Robustness(self.problem)):
             rec = _Recorder(inner)
-            sp = Splitting(
+            sp = self._splitting(
                 self.problem,
                 k,
                 PILOT_MAX_ITERATIONS,
                 np.random.default_rng((seed, 2)),
                 np.random.default_rng((seed, 3)),
-                rec,  # type: ignore[arg-type]
+                rec,
             )
             sp.start(*rec.simulate(n, sp.rng))
             while not sp.stop:

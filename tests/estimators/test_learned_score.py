@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pemviz.config import ExperimentConfig
 from pemviz.estimators import build_estimator
-from pemviz.estimators.ams import run_ams
+from pemviz.estimators.ams import Splitting, run_ams
 from pemviz.estimators.learned_score import Z_SCALE, LearnedScore, design
 from pemviz.scenarios.problems import build_problem
 
@@ -37,7 +37,7 @@ def test_the_score_falls_along_a_path_as_the_fitted_log_odds_rise():
     """The score at step t is exp(-max_{t' <= t} z(t') / Z_SCALE), z the fitted log-odds of the step's row: it never
     rises along a rollout, and it moves (the fit separates the toy's states: misses in a row raise the odds)."""
     pb = build_problem("toy-1e-3")
-    score = LearnedScore(pb, seed=0)
+    score = LearnedScore(pb, 0, Splitting)
     assert score.model is not None and 0 < score.pilot_failures < score.pilot_rollouts
     batch = pb.simulate(200, pb.target, pb.target, np.random.default_rng(5))
     g = score.graded(batch)
@@ -52,7 +52,7 @@ def test_the_pilot_draws_from_its_own_streams_and_is_counted():
     """The same seed fits the same score (bit for bit); another seed another; the pilot's simulated steps and its
     replays are in the score's steps (more than its rollouts' own steps), so in the run's rollout-equivalents."""
     pb = build_problem("toy-1e-3")
-    a, b, c = LearnedScore(pb, 4), LearnedScore(pb, 4), LearnedScore(pb, 5)
+    a, b, c = (LearnedScore(pb, s, Splitting) for s in (4, 4, 5))
     coef = [s.model[1].coef_ for s in (a, b, c)]  # type: ignore[index]
     np.testing.assert_array_equal(coef[0], coef[1])
     assert not np.array_equal(coef[0], coef[2])
