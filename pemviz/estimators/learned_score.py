@@ -3,24 +3,27 @@
 features, fitted on a pilot's rollouts before the run.
 
 The pilot is a splitting run of its own (:data:`PILOT_PARTICLES` particles ranked by the nominal look-ahead,
-:mod:`pemviz.estimators.lookahead_score`; where that sees no failure, ranked by the robustness) from streams of its own
-(``(seed, 2)`` and ``(seed, 3)``), so the score is fixed before the run's particles are drawn and is no function of
-them. Every rollout the pilot simulated (its initial particles and every branch) is a row per step it had not yet
-failed at: the step's state features (:attr:`pemviz.core.problems.Problem.features`: the ego's, and each object's,
-e.g. the library tracker's confirmed flag, age, misses, position and velocity estimates and their variances and
-predicted time to collision), the operand's robustness at the step and its running minimum, and the step over the
-horizon; the label is whether the rollout failed. The fit is scikit-learn's L2-regularised logistic regression on the
-standardised rows (float64; ``class_weight="balanced"``: the pilot's failures are a minority whose share is the
-splitting's, not p). The score of a rollout at step t is ``exp(-max_{t' <= t} z(t') / Z_SCALE)``, z the fitted log-odds
-(splitting reads only the scores' order, so any falling function of the running maximum gives the same run; this one
-keeps odds up to e^800 apart, where -log sigmoid(z) would round to 0): a path functional that only falls as the path
+:mod:`pemviz.estimators.lookahead_score`) from streams of its own (``(seed, 2)`` and ``(seed, 3)``), so the score is
+fixed before the run's particles are drawn and is no function of them; where it sees no failure (it died out),
+another from ``(seed, 2, a)`` and ``(seed, 3, a)``, a = 1, 2 (:data:`PILOT_ATTEMPTS`), then one ranked by the
+robustness (a = 3), until one ends with failures. Every rollout the pilots simulated (their initial particles and
+every branch) gives a row per step it had not yet failed at (a branch's from its branching step on: its prefix is its
+parent's): every object's row (the columns the PEM reads, e.g. its true range and time to collision), the step's state
+features (:attr:`pemviz.core.problems.Problem.features`: the ego's, and each object's, e.g. the library tracker's
+confirmed flag, age, misses, position and velocity estimates and their variances and predicted time to collision), the
+operand's robustness at the step and its running minimum, and the step over the horizon (:func:`design`); the label
+is whether the rollout failed. The fit is scikit-learn's L2-regularised logistic regression on the standardised rows
+(float64; ``class_weight="balanced"``: the pilot's failures are a share the splitting set, not p).
+
+The score of a rollout at step t is ``exp(-max_{t' <= t} z(t') / Z_SCALE)``, z the fitted log-odds: splitting reads
+only the scores' order, so any falling function of the running maximum gives the same run, and this one keeps log-odds
+up to about 880 apart where -log sigmoid(z) rounds to 0 above 37. It is a path functional that only falls as the path
 goes on, as splitting's levels need, and a function of the state and the step, which keeps the estimate unbiased for
-any fit (Brehier, Gazeau, Goudenege, Lelievre & Rousset,
-"Unbiasedness of some generalized adaptive multilevel splitting algorithms", Ann. Appl. Probab. 26(6), 2016). Where
-the pilot saw no failure, or nothing but failures, nothing is fitted and the score is the robustness (its classic
-splitting). A committor learned from rollouts in this way is the learned importance function of splitting (Lopes &
-Lelievre, "Analysis of the adaptive multilevel splitting method on the isomerization of alanine dipeptide", J. Comput.
-Chem. 40(11), 2019) with the features the stack exposes (:mod:`pemviz.core.features`).
+any fit (Brehier, Gazeau, Goudenege, Lelievre & Rousset, "Unbiasedness of some generalized adaptive multilevel
+splitting algorithms", Ann. Appl. Probab. 26(6), 2016); the score sets the variance only (Lopes & Lelievre, "Analysis
+of the adaptive multilevel splitting method on the isomerization of alanine dipeptide", J. Comput. Chem. 40(11),
+2019, compare reaction coordinates so). Where the pilots saw no failure, or nothing but failures, nothing is fitted and
+the score is the robustness (the classic splitting).
 
 Cost (:attr:`LearnedScore.steps`, rollout-steps besides the run's own): the pilot's simulated steps (its look-aheads
 included), the replay of every pilot rollout's features, and the replay of each of the run's rollouts (T steps each,
@@ -44,6 +47,9 @@ PILOT_PARTICLES = 100
 """The pilot splitting's particles N (it kills :data:`PILOT_KILLED` per iteration at least)."""
 PILOT_KILLED = 10
 """The pilot splitting's k."""
+PILOT_ATTEMPTS = 3
+"""Look-ahead pilots tried (each from streams of its own) before the robustness's: a pilot of 100 particles ranked by
+the look-ahead dies out with no failure now and then (1 crossing seed in 10)."""
 PILOT_MAX_ITERATIONS = 1_000
 """The pilot splitting's most iterations."""
 CAP = 1e3
@@ -164,37 +170,41 @@ class LearnedScore(StateScore):
         self.steps += batch.n * batch.n_steps
         return features
 
-    def _pilot(self, seed: int, n: int, k: int) -> _Recorder:
-        """The pilot splitting (module docstring), run to its end; its cost added to :attr:`steps`."""
+    def _pilot(self, seed: int, n: int, k: int) -> list[tuple[RolloutBatch, np.ndarray]]:
+        """The pilot splittings (module docstring), each run to its end, until one ends with a failure: every
+        rollout they simulated and the step it branched at (-1: an initial one); their cost added to :attr:`steps`."""
         from pemviz.estimators.lookahead_score import LookAheadScore
 
-        rec = _Recorder(None)
-        for inner in (LookAheadScore(self.problem), _Robustness(self.problem)):
+        pilots = [(LookAheadScore(self.problem), a) for a in range(PILOT_ATTEMPTS)]
+        out: list[tuple[RolloutBatch, np.ndarray]] = []
+        for inner, attempt in [*pilots, (_Robustness(self.problem), PILOT_ATTEMPTS)]:
             rec = _Recorder(inner)
+            tail = (attempt,) if attempt else ()
             sp = self._splitting(
                 self.problem,
                 k,
                 PILOT_MAX_ITERATIONS,
-                np.random.default_rng((seed, 2)),
-                np.random.default_rng((seed, 3)),
+                np.random.default_rng((seed, 2, *tail)),
+                np.random.default_rng((seed, 3, *tail)),
                 rec,
             )
             sp.start(*rec.simulate(n, sp.rng))
             while not sp.stop:
                 sp.iterate()
             self.steps += sp.steps + rec.steps
+            out.extend(zip(rec.batches, rec.starts, strict=True))
             if sp.log_prod > -math.inf and bool(np.any(sp.score < 0.0)):
                 break
-        return rec
+        return out
 
     def _fit(self, seed: int, n: int, k: int) -> None:
         """The pilot, its rows and the logistic regression of each row's rollout failing."""
         from sklearn.linear_model import LogisticRegression
         from sklearn.preprocessing import StandardScaler
 
-        rec = self._pilot(seed, n, k)
+        pilot = self._pilot(seed, n, k)
         rows, labels = [], []
-        for batch, start in zip(rec.batches, rec.starts, strict=True):
+        for batch, start in pilot:
             x = design(self.problem, batch, self._replayed(batch))
             rho = step_robustness(self.problem, batch)
             failed = np.min(rho, axis=1) < 0.0
