@@ -17,7 +17,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from pemviz.methods import BUILTIN_METHODS, CROSS_ENTROPY_METHOD, ROW, SPLITTING_METHOD, STATE_METHOD, registered_names
+from pemviz.methods import BUILTIN_METHODS, CROSS_ENTROPY_METHOD, ROW, SPLITTING_METHOD, records, registered_names
 from pemviz.methods import setting as setting  # a method's settings field and its row: here for the plugins' import
 from pemviz.methods.adaptive import CrossEntropySettings
 
@@ -75,17 +75,11 @@ bit (:mod:`pemviz.engine.executors`)."""
 
 UNIFORMS = ("array-rqmc", "iid")
 """How a batch's rollouts draw their detections (:class:`~pemviz.config.ExperimentConfig` ``uniforms``)."""
-AMS_SCORES = ("robustness", "lookahead", "learned", "committor")
+AMS_SCORES = ("robustness", "lookahead", "committor")
 """What ranks the AMS particles (:class:`~pemviz.config.ExperimentConfig` ``ams_score``,
 :mod:`pemviz.estimators.ams`): the formula's classic robustness, the robustness of the nominal continuation from
-each step (any scene with snapshot/restore: :mod:`pemviz.estimators.lookahead_score`), the odds of failing of a
-logistic regression on the state features fitted on a pilot (any scene that reports them:
-:mod:`pemviz.estimators.learned_score`), or -log of the scenario's learned committor
-(:mod:`pemviz.scenarios.cut_in.splitting`)."""
-STATE_MODELS = ("network", "glm")
-"""The state proposal's model of q(detect) (``state_model``, :class:`pemviz.methods.state.StateSettings`)."""
-
-
+each step (any scene with snapshot/restore: :mod:`pemviz.estimators.lookahead_score`), or -log of the scenario's
+learned committor (:mod:`pemviz.scenarios.cut_in.splitting`)."""
 MAX_SEED = 2**64 - 1
 """Largest seed: torch's generator takes a 64-bit unsigned seed."""
 PANEL_PLACES = ("main", "advanced")
@@ -279,17 +273,17 @@ def _rows(cls: type, owner: str) -> dict[str, Setting]:
     return {f.name: Setting(f.name, owner=owner, **f.metadata[ROW]) for f in fields}
 
 
-def _settings(*settings: Setting | str) -> dict[str, Setting]:
-    """The table: the run's and the other methods' rows, and the cross-entropy sampler's, each named where the runs
-    have always recorded it (result documents, rollout files, ``runs.jsonl``: the keys keep their order), taken from
-    its field of :class:`~pemviz.methods.adaptive.CrossEntropySettings`; a field not named here (a setting added
-    there) follows every other row."""
+def _settings(*settings: Setting | str) -> tuple[dict[str, Setting], dict[str, Setting]]:
+    """The table: the run's and splitting's rows, and the cross-entropy sampler's, each named where the runs have
+    always recorded it (result documents, rollout files, ``runs.jsonl``: the keys keep their order), taken from its
+    field of :class:`~pemviz.methods.adaptive.CrossEntropySettings`; then the fields not named here (settings added
+    there), which follow every other row."""
     own = _rows(CrossEntropySettings, CROSS_ENTROPY_METHOD)
     table = {s.name: s for s in (own.pop(row) if isinstance(row, str) else row for row in settings)}
-    return {**table, **own}
+    return table, own
 
 
-SETTINGS: dict[str, Setting] = _settings(
+_NAMED, _ADDED = _settings(
     Setting("method", "the method", "the estimator", kind="method", choices=BUILTIN_METHODS, owner=RUN,
             flags=("--method",)),
     "n_stages",
@@ -401,20 +395,24 @@ SETTINGS: dict[str, Setting] = _settings(
             owner=SPLITTING_METHOD, flags=("--ams-score",),
             choice_help=(("robustness", "the formula's classic robustness"),
                          ("lookahead", "the robustness of the nominal continuation from each step (any scene)"),
-                         ("learned", "the odds of failing fitted on a pilot's state features (any scene with them)"),
                          ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
-    Setting("state_share", "the PEM's share of the state proposal's mixture", "the share of the rollouts drawn by the "
-            "PEM itself in every stage after the failure level and in the final batch: each weight at most 1 / share",
-            kind="real", lo=0.0, hi=1.0, lo_open=True, hi_open=True, owner=STATE_METHOD, flags=("--state-share",)),
-    Setting("state_model", "the state proposal's model", "q(detect) as a function of the row and its state features",
-            kind="choice", choices=STATE_MODELS, owner=STATE_METHOD, flags=("--state-model",),
-            choice_help=(("network", "the paper's network over the row and its features"),
-                         ("glm", "the PEM's own logit plus a linear function of the row and its features"))),
-    Setting("state_fit_errors", "the state proposal's error shifts", "the state proposal fits the measurement errors' "
-            "location and log-scale shifts too (off: they are drawn from the PEM, only the detections proposed)",
-            kind="bool", owner=STATE_METHOD, flags=("--state-fit-errors",)),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
+SETTINGS: dict[str, Setting] = {**_NAMED, **_ADDED}
 """Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
+
+OWN_DEFAULTS: dict[str, Any] = {
+    name: value
+    for record in records()
+    if record.name in BUILTIN_METHODS and (kind := record.settings_class()) is not None
+    for name, value in dataclasses.asdict(kind()).items()
+}
+"""The built-in methods' own settings (:attr:`pemviz.methods.Method.settings`: the state method's) at their defaults,
+by name: what a run of another method records for them (every run has recorded them since they were the config's)."""
+RECORDED: tuple[str, ...] = (*_NAMED, *OWN_DEFAULTS, *_ADDED)
+"""The keys a run records its settings by (:meth:`pemviz.config.ExperimentConfig.flat`: result documents, rollout
+files, ``runs.jsonl``), in order: the table's rows where runs have always recorded them, the built-in methods' own
+settings (:data:`OWN_DEFAULTS`), then the rows added to the cross-entropy sampler's settings since; a method of one's
+own's follow."""
 
 
 class ConfigError(ValueError):
@@ -467,7 +465,8 @@ class MethodSettings:
 
 
 def settings_of(owner: str) -> tuple[str, ...]:
-    """The fields that ``owner`` reads (:attr:`Setting.owner`): :data:`RUN`, ``adaptive``, ``ams`` or ``state``."""
+    """The fields of the table that ``owner`` reads (:attr:`Setting.owner`): :data:`RUN`, ``adaptive`` or ``ams`` (a
+    method with settings of its own, :attr:`pemviz.methods.Method.settings`, reads those: :func:`rows_of`)."""
     return tuple(name for name, s in SETTINGS.items() if s.owner == owner)
 
 

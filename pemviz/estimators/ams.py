@@ -22,10 +22,8 @@ arXiv 2405.15771, 2024 (AMS with STL robustness as the score, by the authors of 
 
 A scene-neutral graded score (``ams_score = "lookahead"``, :mod:`pemviz.estimators.lookahead_score`) ranks the
 particles by the robustness of their nominal continuation (the PEM's most likely events from the step on), which any
-scene with ``branch`` has; ``ams_score = "learned"`` (:mod:`pemviz.estimators.learned_score`) by a logistic regression
-of failing on the step's state features, fitted on a pilot from streams of its own. A scenario's graded score
-(``ams_score = "committor"``, :class:`GradedScore`) ranks the particles by -log of a scenario's learned probability of
-failure V(s) instead: where a scene's robustness sits on one
+scene with ``branch`` has. A scenario's graded score (``ams_score = "committor"``, :class:`GradedScore`) ranks the
+particles by -log of a scenario's learned probability of failure V(s) instead: where a scene's robustness sits on one
 plateau in most rollouts (e.g. the cut-in's), its levels tie, and V takes a continuum of values. The failure threshold
 stays the robustness's: a prefix scores the running minimum of the graded score at the steps that do not fail (at
 least :data:`SCORE_FLOOR`) and of the robustness (< 0) at those that do. Any score that is a function of the state and
@@ -330,7 +328,7 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
             config.ams.ams_max_iterations,
             self.rng,
             np.random.default_rng((config.seed, 1)),
-            committor_score(problem, config.ams.ams_score, config.seed),
+            committor_score(problem, config.ams.ams_score),
         )
         self._stage = -1
         self._initial: list[RolloutBatch] = []
@@ -391,12 +389,10 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         return self.ams.estimate(), (self._stage,)
 
 
-def committor_score(problem: Problem, score: str, seed: int = 0) -> GradedScore | None:
+def committor_score(problem: Problem, score: str) -> GradedScore | None:
     """The graded score ``ams_score`` names: None for ``robustness``; for ``lookahead`` the scene-neutral nominal
-    look-ahead (:class:`pemviz.estimators.lookahead_score.LookAheadScore`); for ``learned`` a logistic regression on
-    the state features fitted on a pilot from streams of its own (:class:`pemviz.estimators.learned_score.
-    LearnedScore`, its pilot seeded by the run's ``seed``); for ``committor`` the problem's tilted proposal's (solved,
-    or reused from an earlier run of the process).
+    look-ahead (:class:`pemviz.estimators.lookahead_score.LookAheadScore`); for ``committor`` the problem's tilted
+    proposal's (solved, or reused from an earlier run of the process).
 
     Raises:
         ValueError: ``committor`` for a problem whose scenario has no learned committor: one line.
@@ -407,10 +403,6 @@ def committor_score(problem: Problem, score: str, seed: int = 0) -> GradedScore 
         from pemviz.estimators.lookahead_score import LookAheadScore
 
         return LookAheadScore(problem)
-    if score == "learned":
-        from pemviz.estimators.learned_score import LearnedScore
-
-        return LearnedScore(problem, seed, Splitting)
     tilt = problem.tilt() if problem.tilt is not None else None
     if tilt is None or not hasattr(tilt, "splitting_score"):
         raise ValueError(
@@ -424,11 +416,17 @@ def committor_score(problem: Problem, score: str, seed: int = 0) -> GradedScore 
 
 
 def run_ams(
-    problem: Problem, n: int, killed: int, seed: int = 0, max_iterations: int = 100_000, score: str = "robustness"
+    problem: Problem,
+    n: int,
+    killed: int,
+    seed: int = 0,
+    max_iterations: int = 100_000,
+    score: str | GradedScore = "robustness",
 ) -> Splitting:
     """One whole AMS run without the engine (for studies and tests): N particles from ``problem.target``, seeded
-    like ``method = "ams"`` with ``seed`` and ranked by ``score`` (``ams_score``); returns the finished
-    :class:`Splitting` (``.estimate()``, ``.n_simulations``).
+    like ``method = "ams"`` with ``seed`` and ranked by ``score`` (an ``ams_score`` name, or a study's own
+    :class:`GradedScore`, which then draws the particles); returns the finished :class:`Splitting`
+    (``.estimate()``, ``.n_simulations``).
 
     Raises:
         ValueError: as :class:`AdaptiveMultilevelSplitting`.
@@ -439,9 +437,12 @@ def run_ams(
         ams_killed=killed,
         ams_max_iterations=max_iterations,
         seed=seed,
-        ams_score=score,
+        ams_score=score if isinstance(score, str) else "robustness",
     )
     est = AdaptiveMultilevelSplitting(cfg, problem)
+    if not isinstance(score, str):  # a study's own score: the method's streams, this score
+        est.rng = np.random.default_rng(seed)
+        est.ams = Splitting(problem, killed, max_iterations, est.rng, np.random.default_rng((seed, 1)), score)
     if est.ams.scorer is not None:
         est.ams.start(*est.ams.scorer.simulate(n, est.rng))
     else:

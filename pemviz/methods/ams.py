@@ -21,10 +21,8 @@ class AmsSettings:
         too), 1 <= k < N (``method = "ams"``).
     ams_max_iterations: the most AMS iterations; a run stopped by it before its level reached the failure
         threshold gets the verdict ``doubtful``.
-    ams_score: what ranks the AMS particles: ``robustness`` (the formula's classic robustness), ``lookahead`` (the
-        robustness of the nominal continuation), ``learned`` (a logistic regression on the state features fitted on
-        a pilot: any scene that reports them) or ``committor`` (-log of the scenario's learned probability of
-        failure, where it has one: e.g. the cut-in).
+    ams_score: what ranks the AMS particles: ``robustness`` (the formula's classic robustness) or ``committor``
+        (-log of the scenario's learned probability of failure, where it has one: e.g. the cut-in).
     """
 
     ams_killed: int = 10

@@ -7,11 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-AMS_SCORE_WORDS = {
-    "robustness": "robustness",
-    "learned": "the odds of failing fitted on a pilot's state features",
-    "committor": "-log of the scenario's learned committor",
-}
+AMS_SCORE_WORDS = {"robustness": "robustness", "committor": "-log of the scenario's learned committor"}
 """What ranks the AMS particles, in the recording's description of the run."""
 
 

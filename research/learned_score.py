@@ -1,6 +1,15 @@
-"""A scene-neutral graded score for adaptive multilevel splitting learned from the state the stack acts on
-(``pemviz run --method ams --ams-score learned``): a logistic regression of "this rollout fails" on each step's state
-features, fitted on a pilot's rollouts before the run.
+"""A study, not shipped: a scene-neutral graded score for adaptive multilevel splitting learned from the state the
+stack acts on: a logistic regression of "this rollout fails" on each step's state features, fitted on a pilot's
+rollouts before the run. Measured on the crossing and its 1e-4 rung (docs/validation.md, "A scene-neutral
+sampler"): no ties, but median errors 0.45 and 0.51 and 5 of 20 runs `reliable` outside x2, so pemviz does not
+ship it (``--ams-score`` has no ``learned``).
+
+Commands (each seed's run is the engine's ``--method ams`` with this score: :func:`pemviz.estimators.ams.run_ams`)::
+
+    nice -n 10 python research/learned_score.py --scenario crossing --reference 2.98e-4 --seeds 1 2 3 4 5 6 7 8 9 10
+    nice -n 10 python research/learned_score.py --scenario crossing --param brake_ttc_s=1.5 --reference 1.294e-4 \
+        --seeds 1 2 3 4 5 6 7 8 9 10
+    python -m pytest research/tests/test_learned_score.py
 
 The pilot is a splitting run of its own (:data:`PILOT_PARTICLES` particles ranked by the nominal look-ahead,
 :mod:`pemviz.estimators.lookahead_score`) from streams of its own (``(seed, 2)`` and ``(seed, 3)``), so the score is
@@ -33,15 +42,14 @@ replay_features`).
 
 from __future__ import annotations
 
+import argparse
 import math
-from collections.abc import Callable
-from typing import Any
 
 import numpy as np
-
 from pemviz.core.features import StateFeatures
 from pemviz.core.problems import Problem, StateScore, no_branch_message, step_robustness
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.estimators.ams import Splitting
 
 PILOT_PARTICLES = 100
 """The pilot splitting's particles N (it kills :data:`PILOT_KILLED` per iteration at least)."""
@@ -125,8 +133,6 @@ class LearnedScore(StateScore):
         problem: a problem with ``branch``, state features (:attr:`pemviz.core.problems.Problem.features`) and a
             ``G[a,b](state predicate)`` formula.
         seed: the run's seed; the pilot draws from ``(seed, 2)`` and ``(seed, 3)``.
-        splitting: :class:`pemviz.estimators.ams.Splitting` (its constructor; passed in, as that module builds this
-            score).
         pilot_particles, pilot_killed: the pilot splitting's N and k, 1 <= k < N.
 
     Attributes:
@@ -142,7 +148,6 @@ class LearnedScore(StateScore):
         self,
         problem: Problem,
         seed: int,
-        splitting: Callable[..., Any],
         pilot_particles: int = PILOT_PARTICLES,
         pilot_killed: int = PILOT_KILLED,
     ) -> None:
@@ -150,7 +155,7 @@ class LearnedScore(StateScore):
             raise ValueError(no_branch_message(problem))
         if problem.features is None:
             raise ValueError(
-                f"ams_score learned needs a scenario that reports its state features; {problem.name} reports none: "
+                f"the learned score needs a scenario that reports its state features; {problem.name} reports none: "
                 "use ams_score lookahead or robustness"
             )
         if not 1 <= pilot_killed < pilot_particles:
@@ -158,7 +163,6 @@ class LearnedScore(StateScore):
         self.problem, self.steps = problem, 0
         self.model: tuple[object, object] | None = None
         self.pilot_failures = self.pilot_rollouts = 0
-        self._splitting = splitting
         self._fit(seed, pilot_particles, pilot_killed)
 
     def _replayed(self, batch: RolloutBatch) -> StateFeatures:
@@ -166,7 +170,7 @@ class LearnedScore(StateScore):
         assert self.problem.features is not None
         features = self.problem.features(batch, None)
         if features is None:
-            raise ValueError(f"ams_score learned: {self.problem.name}'s simulator reports no state features")
+            raise ValueError(f"the learned score: {self.problem.name}'s simulator reports no state features")
         self.steps += batch.n * batch.n_steps
         return features
 
@@ -180,7 +184,7 @@ class LearnedScore(StateScore):
         for inner, attempt in [*pilots, (_Robustness(self.problem), PILOT_ATTEMPTS)]:
             rec = _Recorder(inner)
             tail = (attempt,) if attempt else ()
-            sp = self._splitting(
+            sp = Splitting(
                 self.problem,
                 k,
                 PILOT_MAX_ITERATIONS,
@@ -237,3 +241,58 @@ class LearnedScore(StateScore):
             return step_robustness(self.problem, batch)
         z = np.maximum.accumulate(self.log_odds(design(self.problem, batch, self._replayed(batch))), axis=1)
         return np.exp(-z / Z_SCALE)
+
+
+def problem_of(scenario: str, params: list[str]) -> Problem:
+    """The scene's problem at ``--param`` values ``params`` ("name=value"), as ``pemviz run`` builds it."""
+    from pemviz.cli import build_parser
+    from pemviz.commands.run import config_from_args
+    from pemviz.scenarios.registry import problem_for
+
+    flags = [f for p in params for f in ("--param", p)]
+    return problem_for(config_from_args(build_parser("run").parse_args(["run", "--scenario", scenario, *flags])))
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Each seed's splitting run ranked by the learned score, then the rows of the Validation page's table: median
+    relative error, within x2, intervals printed and holding the reference, `reliable` outside x2, the mean cost in
+    rollout-equivalents (the pilot included) and its ratio to plain Monte Carlo's (0.6745 / m)^2 (1 - p) / p."""
+    from pemviz.estimators.ams import run_ams
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--scenario", default="crossing")
+    ap.add_argument("--param", action="append", default=[], help="the scene's --param name=value")
+    ap.add_argument("--reference", type=float, required=True, help="the scene's p (plain Monte Carlo)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=list(range(1, 11)))
+    ap.add_argument("--n", type=int, default=400, help="particles")
+    ap.add_argument("--killed", type=int, default=40, help="particles killed an iteration")
+    a = ap.parse_args(argv)
+    pb, p = problem_of(a.scenario, a.param), a.reference
+    errors, within, printed, holding, wrong, costs = [], 0, 0, 0, 0, []
+    for seed in a.seeds:
+        run = run_ams(pb, a.n, a.killed, seed=seed, score=LearnedScore(pb, seed))
+        e = run.estimate()
+        ratio = math.exp(e.log_mu_hat) / p
+        errors.append(abs(ratio - 1.0))
+        within += 0.5 <= ratio <= 2.0
+        has_ci = e.log_ci[0] > -math.inf and e.log_ci[1] < 0.0
+        printed += has_ci
+        holding += has_ci and e.log_ci[0] <= math.log(p) <= e.log_ci[1]
+        wrong += e.verdict == "reliable" and not 0.5 <= ratio <= 2.0
+        costs.append(run.n_simulations)
+        print(
+            f"seed {seed}: p_hat {math.exp(e.log_mu_hat):.3e} (x{ratio:.2f}), {e.verdict}, ESS {e.ess:.1f}, "
+            f"{run.n_simulations} rollout-equivalents",
+            flush=True,
+        )
+    m = float(np.median(errors))
+    plain = (0.6745 / m) ** 2 * (1.0 - p) / p if m > 0 else math.inf
+    print(
+        f"median relative error {m:.3f}; within x2 {within}/{len(errors)}; intervals holding {holding}/{printed}; "
+        f"reliable outside x2 {wrong}; cost {np.mean(costs):,.0f}; plain MC for that error {plain:,.0f}; "
+        f"ratio {np.mean(costs) / plain:.2f}"
+    )
+
+
+if __name__ == "__main__":
+    main()
