@@ -35,7 +35,8 @@ minutes): at N >= 10^4 everything but simulation costs at most 2x the simulation
 default: the issue asks 10^6, about 14 and 33 minutes a run with 1 worker on the 2-core machine at load 9-11),
 braking's default run (2,100 rollouts: the pool never starts), and with ``--cases crossing-save`` plain Monte Carlo
 streamed to a ``--save-rollouts`` file.
-Per run it prints wall and CPU seconds (the run's and its reaped workers', user + system), the run's first time
+Per run it prints wall and CPU seconds (the run's and its reaped workers', user + system; a Ray cluster's workers
+read from ``/proc`` every 0.2 s), the run's first time
 estimate (its first ``run ~X left``), the peak resident memory (``VmHWM``) of the run's process and of its largest
 worker, and the load average; per case the wall ratio. ``--pays-s 1`` starts the pool after the first block whatever
 the blocks left cost (100,000 crossing rollouts, 12 blocks of about 1 s, stay in one process by default), to measure
@@ -154,24 +155,38 @@ CORES_CASES = {
 ``--cores-n`` rollouts."""
 
 
-def _peaks(pid: int, peaks: dict[int, float], done: threading.Event) -> None:
-    """Every 0.2 s until ``done``: the peak resident memory (``VmHWM``, MB) of ``pid`` and of each of its local
-    executor's workers (children named ``LokyProcess``), into ``peaks``."""
+def _peaks(pid: int, peaks: dict[int, float], done: threading.Event, cpu: dict[int, float] | None = None) -> None:
+    """Every 0.2 s until ``done``: the peak resident memory (``VmHWM``, MB) of ``pid`` and of each of its workers, into
+    ``peaks``: its local executor's (children named ``LokyProcess``) and its Ray cluster's (descendants named
+    ``ray::...``), whose CPU seconds (user + system, at the last look) go into ``cpu`` (they are not the run's
+    children: ``RUSAGE_CHILDREN`` misses them)."""
+    tick = os.sysconf("SC_CLK_TCK")
     while not done.wait(0.2):
+        parent: dict[int, int] = {}
+        stats: dict[int, list[str]] = {}
         for entry in Path("/proc").iterdir():
-            if not entry.name.isdigit():
-                continue
-            try:
-                stat = (entry / "stat").read_text()
-                ppid = int(stat.rsplit(")", 1)[1].split()[1])
-                worker = ppid == pid and b"LokyProcess" in (entry / "cmdline").read_bytes()
-                if int(entry.name) != pid and not worker:
+            if entry.name.isdigit():
+                try:
+                    fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+                except (OSError, IndexError):
                     continue
-                hwm = re.search(r"VmHWM:\s+(\d+) kB", (entry / "status").read_text())
-            except (OSError, ValueError, IndexError):
+                parent[int(entry.name)], stats[int(entry.name)] = int(fields[1]), fields
+        for p in parent:
+            ancestor, depth = parent[p], 0
+            while ancestor not in (pid, 0, 1) and depth < 8:
+                ancestor, depth = parent.get(ancestor, 0), depth + 1
+            try:
+                cmd = (Path("/proc") / str(p) / "cmdline").read_bytes() if p != pid and ancestor == pid else b""
+                ray = cmd.startswith(b"ray::")
+                if p != pid and not ray and not (parent[p] == pid and b"LokyProcess" in cmd):
+                    continue
+                hwm = re.search(r"VmHWM:\s+(\d+) kB", (Path("/proc") / str(p) / "status").read_text())
+            except (OSError, ValueError):
                 continue
             if hwm:
-                peaks[int(entry.name)] = max(peaks.get(int(entry.name), 0.0), int(hwm.group(1)) / 1024)
+                peaks[p] = max(peaks.get(p, 0.0), int(hwm.group(1)) / 1024)
+            if ray and cpu is not None:
+                cpu[p] = (int(stats[p][11]) + int(stats[p][12])) / tick
 
 
 _PAYS = (
@@ -227,17 +242,18 @@ def cores(
             cmd += ["run", "--no-record", *args, *saved]
             cmd += [] if w == "default" else ["--executor", "ray"] if w.startswith("ray") else ["--workers", w]
             peaks: dict[int, float] = {}
+            ray_cpu: dict[int, float] = {}
             done = threading.Event()
             t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
             proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            watch = threading.Thread(target=_peaks, args=(proc.pid, peaks, done), daemon=True)
+            watch = threading.Thread(target=_peaks, args=(proc.pid, peaks, done, ray_cpu), daemon=True)
             watch.start()
             out, err = proc.communicate()
             walls[w] = wall = time.perf_counter() - t0
             c1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the run and its workers, reaped
-            cpu = c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime
             done.set()
             watch.join()
+            cpu = c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime + sum(ray_cpu.values())
             tmp.cleanup()
             if proc.returncode != 0:
                 raise SystemExit(f"{case} --workers {w} failed:\n{err[-3000:]}")

@@ -17,6 +17,7 @@ import signal
 import sys
 from typing import NoReturn
 
+import pemviz.commands
 from pemviz import __version__
 from pemviz.commands import COMMANDS, Terminated, UsageError, command_help
 
@@ -89,11 +90,6 @@ def build_parser(command: str | None = None, *, full: bool = True) -> argparse.A
     return parser
 
 
-AS_PROGRAM = False
-"""Whether this process is the ``pemviz`` program (:func:`main` called without ``argv``), not a library user: only
-then does a command change process-wide state (:mod:`pemviz.sinks.process`)."""
-
-
 def _raise_terminated(signum: int, frame: object) -> None:
     raise Terminated()
 
@@ -106,8 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line. Run as the program (``argv`` None), the process
     ends as soon as the command has (:func:`_exit_now`), and a signal that comes after it is ignored.
     """
-    global AS_PROGRAM
-    AS_PROGRAM = AS_PROGRAM or argv is None
+    pemviz.commands.AS_PROGRAM = pemviz.commands.AS_PROGRAM or argv is None
     previous = None
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         try:
@@ -206,7 +201,7 @@ def _failure(name: str, exc: Exception) -> int:
 WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
 
 
-if __name__ == "__main__":  # python -m pemviz.cli: the program is pemviz.cli's main, whose AS_PROGRAM the commands read
+if __name__ == "__main__":  # python -m pemviz.cli: the program is pemviz.cli's main: it sets commands.AS_PROGRAM
     from pemviz.cli import main as program
 
     sys.exit(program())

@@ -20,11 +20,10 @@ from dataclasses import dataclass
 from typing import Any, cast
 
 from pemviz.core.requirement import RequirementError, parse_requirement
-from pemviz.methods import DEFAULT_METHOD, Method, extensible_names, method_or_none
+from pemviz.methods import DEFAULT_METHOD, Method, extensible_names, method_or_none, records
 from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.ams import AmsSettings
-from pemviz.methods.state import StateSettings
-from pemviz.settings import DEFAULT_SCENARIO, SETTINGS, ConfigError, check_settings
+from pemviz.settings import DEFAULT_SCENARIO, OWN_DEFAULTS, RECORDED, SETTINGS, ConfigError, check_settings, rows_of
 
 
 def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
@@ -124,11 +123,12 @@ class ExperimentConfig:
 
     The defaults are the recommended sampler (preset :data:`pemviz.presets.DEFAULT_PRESET`);
     :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` gives the paper's own settings. Its fields are the run's own
-    settings and six groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, and each built-in method's
-    settings (:attr:`adaptive`, :attr:`ams`, :attr:`state`). Every setting has one flat name, its row of
-    :data:`pemviz.settings.SETTINGS` (``smoothing``, ``executor``, ``ams_killed``): :meth:`of` makes a config from flat
-    names, :meth:`value` reads one, :meth:`flat` gives them all (the result document's, the rollout file's and
-    ``runs.jsonl``'s ``config``), :meth:`replace` changes some.
+    settings, five groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, the cross-entropy sampler's and
+    splitting's settings (:attr:`adaptive`, :attr:`ams`), and the method's own settings (:attr:`method_settings`: the
+    state method's, a plugin's). Every setting has one flat name, its row of :data:`pemviz.settings.SETTINGS`
+    (``smoothing``, ``executor``, ``ams_killed``) or of the method's settings (``state_share``): :meth:`of` makes a
+    config from flat names, :meth:`value` reads one, :meth:`flat` gives them all (the result document's, the rollout
+    file's and ``runs.jsonl``'s ``config``), :meth:`replace` changes some.
 
     Attributes:
     method: a registered method's name (:data:`pemviz.methods.BUILTIN_METHODS` or a plugin's); its record is
@@ -166,9 +166,9 @@ class ExperimentConfig:
         adaptive: the cross-entropy sampler's settings
             (:class:`pemviz.methods.adaptive.CrossEntropySettings`).
         ams: splitting's settings (:class:`pemviz.methods.ams.AmsSettings`).
-        state: the state-dependent proposal's (:class:`pemviz.methods.state.StateSettings`).
-        method_settings: a method of one's own's settings, an instance of its :attr:`pemviz.methods.Method.settings`
-            (None: made from its defaults; for a method without them, None).
+        method_settings: the method's own settings, an instance of its :attr:`pemviz.methods.Method.settings` (the
+            state method's :class:`pemviz.methods.state.StateSettings`, a method of one's own's; None: made from its
+            defaults; for a method without them, None).
     """
 
     method: str = DEFAULT_METHOD
@@ -186,25 +186,32 @@ class ExperimentConfig:
     stop: StopRule = StopRule()
     adaptive: CrossEntropySettings = CrossEntropySettings()
     ams: AmsSettings = AmsSettings()
-    state: StateSettings = StateSettings()
     method_settings: Any = None
 
     @classmethod
     def of(cls, **settings: Any) -> ExperimentConfig:
         """A config from settings by their flat names (:data:`pemviz.settings.SETTINGS`: ``n_stages=3``,
         ``executor="ray"``), groups (``adaptive=CrossEntropySettings(...)``) or both (a flat name then changes its
-        group's value), validated.
+        group's value), and the method's own settings by their names (``state_share=0.2`` with ``method="state"``),
+        validated. Another built-in method's own setting at its default is left out (every run records them:
+        :meth:`flat`).
 
         Raises:
-            ConfigError: a setting out of range or against another; TypeError: a name that is no setting.
+            ConfigError: a setting out of range or against another, or another built-in method's own setting changed;
+                TypeError: a name that is no setting.
         """
         method = method_or_none(settings.get("method", DEFAULT_METHOD))  # None: refused when the config is checked
-        mine = [f.name for f in dataclasses.fields(method.settings)] if method and method.settings else []
+        kind = method.settings_class() if method else None  # the method's own settings class, or None
+        mine = [f.name for f in dataclasses.fields(kind)] if kind else []
         own = {k: v for k, v in settings.items() if k not in GROUP_OF and k not in mine}
+        for name in [k for k in own if k in OWN_DEFAULTS]:  # another built-in method's, as a run records it
+            if own.pop(name) != OWN_DEFAULTS[name]:
+                owner = next(r.name for r in records() if name in _names(r.settings_class()))
+                raise ConfigError(f"{name} is a setting of method {owner}: give it with method = {owner!r}", name)
         if mine:  # the method's own settings by their names, over the instance given (of its class) or its defaults
-            assert method is not None and method.settings is not None  # mine is empty otherwise
+            assert kind is not None  # mine is empty otherwise
             given = own.get("method_settings")
-            base: Any = given if isinstance(given, method.settings) else method.settings()
+            base: Any = given if isinstance(given, kind) else kind()
             own["method_settings"] = dataclasses.replace(base, **{k: settings[k] for k in mine if k in settings})
         elif "method_settings" in own:  # another method's settings: not this one's
             own["method_settings"] = None
@@ -218,21 +225,25 @@ class ExperimentConfig:
         return cls(**own)
 
     def value(self, name: str) -> Any:
-        """The value of the setting ``name`` (a flat name of :data:`pemviz.settings.SETTINGS`).
+        """The value of the setting ``name``: a flat name of :data:`pemviz.settings.SETTINGS`, or of the method's own
+        settings (:attr:`method_settings`).
 
         Raises:
-            AttributeError: not a setting.
+            AttributeError: not a setting (of this run's method).
         """
         group = GROUP_OF.get(name)
         if group is None and name not in SETTINGS and self.method_settings is not None:
-            return getattr(self.method_settings, name)  # a method of one's own's setting
+            return getattr(self.method_settings, name)  # the method's own setting
         return getattr(self if group is None else getattr(self, group), name)
 
     def flat(self) -> dict[str, Any]:
-        """Every setting by its flat name, in the table's order, then a method of one's own's settings (what result
-        documents, rollout files and ``runs.jsonl`` record as a run's ``config``)."""
+        """Every setting by its flat name, in the order runs record them (:data:`pemviz.settings.RECORDED`: the
+        table's, the built-in methods' own, this run's where they are its method's, else their defaults), then a
+        method of one's own's settings (what result documents, rollout files and ``runs.jsonl`` record as a run's
+        ``config``)."""
         own = {} if self.method_settings is None else dataclasses.asdict(self.method_settings)
-        return {**{name: self.value(name) for name in SETTINGS}, **own}
+        values = {**{name: self.value(name) for name in SETTINGS}, **OWN_DEFAULTS, **own}
+        return {**{name: values[name] for name in RECORDED}, **own}
 
     def __post_init__(self) -> None:
         for setting in SETTINGS.values():  # each setting on its own: its range from SETTINGS
@@ -243,7 +254,8 @@ class ExperimentConfig:
 
         def need(ok: bool, name: str, allowed: str) -> None:  # the settings against each other
             if not ok:
-                raise ConfigError(f"{SETTINGS[name].title} = {self.value(name)!r} is invalid: {allowed}", name)
+                row = SETTINGS[name] if name in SETTINGS else rows_of(type(self.method_settings), self.method)[name]
+                raise ConfigError(f"{row.title} = {self.value(name)!r} is invalid: {allowed}", name)
 
         if self.scenario_params:  # the names, kinds and ranges of the scenario's own dataclass
             from pemviz.scenarios.parameters import ParameterError, check_pairs
@@ -287,15 +299,16 @@ class ExperimentConfig:
             "give one stop rule: a requirement (--require) or a precision target (--rel-error)",
         )
         method = self.method_record  # its own settings, then against the others (Method.validate)
-        if method.settings is None:
+        kind = method.settings_class()
+        if kind is None:
             if self.method_settings is not None:
                 raise ConfigError(f"method {method.name} has no settings of its own; give none", "method_settings")
         else:
             if self.method_settings is None:  # made without them: the method's defaults
-                object.__setattr__(self, "method_settings", method.settings())
-            if not isinstance(self.method_settings, method.settings):
+                object.__setattr__(self, "method_settings", kind())
+            if not isinstance(self.method_settings, kind):
                 raise ConfigError(
-                    f"method {method.name}'s settings are a {method.settings.__name__}, got "
+                    f"method {method.name}'s settings are a {kind.__name__}, got "
                     f"{type(self.method_settings).__name__}",
                     "method_settings",
                 )
@@ -387,12 +400,18 @@ class ExperimentConfig:
 GROUPS: dict[str, type] = {
     f.name: type(f.default) for f in dataclasses.fields(ExperimentConfig) if dataclasses.is_dataclass(f.default)
 }
-"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three, and each
-built-in method's settings (a dataclass in the method's home)."""
+"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three, the
+cross-entropy sampler's and splitting's settings (a dataclass in the method's home); a method's own settings are its
+:attr:`ExperimentConfig.method_settings`."""
 
 GROUP_OF: dict[str, str] = {f.name: g for g, cls in GROUPS.items() for f in dataclasses.fields(cls)}
 """A setting's name (:data:`pemviz.settings.SETTINGS`) -> the :class:`ExperimentConfig` field of the group holding it;
 a setting not here is a field of the config itself."""
+
+
+def _names(settings: type | None) -> tuple[str, ...]:
+    """The field names of a settings dataclass (none for None)."""
+    return () if settings is None else tuple(f.name for f in dataclasses.fields(settings))
 
 
 def has_final_batch(config: ExperimentConfig) -> bool:

@@ -150,10 +150,11 @@ def cli_error(argv: list[str]) -> str:
 
 
 def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choice_is_explained():
-    """At most 10 fields of the config's own besides its groups and a method of one's own's settings
-    (``method_settings``); a method's settings are a dataclass in the method's home, its group;
-    every setting one field of the config or of one group, its owner's (the run's groups hold the run's)."""
+    """At most 10 fields of the config's own besides its groups and the method's own settings
+    (``method_settings``); a method's settings are a dataclass in the method's home, its group or its own (the state
+    method's); every setting one field of the config or of one group, its owner's (the run's groups hold the run's)."""
     from pemviz.config import GROUP_OF, GROUPS
+    from pemviz.methods import get_method
 
     own = [f.name for f in dataclasses.fields(ExperimentConfig) if f.name != "method_settings"]
     assert len([name for name in own if name not in GROUPS]) <= 10 and set(GROUPS) <= set(own)
@@ -161,13 +162,14 @@ def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choi
     assert sorted(fields) == sorted(SETTINGS) and len(fields) == len(set(fields))
     assert GROUPS["adaptive"].__module__ == "pemviz.methods.adaptive"
     assert GROUPS["ams"].__module__ == "pemviz.methods.ams"
-    assert GROUPS["state"].__module__ == "pemviz.methods.state"
+    assert "state" not in GROUPS and get_method("state").settings_class().__module__ == "pemviz.methods.state"
+    assert not set(dataclasses.fields(get_method("state").settings_class())) & set(
+        SETTINGS
+    )  # the method's, not the table's
     defaults = ExperimentConfig.of()
     for name, s in SETTINGS.items():
-        assert s.name == name and s.owner in (RUN, "adaptive", "ams", "state"), name
-        assert (
-            GROUP_OF.get(name) == s.owner if s.owner != RUN else GROUP_OF.get(name) not in ("adaptive", "ams", "state")
-        )
+        assert s.name == name and s.owner in (RUN, "adaptive", "ams"), name
+        assert GROUP_OF.get(name) == s.owner if s.owner != RUN else GROUP_OF.get(name) not in ("adaptive", "ams")
         assert s.accepts(defaults.value(name)), name  # the default is inside its own range
         if s.kind == "choice":
             assert [v for v, _ in s.choice_help] == list(s.choices), f"{name}: a hint for every choice, in order"
@@ -246,13 +248,15 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     import pemviz.estimators.ams as ams
     import pemviz.estimators.cross_entropy as ce
     import pemviz.estimators.fallback as fallback
-    import pemviz.estimators.state as state
     import pemviz.methods.adaptive as adaptive
+    import pemviz.methods.state.estimator as state
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
     from pemviz.estimators.cross_entropy import CrossEntropy
-    from pemviz.estimators.state import StateCrossEntropy
+    from pemviz.methods.state import StateSettings
+    from pemviz.methods.state.estimator import StateCrossEntropy
 
-    fields = set(SETTINGS) | {"has_final_batch", "n_simulations"}
+    own = {f.name for f in dataclasses.fields(StateSettings)}  # the state method's own settings
+    fields = set(SETTINGS) | own | {"has_final_batch", "n_simulations"}
     # the cross-entropy method is its estimator and what runs after its stages (its Method's ``then``, whose retry's N
     # its settings' module gives)
     for modules, cls, owner in (
@@ -263,7 +267,7 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
         source = "".join(open(str(module.__file__)).read() for module in modules)
         read = set(
             re.findall(
-                r"\b(?:cfg|config|ce)(?:\.adaptive|\.ams|\.state|\.stop|\.execution|\.perception)?\.([a-z_]+)\b",
+                r"\b(?:cfg|config|ce|own)(?:\.adaptive|\.ams|\.stop|\.execution|\.perception)?\.([a-z_]+)\b",
                 source,
             )
         )
@@ -275,12 +279,49 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
             read - set(cls.SETTINGS) - set(settings_of(RUN)),
         )
         assert set(cls.SETTINGS) <= read, (owner, set(cls.SETTINGS) - read)  # no setting claimed and never read
-    assert not set(settings_of("adaptive")) & set(settings_of("ams")) and not set(settings_of("state")) & set(
-        settings_of("adaptive")
-    )
+    assert not set(settings_of("adaptive")) & set(settings_of("ams")) and not own & set(settings_of("adaptive"))
     # every setting is read by the run or by one of the estimators checked above: an owner misspelt in SETTINGS
     # (or a method's settings without an estimator reading them) would leave its settings read by nobody
-    assert {s.owner for s in SETTINGS.values()} == {RUN, "adaptive", "ams", "state"}
+    assert {s.owner for s in SETTINGS.values()} == {RUN, "adaptive", "ams"}
+
+
+def test_the_state_methods_settings_are_its_own_and_recorded_where_runs_always_recorded_them():
+    """The state method's settings are its record's (``Method.settings``), held as ``method_settings``; every run
+    records them after splitting's, a state run its own values; a recorded config makes the same config again; given
+    to another method they are refused in one line (the config's and the flag's)."""
+    from pemviz.methods import get_method
+    from pemviz.methods.state import StateSettings
+
+    cfg = ExperimentConfig.of(method="state", state_share=0.3, state_model="network")
+    assert get_method("state").settings_class() is StateSettings and not hasattr(cfg, "state")
+    assert cfg.method_settings == StateSettings(state_share=0.3, state_model="network", state_fit_errors=False)
+    assert (cfg.value("state_share"), cfg.replace(state_fit_errors=True).method_settings.state_fit_errors) == (
+        0.3,
+        True,
+    )
+    keys = list(ExperimentConfig.of().flat())
+    assert keys[-4:] == ["ams_score", "state_share", "state_model", "state_fit_errors"] and list(cfg.flat()) == keys
+    assert [cfg.flat()[k] for k in keys[-3:]] == [0.3, "network", False]
+    assert [ExperimentConfig.of(method=m).flat()[k] for m in ("mc", "ams") for k in keys[-3:]] == [
+        0.1,
+        "glm",
+        False,
+    ] * 2
+    assert (
+        ExperimentConfig.of(**cfg.flat()) == cfg
+        and ExperimentConfig.of(**ExperimentConfig.of().flat()).method_settings is None
+    )
+    assert cfg.replace(method="adaptive").method_settings is None
+    with pytest.raises(ConfigError, match=r"^state_share is a setting of method state: give it with method = 'state'$"):
+        ExperimentConfig.of(state_share=0.3)
+    with pytest.raises(ConfigError, match=r"^state_share = 0.95 is invalid: state_share \+ plain_share must be <= 1$"):
+        ExperimentConfig.of(method="state", state_share=0.95, plain_share=0.1)
+    assert (
+        cli_error(["--state-share", "0.3"]) == "--state-share is a setting of method state: give it with --method state"
+    )
+    assert cli_error(["--method", "state", "--state-share", "1"]).endswith(
+        "the PEM's share of the state proposal's mixture must be a number in (0, 1)"
+    )
 
 
 def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with():

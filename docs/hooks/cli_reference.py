@@ -47,6 +47,8 @@ def choices_markdown(name: str) -> str:
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:
+    """MkDocs' page hook: the page's Markdown with its CLI and choices markers replaced (``page``, ``config`` and
+    ``files`` are MkDocs' objects, unused)."""
     if MARKER in markdown:
         markdown = markdown.replace(MARKER, cli_markdown())
     return CHOICES.sub(lambda m: choices_markdown(m.group(1)), markdown)

@@ -80,11 +80,12 @@ def format_number(field: Setting, value: Any) -> str:
 def own_rows(method: str) -> tuple[Setting, ...]:
     """The rows of the registered method ``method``'s own settings (:attr:`pemviz.methods.Method.settings`, each
     field's :func:`pemviz.settings.setting`), in their order: the fields of the form's folder *method settings*;
-    ``()`` for a method without (the built-in ones) or an unknown name."""
+    ``()`` for a method without (the built-in ones but the state method) or an unknown name."""
     record = method_or_none(method)
-    if record is None or record.settings is None:
+    kind = None if record is None else record.settings_class()
+    if record is None or kind is None:
         return ()
-    return tuple(rows_of(record.settings, record.name).values())
+    return tuple(rows_of(kind, record.name).values())
 
 
 def parse_own(method: str, texts: Mapping[str, str]) -> tuple[dict[str, Any], dict[str, str]]:

@@ -28,6 +28,7 @@ VERDICT_COLOURS = {"reliable": GREEN, "doubtful": AMBER, "unreliable": RED}
 
 
 def box(text: str, colour: str) -> str:
+    """``text`` (HTML) in a box with a left border of ``colour`` (``#rrggbb``) on a faint tint of it."""
     return (
         f'<div style="margin:0 0.6em 0.5em; padding:0.4em 0.6em; border-radius:4px; font-size:0.85em; '
         f'border-left:4px solid {colour}; background:{colour}14">{text}</div>'
@@ -138,6 +139,7 @@ def no_failure_advice(record: Method, n: int) -> str:
 
 
 def display_path(path: Path) -> str:
+    """``path`` relative to the working folder where it lies under it, else as given."""
     try:
         return str(path.resolve().relative_to(Path.cwd().resolve()))
     except ValueError:

@@ -173,6 +173,7 @@ class RobustnessOutcome:
 
 
 def state_colour(detected: bool, seen: bool) -> str:
+    """An object's colour at a step: green detected, orange missed (visible to the camera), grey unseen."""
     return GREEN if detected else (ORANGE if seen else UNSEEN)
 
 
@@ -318,8 +319,12 @@ def detect_svg(names: tuple[str, ...], p: np.ndarray, q: np.ndarray, step: int, 
     at its head; a black line at ``step``.
 
     Args:
-        names: the M objects' labels; p, q: float64 [T, M]
+        names: the M objects' labels.
+        p: float64 [T, M] each object's p(detect) under the PEM at each step
             (:func:`pemviz.core.proposal_view.object_detect_probabilities`).
+        q: float64 [T, M] each object's q(detect) under the sampler that drew the rollout.
+        step: the step marked (the 3D scene's step).
+        width: the picture's width (pixels).
     """
     t_steps, m = p.shape
     left, band = label_width(names), 22

@@ -155,10 +155,11 @@ class MethodSettingsForm(ChoiceFolder):
 
     def fields_of(self, value: str) -> list[Field]:
         record = method_or_none(value)
-        if record is None or record.settings is None:
+        kind = None if record is None else record.settings_class()
+        if kind is None:
             return []
         given = self.config0.method_settings  # the starting config's, when they are this method's
-        first = given if isinstance(given, record.settings) else record.settings()
+        first = given if isinstance(given, kind) else kind()
         return [(s.name, s.label, format_number(s, getattr(first, s.name)), s.hint) for s in own_rows(value)]
 
 

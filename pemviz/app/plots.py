@@ -61,6 +61,7 @@ SERIES_STYLE: dict[str, up.Series] = {
 
 
 def run_colour(run_id: int) -> str:
+    """Series colour of run number ``run_id`` (from 1; :data:`RUN_COLOURS`, cycling)."""
     return RUN_COLOURS[(run_id - 1) % len(RUN_COLOURS)]
 
 
@@ -303,6 +304,7 @@ def fill_curve_plot(plot: viser.GuiUplotHandle, record: PanelRun, title: str, ca
 
 
 def stage_plot(gui: viser.GuiApi, title: str, y_label: str) -> viser.GuiUplotHandle:
+    """An empty per-stage chart titled ``title`` (y axis ``y_label``, 0 to 1 until a run fills it), added to ``gui``."""
     return add_chart(
         gui,
         data=(np.arange(2, dtype=np.float64), np.full(2, np.nan)),
@@ -467,11 +469,14 @@ def fill_strip_plots(
     threshold and sampler window (:attr:`pemviz.core.problem_view.ProblemView.thresholds`; None: no such lines).
 
     Args:
+        plots: the strip charts by name (:func:`strip_plots`: ``gap``, ``detect``, ``weight``).
         lines: the first chart's lines (:meth:`pemviz.app.drawing.LanePanel.strip_series`), the ``main`` one first:
             the marker follows it; float64 [T] each.
         detected: bool [T] the detections taken.
         ex: the rollout explained (:meth:`pemviz.app.drawing.LanePanel.lane_explanation`).
+        step: the step marked.
         title: the rollout's name (the first chart's caption).
+        thresholds: the problem's failure threshold and sampler window, or None.
         what: the first chart's title (:attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`).
     """
     t = ex.time_s
@@ -533,4 +538,5 @@ def move_strip_marker(plots: dict[str, viser.GuiUplotHandle], step: int) -> None
 
 
 def finite_or_dash(x: float | None, spec: str) -> str:
+    """``x`` formatted with ``spec`` (e.g. ``".1f"``), or ``-`` where it is None or not finite."""
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)

@@ -531,9 +531,9 @@ class PanelRun(Sink):
 
 
 def sanitize_export_name(name: str) -> str:
-    """A recording file name from what a user typed: ``'../x'`` -> ``'x.rrd'``.
+    r"""A recording file name from what a user typed: ``'../x'`` -> ``'x.rrd'``.
 
-    Folders are dropped (only the last path component counts, ``/`` and ``\\`` alike), characters
+    Folders are dropped (only the last path component counts, ``/`` and ``\`` alike), characters
     other than letters, digits, ``.``, ``_`` and ``-`` become ``_``, leading dots are stripped (no
     hidden files, no ``..``), and ``.rrd`` is appended unless present.
 

@@ -18,6 +18,10 @@ from pemviz.config import ConfigError, default_of
 from pemviz.io.files import check_output_path
 from pemviz.settings import SETTINGS, Setting
 
+AS_PROGRAM = False
+"""Whether this process is the ``pemviz`` program (:func:`pemviz.cli.main`, which sets it, called without ``argv``),
+not a library user: only then does a command change process-wide state (:mod:`pemviz.sinks.process`)."""
+
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("pemviz.commands.run", "estimate a scenario's failure probability and record the run"),
     "data": ("pemviz.commands.data", "fetch or locate the KITTI salient-variable files"),

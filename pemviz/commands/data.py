@@ -15,6 +15,7 @@ The KITTI salient files are never shipped: fetch them or show where pemviz finds
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``pemviz data`` and its actions ``fetch`` and ``where`` to the sub-command parsers ``sub``."""
     p = add_command(sub, "data", DESCRIPTION)
     actions = p.add_subparsers(dest="data_command", required=True)
     f = actions.add_parser(
@@ -41,6 +42,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def fetch_main(args: argparse.Namespace) -> int:
+    """``pemviz data fetch``: download the salient files and check their SHA-256.
+
+    Returns:
+        The exit status: 0, or 1 after one error line when a download or its check fails (nothing written).
+
+    Raises:
+        UsageError: ``--base-url`` is not an http(s):// or file:// URL.
+    """
     if not args.base_url.startswith(("http://", "https://", "file://")):
         raise UsageError(f"--base-url {args.base_url!r}: must be an http(s):// or file:// URL")
     try:
@@ -58,6 +67,11 @@ def fetch_main(args: argparse.Namespace) -> int:
 
 
 def where_main(args: argparse.Namespace) -> int:
+    """``pemviz data where``: print the data folder found and each file's SHA-256 check.
+
+    Returns:
+        The exit status: 0, or 1 when no data folder is found or a file does not match its SHA-256.
+    """
     try:
         folder = data.find_data_dir()
     except data.DataNotFoundError as exc:

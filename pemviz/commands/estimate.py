@@ -53,6 +53,7 @@ pemviz.io.rollout_format), and a rerun recording of it.
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``pemviz estimate`` and its flags to the sub-command parsers ``sub``."""
     p = add_command(sub, "estimate", DESCRIPTION)
     p.add_argument(
         "rollouts",
@@ -411,6 +412,15 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
 
 
 def main(args: argparse.Namespace) -> int:
+    """``pemviz estimate``: re-estimate p(failure) from a rollout file, print the summary and write the recording and
+    result document asked for.
+
+    Returns:
+        The exit status, 0.
+
+    Raises:
+        UsageError: a bad metric, PEM or output path, or a run weighed with a look-ahead this version cannot rebuild.
+    """
     if not SETTINGS["metric"].accepts(args.metric):
         raise UsageError(f"--metric {args.metric!r}: use {SETTINGS['metric'].allowed}")
     pem_argument(args.pem)

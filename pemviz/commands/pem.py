@@ -40,6 +40,7 @@ Train the PEM on the KITTI salient files or cross-validate the models (both need
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``pemviz pem`` and its actions ``train`` and ``eval`` to the sub-command parsers ``sub``."""
     p = add_command(sub, "pem", DESCRIPTION)
     actions = p.add_subparsers(dest="pem_command", required=True)
     _add_train(actions)
@@ -144,6 +145,15 @@ def _check_out_path(out: Path) -> None:
 
 
 def train_main(args: argparse.Namespace) -> int:
+    """``pemviz pem train``: train a detection PEM, a noise PEM or an ensemble of detection PEMs on the salient data and
+    write it.
+
+    Returns:
+        The exit status: 0, or 1 after one error line when the salient data cannot be read.
+
+    Raises:
+        UsageError: an unknown model, ``--epochs`` < 1, a bad ``--ensemble`` or output path.
+    """
     if args.model not in PEM_RECIPES and args.model not in NOISE_RECIPES:
         raise UsageError(f"--model {args.model!r}: use one of {', '.join([*PEM_RECIPES, *NOISE_RECIPES])}")
     if args.epochs is not None and args.epochs < 1:
@@ -304,6 +314,14 @@ def eval_config_from_args(args: argparse.Namespace) -> tuple[EvalConfig | None, 
 
 
 def eval_main(args: argparse.Namespace) -> int:
+    """``pemviz pem eval``: cross-validate the PEM models and write the reports (Markdown, CSV, recording).
+
+    Returns:
+        The exit status: 0, or 1 after one error line when the salient data cannot be read.
+
+    Raises:
+        UsageError: a bad model list, fold list, ``--ensemble``, ``--jobs`` or output path.
+    """
     config, noise_config = eval_config_from_args(args)
     if getattr(args, "ensemble", None) is not None and (args.ensemble < 2 or args.jobs < 1):
         raise UsageError(f"--ensemble {args.ensemble} --jobs {args.jobs}: give M >= 2 members and at least 1 job")

@@ -30,6 +30,7 @@ twin (PAGE.md).
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``pemviz report`` and its flags to the sub-command parsers ``sub``."""
     p = add_command(sub, "report", DESCRIPTION)
     p.add_argument("result", metavar="RUN", help="the run's result document (pemviz run --json), or its recording")
     p.add_argument(
@@ -83,6 +84,15 @@ def read_result(path: Path) -> dict:
 
 
 def main(args: argparse.Namespace) -> int:
+    """``pemviz report``: write a run's HTML page and its Markdown twin from its result document or recording.
+
+    Returns:
+        The exit status, 0.
+
+    Raises:
+        UsageError: a page or twin that cannot be written (or exists without ``--overwrite``), or a result document
+            that lacks a field.
+    """
     src = Path(args.result)
     doc = read_result(src)
     name = src.name[: -len(RESULT_BESIDE_SUFFIX)] if src.name.endswith(RESULT_BESIDE_SUFFIX) else src.stem

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pemviz import commands
 from pemviz.commands import (
     COMMANDS,
     UsageError,
@@ -49,29 +50,33 @@ has a flag, in the table's order (a method of one's own adds its own: :func:`add
 
 def add_method_settings(p: argparse.ArgumentParser) -> None:
     """A flag for each setting of each registered method's own settings (:attr:`pemviz.methods.Method.settings`; the
-    method plugins loaded first), its help led by the method's name; a flag ``pemviz run`` has already is left out (the
-    setting is still the config's by its name). A plugin that cannot be loaded, or a settings class without rows, is
-    left to :func:`config_from_args`, which says why in one line."""
+    method plugins loaded first), a plugin's help led by the method's name (a built-in method's rows name it); a flag
+    ``pemviz run`` has already is left out (the setting is still the config's by its name). A plugin that cannot be
+    loaded, or a settings class without rows, is left to :func:`config_from_args`, which says why in one line."""
     from pemviz.methods import MethodPluginError, load_method_plugins, records
 
     try:
         load_method_plugins()
     except MethodPluginError:
-        return
+        pass  # the built-in methods' flags all the same
     taken = {flag for action in p._actions for flag in action.option_strings}
     for record in records():
         if record.settings is None:
             continue
         try:
-            rows, defaults = rows_of(record.settings, record.name), record.settings()
-        except (TypeError, ValueError):
+            kind = record.settings_class()
+            assert kind is not None  # its settings are given
+            rows, defaults = rows_of(kind, record.name), kind()
+        except (TypeError, ValueError, ImportError, AttributeError):
             continue
         for row in rows.values():
             if not taken & {*(row.flags or (row.flag,))}:
-                add_row(p, row, getattr(defaults, row.name), lead=f"method {record.name}'s ")
+                lead = "" if record.name in BUILTIN_METHODS else f"method {record.name}'s "
+                add_row(p, row, getattr(defaults, row.name), lead=lead)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``pemviz run`` and its flags (the settings and the outputs) to the sub-command parsers ``sub``."""
     p = sub.add_parser(
         "run",
         help=COMMANDS["run"][1],
@@ -187,7 +192,8 @@ def method_settings_of(args: argparse.Namespace, method: str) -> dict[str, Any]:
 
     given: dict[str, Any] = {}
     for record in records():
-        for row in () if record.settings is None else rows_of(record.settings, record.name).values():
+        kind = record.settings_class()
+        for row in () if kind is None else rows_of(kind, record.name).values():
             value = getattr(args, row.name, None)
             if value is not None and record.name != method:
                 raise ConfigError(
@@ -257,8 +263,9 @@ def result_lines(
     process writes the file.
 
     Args:
-        cfg: the run's config; problem: its :class:`pemviz.core.problems.Problem`; final: its
-            :class:`pemviz.engine.events.FinalEstimate`.
+        cfg: the run's config.
+        problem: its :class:`pemviz.core.problems.Problem`.
+        final: its :class:`pemviz.engine.events.FinalEstimate`.
         why: the errors that decided the most likely failure (a line), or None.
         failures: the final estimate's failures in groups (:func:`pemviz.sinks.population.grouping_document`), or
             None.
@@ -321,9 +328,15 @@ def write_results(
 
 
 def main(args: argparse.Namespace) -> int:
-    from pemviz import cli
+    """``pemviz run``: build the config from the flags, check every output, run the experiment and record it.
 
-    if cli.AS_PROGRAM:  # scipy.special, which the PEM's modules import, without numpy's unused submodules
+    Returns:
+        The exit status of the run (:func:`_run_experiment`).
+
+    Raises:
+        UsageError: a bad setting, PEM or output path, or ``--executor ray`` without Ray.
+    """
+    if commands.AS_PROGRAM:  # scipy.special, which the PEM's modules import, without numpy's unused submodules
         from pemviz.sinks.process import import_scipy_special_lean
 
         import_scipy_special_lean()
@@ -354,7 +367,7 @@ def main(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     if (
-        cli.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.execution.executor != "ray"
+        commands.AS_PROGRAM and target in ("stdout", "connect", "serve") and cfg.execution.executor != "ray"
     ):  # "save": the child's
         from pemviz.sinks.process import settle_pyarrow_without_pandas
 
@@ -363,7 +376,7 @@ def main(args: argparse.Namespace) -> int:
     if target == "connect":
         args.url = probe_viewer(args.url)
     early = None
-    if target == "save" and cli.AS_PROGRAM and cfg.execution.executor != "ray":
+    if target == "save" and commands.AS_PROGRAM and cfg.execution.executor != "ray":
         from pemviz.sinks.recording_process import RecordingProcess  # rerun imported beside the run, not before it
 
         assert save_path is not None  # plan_outputs names the file of a recording saved
@@ -411,10 +424,9 @@ def _run_experiment(args, cfg: ExperimentConfig, target, outputs: RunOutputs, ea
     from pemviz.sinks.most_likely import MostLikelyFailure
     from pemviz.sinks.population import FailureGroups, grouping_document
 
-    serial = cfg.execution.executor != "ray"  # streams large stages (engine.experiment.streams_locally)
     opened = open_load_window()  # the load is read from here to the run's start: over the problem's build
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
-    check_run_memory(cfg, problem.n_steps or N_STEPS, stream_above=stream_above(cfg) if serial else None)
+    check_run_memory(cfg, problem.n_steps or N_STEPS, stream_above=stream_above(cfg))
     try:
         check_runnable(cfg, problem)  # a sampler that cannot run on this scenario: before any output or rollout
     except ValueError as exc:

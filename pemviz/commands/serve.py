@@ -21,6 +21,7 @@ them to recordings/*.rrd.
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``pemviz serve`` and its flags to the sub-command parsers ``sub``."""
     p = add_command(sub, "serve", DESCRIPTION)
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
@@ -64,6 +65,14 @@ def check_host(host: str) -> bool:
 
 
 def main(args: argparse.Namespace) -> int:
+    """``pemviz serve``: serve the viser panel until Ctrl-C (a warning line where ``--host`` reaches other machines).
+
+    Returns:
+        The exit status, 0.
+
+    Raises:
+        UsageError: an unknown preset, a port outside 0..65535, or a bad PEM.
+    """
     if args.preset not in PRESETS:
         raise UsageError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     if not 0 <= args.port <= 65535:

@@ -48,6 +48,7 @@ failures, NLL, ESS and the exact p_fail; Markdown, CSV and a rerun recording of 
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``pemviz tables`` and its flags to the sub-command parsers ``sub``."""
     p = add_command(sub, "tables", DESCRIPTION)
     p.add_argument("--problem", default="main", help=f"one of {', '.join(PROBLEMS)} (default main)")
     p.add_argument("--reps", type=int, default=10, help="repetitions per row (default 10)")
@@ -60,6 +61,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    """``pemviz tables``: the paper's tables (repetitions of each row against the exact answer) into ``--out``.
+
+    Returns:
+        The exit status, 0.
+
+    Raises:
+        UsageError: an unknown problem or preset, ``--reps`` < 2, a count < 1, or an output folder that cannot be used.
+    """
     if args.problem not in PROBLEMS:
         raise UsageError(f"--problem {args.problem!r}: use one of {', '.join(PROBLEMS)}")
     extra = presets_of(args.extra, "extra")

@@ -45,6 +45,7 @@ simulations and wall time.
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``pemviz validate`` and its flags to the sub-command parsers ``sub``."""
     p = add_command(sub, "validate", DESCRIPTION)
     p.add_argument(
         "--problems",
@@ -65,6 +66,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    """``pemviz validate``: every method's seeds on every problem with an exact answer, summarised against it.
+
+    Returns:
+        The exit status, 0.
+
+    Raises:
+        UsageError: an unknown problem, preset or baseline, nothing to run, ``--seeds`` or ``--jobs`` < 1, or an output
+            folder that cannot be used.
+    """
     problems = split_choices(args.problems, validation_problems(), "problems")
     presets = presets_of(args.presets, "presets")
     from pemviz.methods import BUILTIN_METHODS, method_names

@@ -121,7 +121,9 @@ def draw_noise(detector: Any, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) 
     detector has it (one evaluation of its error model, e.g. :meth:`pemviz.pem.perception.SalientDetector.noise_draw`).
 
     Args:
-        rows: float64 [R, G] object rows; u: float64 [H, D] uniforms in (0, 1) of the H rows of ``hit``, in order;
+        detector: the detector whose error model draws (a :class:`~pemviz.core.detectors.NoisyDetector`).
+        rows: float64 [R, G] object rows.
+        u: float64 [H, D] uniforms in (0, 1) of the H rows of ``hit``, in order.
         hit: bool [R].
     Returns:
         (errors float64 [H, D], log density float64 [H] in nats).

@@ -487,6 +487,8 @@ def draw_step(
     row's error is 0 and adds nothing.
 
     Args:
+        sampler: the detector the events are drawn from (q).
+        target: the detector they are scored under (p, the PEM).
         rows: float64 [R, G] object rows (the rows of consecutive rollouts, each rollout's objects together).
         u: float64 [R, 1 + D] uniforms in [0, 1): column 0 decides the detection (Array-RQMC re-ranks it for an
             :class:`ArrayRQMC` sampler, inside the sampler's window where it has one: :func:`step_uniforms`), columns

@@ -73,7 +73,9 @@ def times_power_of_two(x: np.ndarray, n: np.ndarray, m: np.ndarray | None = None
     ``np.ldexp``.
 
     Args:
-        x: float64 [...]; n, m: int arrays broadcastable to it (``m`` None: 0).
+        x: float64 [...].
+        n: int array broadcastable to ``x``.
+        m: int array broadcastable to ``x``, or None (0).
     """
     lo, hi = (int(n.min()), int(n.max())) if n.size else (0, 0)
     if m is None:
@@ -111,7 +113,8 @@ def matmul(
     row i depends on ``a[i]`` and ``b`` alone, and on no kernel, order, batch or CPU.
 
     Args:
-        a: float64 [m, k]; b: float64 [k, n] (ignored, and may be None, when ``b_grid`` is given).
+        a: float64 [m, k].
+        b: float64 [k, n] (ignored, and may be None, when ``b_grid`` is given).
         b_grid: ``b`` already on its grid (:func:`on_grid` with ``grid_bits(k)`` bits and ``axis`` 0), e.g. a
             network's weights rounded once.
         nonneg: ``a`` >= 0 (e.g. after a ReLU).
@@ -157,8 +160,11 @@ def matmul_t(
     does. Where a power of two of ``a``'s grid leaves the normal range, or ``bt`` is None, :func:`matmul` itself.
 
     Args:
-        at: float64 [k, m]; b_grid: ``b`` on its grid (:func:`on_grid`, ``grid_bits(k)`` bits, ``axis`` 0);
-        bt: ``scaled_grid(b_grid)`` [n, k] or None; nonneg: ``at`` >= 0; own: ``at`` may be overwritten.
+        at: float64 [k, m].
+        b_grid: ``b`` on its grid (:func:`on_grid`, ``grid_bits(k)`` bits, ``axis`` 0).
+        bt: ``scaled_grid(b_grid)`` [n, k] or None.
+        nonneg: ``at`` >= 0.
+        own: ``at`` may be overwritten.
     Returns:
         float64 [n, m].
     """

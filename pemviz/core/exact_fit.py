@@ -43,12 +43,17 @@ def fit_exact(
     M x 2 counts lies within an ulp of a rounding boundary (probability about 2^-29 each).
 
     Args:
-        inputs: float64 [M] or [M, k] (:meth:`pemviz.core.sampling.Proposal.forward`); counts: C float64 [M, 2]
-            (miss, detect).
-        epochs, lr, check, tolerance, per: as :func:`pemviz.core.sampling.fit_proposal`.
-        check_every, plateau_epochs: epochs between two ``check`` calls, and the epochs over which the loss must
-            fall by ``tolerance`` (:data:`pemviz.core.fit_settings.CHECK_EVERY`,
-            :data:`pemviz.core.fit_settings.PLATEAU_EPOCHS`).
+        proposal: the :class:`pemviz.core.sampling.Proposal` fitted, in place.
+        inputs: float64 [M] or [M, k] (:meth:`pemviz.core.sampling.Proposal.forward`).
+        counts: C float64 [M, 2] (miss, detect).
+        epochs: Adam steps, as :func:`pemviz.core.sampling.fit_proposal`.
+        lr: Adam's step size.
+        check: called every ``check_every`` epochs; may raise (a cancel token) to abandon the fit.
+        tolerance: as :func:`pemviz.core.sampling.fit_proposal` (None: every epoch).
+        per: as :func:`pemviz.core.sampling.fit_proposal` (None: not divided).
+        check_every: epochs between two ``check`` calls (:data:`pemviz.core.fit_settings.CHECK_EVERY`).
+        plateau_epochs: the epochs over which the loss must fall by ``tolerance``
+            (:data:`pemviz.core.fit_settings.PLATEAU_EPOCHS`).
     Returns:
         the loss per epoch (nats, divided by ``per``).
     """

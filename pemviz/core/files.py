@@ -52,6 +52,8 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None], *, 
     is complete. Two writers to one path never share a temporary file. Returns ``path``.
 
     Args:
+        path: the file written.
+        write: writes the whole file at the path it is given (the temporary file's).
         overwrite: replace an existing ``path``; when False, :class:`OutputExists` if one exists at the end.
     Raises:
         OSError: the folder is missing or not writable, the disk is full, the file is too large;
@@ -108,7 +110,8 @@ def load_tagged(
 
     Args:
         path: an existing file.
-        tag, version: the expected ``payload["format"]`` and ``payload["version"]``.
+        tag: the expected ``payload["format"]``.
+        version: the expected ``payload["version"]``.
         what: how messages name the file (``PEM``, ``proposal checkpoint``).
         error: the exception type raised for an unreadable or foreign file.
         as_numpy: tensors as numpy arrays, read without importing torch for the files pemviz writes

@@ -82,6 +82,10 @@ def run_batched(
 
     Args:
         sim: n rollouts at their start, a :class:`BatchedSimulator`.
+        n: the rollouts.
+        n_steps: T, the steps simulated.
+        sampler: the detector the events are drawn from (q).
+        target: the detector they are scored under (p, the PEM).
         uniforms: per step, float64 [n K] in [0, 1), rollout by rollout, K = :func:`draws_per_rollout` (object by
             object: its detection's uniform, then its D errors'); e.g. ``rng.random(n K)`` per step.
         forced: optional (detected bool [n, T, M], noise [n, T, M, D] or None, until int [n]): rollout i takes these
@@ -388,6 +392,8 @@ def branch(
         parents: the rollouts to branch from, [M, T].
         parent: int [K] row of ``parents`` for each new rollout.
         at: int [K] branching steps, in [0, T - 1].
+        target: the detector (p) the new events are drawn from and scored under.
+        rng: the draws.
     Returns:
         :class:`RolloutBatch` [K, T].
     Raises:

@@ -208,6 +208,7 @@ class Problem:
         Sec. IV), whatever metric ranks the rollouts.
 
         Args:
+            batch: the rollouts [N, T].
             classic: the batch's classic robustness [N] when it is already computed (None: computed here).
         """
         return (self.robustness(batch, "classic") if classic is None else np.asarray(classic)) < 0.0

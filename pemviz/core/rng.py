@@ -141,7 +141,8 @@ def ranking_key(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
     by the logit alone, the uniforms of a toy's chains varied more than i.i.d. ones). NaN ranks last.
 
     Args:
-        primary, secondary: float [n] each.
+        primary: float [n], the first key.
+        secondary: float [n], the key of ties.
     Raises:
         ValueError: the two of different shapes or not 1-D.
     """

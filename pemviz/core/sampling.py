@@ -445,11 +445,13 @@ def fit_proposal(
     loss per step.
 
     Args:
+        proposal: the :class:`Proposal` fitted, in place.
         inputs: the proposal's inputs, float64 [M] (gaps, metres) or [M, k] (:meth:`Proposal.forward`).
         objective: see :data:`pemviz.core.fit_settings.Objective`.
         per: with a tensor C, the loss is ``-sum(C * log q) / per`` (e.g. the number of steps C stands for, so that a
             ``tolerance`` in nats per step means the same at any N); None: not divided.
-        epochs, lr: Adam steps and step size, or the most L-BFGS iterations.
+        epochs: Adam steps, or the most L-BFGS iterations.
+        lr: the step size.
         check: called every :data:`pemviz.core.fit_settings.CHECK_EVERY` steps; may raise (a cancel token) to abandon
             the fit.
         dtype: the arithmetic of an ``adam`` fit of an array objective: :data:`pemviz.core.fit_settings.EXACT` (default,

@@ -485,9 +485,11 @@ def failure_severity(
     """The failures' severity distribution, p(severity | failure), from their shares.
 
     Args:
-        scale: the severity signal; contact: its contact level (metres, :func:`contact_level`).
+        scale: the severity signal.
+        contact: its contact level (metres, :func:`contact_level`).
         log_share: float64 [F] each failure's log share of mu_hat (nats, :class:`pemviz.core.population.FailureShares`).
-        min_distance, impact_speed: float64 [F] each failure's (:func:`rollout_severity`; read where ``kept``).
+        min_distance: float64 [F] each failure's min distance (metres, :func:`rollout_severity`; read where ``kept``).
+        impact_speed: float64 [F] each failure's impact speed (m/s; read where ``kept``).
         kept: bool [F] the failures whose rollout was located (None: all).
         edges: the impact-speed bin edges (m/s, ascending, > 0).
     Returns:

@@ -104,9 +104,13 @@ def fit_noise_shift(
     density), by Adam on the mean over the weights; returns the loss per epoch (nats per error).
 
     Args:
-        obs: float64 [S, G] the detected objects' rows; noise: [S, D] their errors; loc_p, log_scale_p: [S, D] the
-            target's parameters at the rows; family, df: the target's family
-            (:data:`pemviz.core.detector_noise.NOISE_FAMILIES`).
+        proposal: the proposal whose error head is fitted, in place.
+        obs: float64 [S, G] the detected objects' rows.
+        noise: float64 [S, D] their errors.
+        loc_p: float64 [S, D] the target's location at the rows.
+        log_scale_p: float64 [S, D] the target's log scale at the rows.
+        family: the target's family (:data:`pemviz.core.detector_noise.NOISE_FAMILIES`).
+        df: the target's Student-t degrees of freedom, float64 [D] (one per error component), or None (no Student-t).
         log_w: float64 [S] each error's weight in log space (alpha times its rollout's importance log-weight).
         options: Adam's epochs and lr, the cancel ``check``; beyond ``max_rows`` errors, a weighted systematic subsample
             of them drawn by ``rng`` (:func:`pemviz.estimators.ce_fit`'s rule: the expected loss is kept; None: all);

@@ -55,7 +55,8 @@ def verdict_checks(n: int, n_failures: int, ess: float | None, khat: float | Non
     """The failures, ESS and k-hat checks of an estimate (module docstring), from its figures alone.
 
     Args:
-        n: rollouts used (>= 1); n_failures: the failing ones.
+        n: rollouts used (>= 1).
+        n_failures: the failing ones.
         ess: effective sample size of the failure weights (None or nan: not a finite number).
         khat: Pareto k-hat of the weights' tail (None or nan: not fitted).
         sampling: one of :data:`SAMPLINGS`.

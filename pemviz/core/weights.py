@@ -114,6 +114,7 @@ def stage_log_q(
         batch: rollouts ``start .. start + n - 1`` of the stage (a :class:`~pemviz.core.rollouts.RolloutBatch`, [n, T]).
         parts: the stage's samplers in the order drawn, ``(rollouts, detector)`` each (one: no mixture).
         target: the target detector (its component's density is ``batch.log_p``), or None.
+        start: the number of the batch's first rollout in the stage.
         features: the problem's state features (:attr:`pemviz.core.problems.Problem.features`): a sampler that reads
             them (:func:`pemviz.core.detectors.reads_state`) is asked about the rows with them
             (:func:`pemviz.core.features.with_state`, replayed).

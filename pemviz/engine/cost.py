@@ -174,6 +174,8 @@ def stage_cost(
             per-rollout seconds scale by the cost factor the scenario declares
             (:data:`pemviz.settings.SCENARIO_COST_FACTORS`, 1 for one that declares none), the per-step seconds and
             the fit by its parts (:data:`pemviz.settings.SCENARIO_COST_PARTS`).
+        kind: ``pretrain`` | ``ce`` | ``final`` | ``ams``.
+        n: the stage's rollouts.
         n_steps: T, steps per rollout.
         c: the constants (default :data:`COST`).
         stage: the stage's number, for a CE stage's rows (:func:`ce_rows`); None: the mean over the K stages.

@@ -35,6 +35,12 @@ if TYPE_CHECKING:  # annotations only: the modules behind them import torch
 
 @dataclass(frozen=True)
 class RunStarted:
+    """The run begins: its config, the PEM's detection curve, the problem and the stages the estimator plans.
+
+    ``config`` is the run's :class:`~pemviz.config.ExperimentConfig`; ``formula`` the requirement's STL formula as
+    text; ``curve_grid_m`` the distances (metres, float64 [G]) the detection curves are drawn on.
+    """
+
     config: ExperimentConfig
     formula: str
     curve_grid_m: np.ndarray
@@ -59,6 +65,8 @@ class RunStarted:
 
 @dataclass(frozen=True)
 class StageStarted:
+    """A stage begins; ``n_rollouts`` the rollouts it will simulate."""
+
     stage: int
     """0 = pretraining, 1..K = CE stages, K+1 = the final batch (the only stage of mc / naive50)."""
     kind: str
@@ -68,6 +76,9 @@ class StageStarted:
 
 @dataclass(frozen=True)
 class RolloutsSampled:
+    """A stage's rollouts are simulated and weighed: ``batch`` (the whole stage, or a sample of a streamed one) with
+    its robustness, failures and importance log-weights; ``stage`` and ``kind`` as in :class:`StageStarted`."""
+
     stage: int
     kind: str
     batch: RolloutBatch
@@ -129,6 +140,9 @@ class RolloutChunk:
 
 @dataclass(frozen=True)
 class StageResult:
+    """What a stage found: its threshold, elites and estimate, the proposal's detection curve after its update and
+    its wall time (``wall_s``, seconds); ``stage`` and ``kind`` as in :class:`StageStarted`."""
+
     stage: int
     kind: str
     gamma: float
@@ -144,11 +158,16 @@ class StageResult:
 
 @dataclass(frozen=True)
 class StageFinished:
+    """A stage is done; ``result`` what it found."""
+
     result: StageResult
 
 
 @dataclass(frozen=True)
 class FinalEstimate:
+    """The run's answer and what stands beside it; ``n_simulations`` the rollouts simulated in all, ``wall_s`` the
+    run's wall time (seconds)."""
+
     estimate: Estimate
     """The run's answer: the final batch's estimate, or pooled over stages (``final_estimate="pooled"``)."""
     n_simulations: int
@@ -201,12 +220,16 @@ class FinalEstimate:
 
 @dataclass(frozen=True)
 class RunFinished:
+    """The run is done: its final estimate and every stage's result, in order."""
+
     final: FinalEstimate
     stages: tuple[StageResult, ...]
 
 
 @dataclass(frozen=True)
 class RunCancelled:
+    """The run stopped before its final estimate (``reason``, one line), with the stages it finished."""
+
     stages: tuple[StageResult, ...]
     reason: str
 

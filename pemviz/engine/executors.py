@@ -1,25 +1,29 @@
 """Executors: where a stage's rollouts are simulated: worker processes on this machine (``local``, the default:
 :mod:`pemviz.engine.pool`), this process (``serial``) or Ray tasks (``ray``).
 
-The engine asks its executor for every batch (``executor.simulate(problem, n, sampler, target, rng)``) and, for a
-stage streamed in chunks, the ``local`` and ``serial`` ones for its chunks (``executor.stream(...)``). All give the
-same rollouts, bit for bit, for the same seed, whatever the number of workers or tasks:
+The engine asks its executor for every batch (``executor.simulate(problem, n, sampler, target, rng)``) and for the
+chunks of a stage streamed in chunks (``executor.stream(...)``). All give the same rollouts, bit for bit, for the same
+seed, whatever the number of workers or tasks:
 
 - ``serial`` calls ``problem.simulate(n, sampler, target, rng)`` (``problem.stream`` for chunks); so does ``local``
   with one worker, or for a batch too small to pay for its pool.
 - ``local`` simulates the blocks (below) of a large batch, or of a streamed stage, in a pool of worker processes.
-- ``ray`` cuts the N rollouts into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts
-  (:func:`pemviz.core.rng.block_bounds`), which every simulator also works by: an Array-RQMC sampler couples the
-  rollouts of a block, and detectors are asked about one block at a time. Each Ray task simulates a run of whole blocks
-  (:func:`task_blocks`: as many tasks as the cluster has CPUs by default), one block after another. Every pemviz
-  simulator draws one ``rng.random(n K)`` per step, K uniforms per rollout
-  (:func:`pemviz.core.rollouts.draws_per_rollout`: 1 for a single-object scenario; u for rollout i at step t is then
-  the ``(t * n + i)``-th uniform of the stream),
-  so the block ``a..b-1`` gets a stand-in for ``rng`` (:class:`ChunkUniforms`) whose k-th ``random((b - a) K)``
-  returns slice ``[a, b)`` of the serial run's k-th draw, found by jumping a copy of the PCG64 stream
-  (``bit_generator.advance``). Nothing but the generator's state (a few integers) travels with the task, and
-  ``rng`` ends where the serial run leaves it. A batch of one block (at most 8,192 rollouts, e.g. every batch of the
-  default sampler) is simulated in the driver: there is nothing to split without changing the rollouts.
+- ``ray`` simulates every block as a Ray task, at most twice the cluster's CPUs of them submitted and not yet taken
+  back, taken back in order (a streamed stage's blocks each dropped once its chunks are handed out, so that the
+  object store and the driver hold a bounded number of blocks whatever N).
+
+Both cut the N rollouts into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts
+(:func:`pemviz.core.rng.block_bounds`), which every simulator also works by: an Array-RQMC sampler couples the
+rollouts of a block, and detectors are asked about one block at a time. Every pemviz
+simulator draws one ``rng.random(n K)`` per step, K uniforms per rollout
+(:func:`pemviz.core.rollouts.draws_per_rollout`: 1 for a single-object scenario; u for rollout i at step t is then
+the ``(t * n + i)``-th uniform of the stream),
+so the block ``a..b-1`` gets a stand-in for ``rng`` (:class:`ChunkUniforms`) whose k-th ``random((b - a) K)``
+returns slice ``[a, b)`` of the serial run's k-th draw, found by jumping a copy of the PCG64 stream
+(``bit_generator.advance``). Nothing but the generator's state (a few integers) travels with a block, and
+``rng`` ends where the serial run leaves it. A batch of one block (at most 8,192 rollouts, e.g. every batch of the
+default sampler) is simulated in this process (:func:`splittable`): there is nothing to split without changing the
+rollouts.
 
 Requirements for ``ray``: Ray installed (``pip install ray``; pemviz's ``test`` extra installs it),
 pemviz importable on every worker, the problem picklable by cloudpickle (pemviz's problems are),
@@ -33,6 +37,8 @@ and :func:`pemviz.core.lockstep.simulate` do; anything else raises a RuntimeErro
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import socket
 from collections.abc import Iterator, Mapping
 from typing import Any, Protocol
@@ -46,13 +52,34 @@ from pemviz.settings import EXECUTORS
 
 
 class Executor(Protocol):
-    """Simulates a stage's rollouts: ``simulate(problem, n, sampler, target, rng) -> RolloutBatch``."""
+    """Simulates a stage's rollouts: ``simulate(problem, n, sampler, target, rng) -> RolloutBatch``, and
+    ``stream(problem, n, sampler, target, rng, chunk_size=None, keep_rows=None)``: the chunks of
+    ``problem.stream``, in order."""
 
     def simulate(
         self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
     ) -> RolloutBatch: ...
 
+    def stream(
+        self,
+        problem: Any,
+        n: int,
+        sampler: Detector,
+        target: Detector,
+        rng: np.random.Generator,
+        chunk_size: int | None = None,
+        keep_rows: bool | None = None,
+    ) -> Iterator[RolloutBatch]: ...
+
     def close(self) -> None: ...
+
+
+def stream_size(chunk_size: int | None, keep_rows: bool | None) -> dict[str, Any]:
+    """The keyword arguments of ``problem.stream`` for ``chunk_size`` and ``keep_rows``, those that are not None."""
+    size: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
+    if keep_rows is not None:
+        size["keep_rows"] = keep_rows
+    return size
 
 
 class SerialExecutor:
@@ -69,28 +96,21 @@ class SerialExecutor:
         return problem.simulate(n, sampler, target, rng)
 
     def stream(
-        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator, **size: Any
+        self,
+        problem: Any,
+        n: int,
+        sampler: Detector,
+        target: Detector,
+        rng: np.random.Generator,
+        chunk_size: int | None = None,
+        keep_rows: bool | None = None,
     ) -> Iterator[RolloutBatch]:
-        """``problem.stream(n, sampler, target, rng, **size)``: its chunks in order."""
-        return problem.stream(n, sampler, target, rng, **size)
+        """``problem.stream(n, sampler, target, rng, chunk_size=..., keep_rows=...)`` (those given): its chunks in
+        order."""
+        return problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
 
     def close(self) -> None:
         pass
-
-
-def task_blocks(n: int, n_tasks: int, block: int = RQMC_BLOCK) -> list[list[tuple[int, int]]]:
-    """The fixed blocks of ``n`` rollouts (:func:`pemviz.core.rng.block_bounds`) dealt into at most ``n_tasks`` runs of
-    consecutive blocks, in order, their counts differing by at most one.
-
-    Raises:
-        ValueError: ``n``, ``n_tasks`` or ``block`` below 1.
-    """
-    if n < 1 or n_tasks < 1 or block < 1:
-        raise ValueError(f"task_blocks: n, n_tasks, block must be >= 1, got {n}, {n_tasks}, {block}")
-    blocks = block_bounds(n, block)
-    k = min(len(blocks), n_tasks)
-    edges = [(i * len(blocks)) // k for i in range(k + 1)]
-    return [blocks[a:b] for a, b in zip(edges[:-1], edges[1:], strict=False)]
 
 
 class ChunkUniforms:
@@ -178,6 +198,65 @@ def simulate_blocks(
     return [simulate_chunk(problem, n, a, b, sampler, target, rng_state) for a, b in blocks]
 
 
+def stream_block(
+    problem: Any,
+    n: int,
+    start: int,
+    stop: int,
+    sampler: Detector,
+    target: Detector,
+    rng_state: Mapping[str, Any],
+    keep_rows: bool | None = None,
+) -> tuple[RolloutBatch, int, int]:
+    """Rollouts ``start..stop-1`` (one block) of the serial ``problem.stream(n, sampler, target, rng, ...)`` from
+    ``rng_state``, streamed as one chunk (its object rows elided when ``keep_rows`` is False): the batch
+    [stop - start, T], the draws made and the uniforms per rollout (as :func:`simulate_chunk`)."""
+    uniforms = ChunkUniforms(rng_state, n, start, stop)
+    batches = list(problem.stream(stop - start, sampler, target, uniforms, **stream_size(stop - start, keep_rows)))
+    batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
+    return batch, uniforms.calls, uniforms.per_rollout
+
+
+def splittable(n: int, rng: np.random.Generator, problem: Any = None) -> bool:
+    """Whether a batch of ``n`` rollouts of ``problem`` drawn from ``rng`` can be simulated block by block elsewhere:
+    two blocks or more, a generator that can jump, and a problem whose rollouts draw only their steps' uniforms (not
+    one over an operating design domain, which draws every rollout's parameters first); else it is simulated in this
+    process, as ``problem.simulate`` (``problem.stream``)."""
+    return n > RQMC_BLOCK and isinstance(rng.bit_generator, JUMPABLE) and getattr(problem, "odd", None) is None
+
+
+def stream_chunks(
+    problem: Any,
+    n: int,
+    rng: np.random.Generator,
+    blocks: Iterator[tuple[RolloutBatch, int, int]],
+    chunk_size: int | None = None,
+) -> Iterator[RolloutBatch]:
+    """The chunks of a streamed batch of ``n`` rollouts from its blocks' results ``(batch, draws, uniforms per
+    rollout)`` in rollout order: each block cut into chunks of at most ``chunk_size`` rollouts (None: the block), each
+    block checked (:func:`check_draws`) and dropped once its chunks are handed out; ``rng`` advanced by n K T after the
+    last, where the serial stream leaves it. Closing this closes ``blocks``.
+
+    Raises:
+        RuntimeError: a block drew another number of times than its rollouts have steps.
+    """
+    drawn = (0, 0)
+    try:
+        for result in blocks:
+            drawn = check_draws(problem, [result])
+            batch = result[0]
+            del result
+            step = chunk_size or batch.n
+            for a in range(0, batch.n, step):
+                yield batch if batch.n <= step else batch.select(slice(a, a + step))
+            del batch
+    finally:
+        close = getattr(blocks, "close", None)
+        if close is not None:
+            close()
+    advance(rng, n * drawn[0] * drawn[1])
+
+
 def check_draws(problem: Any, results: list[tuple[RolloutBatch, int, int]]) -> tuple[int, int]:
     """Check that every chunk result ``(batch, draws, uniforms per rollout)`` drew once per step; returns (T, K).
 
@@ -240,49 +319,124 @@ def probe_ray_address(address: str | None, timeout_s: float = RAY_PROBE_TIMEOUT_
         ) from None
 
 
+_RAY_SHARED: collections.OrderedDict[str, Any] = collections.OrderedDict()
+"""In a Ray worker: the (problem, sampler, target) of the last batches, by their object's id (fetched once each)."""
+
+
+def ray_block(
+    shared: list[Any], n: int, start: int, stop: int, rng_state: Mapping[str, Any], stream: bool, keep_rows: Any
+) -> tuple[RolloutBatch, int, int]:
+    """One Ray task: block ``start..stop-1`` of the batch whose (problem, sampler, target) is the object
+    ``shared[0]`` (an ``ObjectRef`` in a list, so that Ray does not fetch it for every task: a worker fetches and
+    unpickles it once, :data:`_RAY_SHARED`): :func:`stream_block` when ``stream``, else :func:`simulate_chunk`."""
+    import ray
+
+    key = shared[0].hex()
+    parts = _RAY_SHARED.get(key)
+    if parts is None:
+        parts = _RAY_SHARED[key] = ray.get(shared[0])
+        while len(_RAY_SHARED) > 2:
+            _RAY_SHARED.popitem(last=False)
+    problem, sampler, target = parts
+    if stream:
+        return stream_block(problem, n, start, stop, sampler, target, rng_state, keep_rows)
+    return simulate_chunk(problem, n, start, stop, sampler, target, rng_state)
+
+
 class RayExecutor:
-    """Simulates each batch as Ray tasks, one per chunk of rollouts (module docstring).
+    """Simulates each batch as Ray tasks, one per block of rollouts, a bounded number in flight (module docstring).
 
     Args:
         address: Ray cluster address (``ray.init(address=...)``); None starts a local cluster. If Ray is
             already initialised in this process, that cluster is used and ``address`` is ignored.
-        n_chunks: the most tasks per batch, each simulating a run of whole blocks (default: the cluster's CPU
-            count). The rollouts do not depend on it.
+        in_flight: the most tasks submitted and not yet taken back (default: twice the cluster's CPU count). The
+            rollouts do not depend on it.
         init_kwargs: more keyword arguments for ``ray.init``.
     Raises:
         ImportError: Ray is not installed (the message says how to install it).
-        ValueError: ``address`` does not answer (:func:`probe_ray_address`).
+        ValueError: ``address`` does not answer (:func:`probe_ray_address`), or ``in_flight`` below 1.
     """
 
     name = "ray"
 
-    def __init__(self, address: str | None = None, *, n_chunks: int | None = None, **init_kwargs: Any) -> None:
+    def __init__(self, address: str | None = None, *, in_flight: int | None = None, **init_kwargs: Any) -> None:
         try:
             import ray
         except ImportError:
             raise ImportError("--executor ray needs Ray: pip install ray (or pip install 'pemviz[test]')") from None
+        if in_flight is not None and in_flight < 1:
+            raise ValueError(f"in_flight must be >= 1, got {in_flight}")
         self._ray = ray
         self._started = False
         if not ray.is_initialized():
             probe_ray_address(address)
             ray.init(address=address, include_dashboard=False, **init_kwargs)
             self._started = True
-        self.n_chunks = int(n_chunks) if n_chunks else max(1, int(ray.cluster_resources().get("CPU", 1)))
-        self._task = ray.remote(simulate_blocks)
+        self.cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        """The cluster's CPUs when this executor was made."""
+        self.in_flight = int(in_flight) if in_flight else 2 * self.cpus
+        self._task = ray.remote(ray_block)
+
+    def _blocks(
+        self,
+        problem: Any,
+        n: int,
+        sampler: Detector,
+        target: Detector,
+        rng_state: Mapping[str, Any],
+        stream: bool,
+        keep_rows: bool | None = None,
+    ) -> Iterator[tuple[RolloutBatch, int, int]]:
+        """The results ``(batch, draws, uniforms per rollout)`` of the blocks of ``n`` rollouts in order, each a Ray
+        task (:func:`ray_block`; the problem and detectors put in the object store once), at most :attr:`in_flight`
+        submitted and not yet taken: one more is submitted as the next in order is taken. A result is the object
+        store's (its arrays read-only views of it), freed there once the caller drops it; closing this cancels the
+        tasks not taken."""
+        ray = self._ray
+        shared = [ray.put((problem, sampler, target))]
+        todo = collections.deque(block_bounds(n))
+        pending: collections.deque[Any] = collections.deque()
+        try:
+            while todo or pending:
+                while todo and len(pending) < self.in_flight:
+                    start, stop = todo.popleft()
+                    pending.append(self._task.remote(shared, n, start, stop, rng_state, stream, keep_rows))
+                result = ray.get(pending.popleft())
+                yield result
+                del result
+        finally:
+            for ref in pending:
+                with contextlib.suppress(Exception):
+                    ray.cancel(ref)
 
     def simulate(
         self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
     ) -> RolloutBatch:
-        """The rollouts of ``problem.simulate(n, sampler, target, rng)``, simulated as Ray tasks of whole blocks
-        [N, T] (in the driver when N is one block)."""
-        tasks = task_blocks(n, self.n_chunks)
-        if len(block_bounds(n)) == 1 or not isinstance(rng.bit_generator, JUMPABLE):
+        """The rollouts of ``problem.simulate(n, sampler, target, rng)`` [N, T], bit for bit, ``rng`` left where that
+        leaves it: a Ray task a block (in the driver when N is one block, :func:`splittable`)."""
+        if not splittable(n, rng, problem):
             return problem.simulate(n, sampler, target, rng)
-        state = rng.bit_generator.state
-        ray = self._ray
-        problem_ref = ray.put(problem)
-        futures = [self._task.remote(problem_ref, n, blocks, sampler, target, state) for blocks in tasks]
-        return gather_chunks(problem, n, rng, [r for part in ray.get(futures) for r in part])
+        results = list(self._blocks(problem, n, sampler, target, rng.bit_generator.state, stream=False))
+        return gather_chunks(problem, n, rng, results)
+
+    def stream(
+        self,
+        problem: Any,
+        n: int,
+        sampler: Detector,
+        target: Detector,
+        rng: np.random.Generator,
+        chunk_size: int | None = None,
+        keep_rows: bool | None = None,
+    ) -> Iterator[RolloutBatch]:
+        """The chunks of ``problem.stream(n, sampler, target, rng, ...)`` in order, each at most ``chunk_size`` rollouts
+        (None: one block): the same rollouts, bit for bit; ``rng`` is left where the serial stream leaves it once the
+        last chunk is handed out. A Ray task a block, at most :attr:`in_flight` ahead of the chunk handed out; a
+        block is dropped once its chunks are (in the driver when N is one block, :func:`splittable`)."""
+        if not splittable(n, rng, problem):
+            return problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
+        blocks = self._blocks(problem, n, sampler, target, rng.bit_generator.state, stream=True, keep_rows=keep_rows)
+        return stream_chunks(problem, n, rng, blocks, chunk_size)
 
     def close(self) -> None:
         """Shut Ray down if this executor started it."""

@@ -50,16 +50,9 @@ class Cancelled(Exception):
 
 
 STREAM_ABOVE = 20_000
-"""Stages of more rollouts than this are simulated chunk by chunk when the problem can stream (``Problem.stream``)
-and the executor is on this machine (:func:`streams_locally`), and kept only as per-rollout numbers and a bounded
-sample: a
+"""Stages of more rollouts than this are simulated chunk by chunk when the problem can stream (``Problem.stream``),
+on any executor (``executor.stream``), and kept only as per-rollout numbers and a bounded sample: a
 [10^5, 100] batch with its robustness and masks holds ~1 GB, a chunk of 8,192 rollouts ~80 MB."""
-
-
-def streams_locally(config: ExperimentConfig) -> bool:
-    """Whether the run's executor streams large stages in chunks (``local`` and ``serial``; Ray tasks return whole
-    batches)."""
-    return config.execution.executor in ("local", "serial")
 
 
 def run_executor(config: ExperimentConfig) -> Any:
@@ -256,12 +249,7 @@ class Experiment:
             # a mixture's target share is drawn i.i.d.: it bounds the weights, and its rollouts (the target's own)
             # almost never fail, so coupling them would reduce no estimate's variance
             parts = [(k, d if plan.mixture and d is pb.target else ArrayRQMC(d)) for k, d in parts]
-        if (
-            plan.draw is None
-            and plan.n > stream_above(cfg, pb.n_objects)
-            and pb.stream is not None
-            and streams_locally(cfg)
-        ):
+        if plan.draw is None and plan.n > stream_above(cfg, pb.n_objects) and pb.stream is not None:
             self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (worker processes, this process or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)
@@ -310,8 +298,7 @@ class Experiment:
             size["keep_rows"] = False  # a chunk's object rows, rebuilt by replay for the few rollouts read
         executor = run_executor(cfg)
         chunks = itertools.chain.from_iterable(
-            executor.stream(pb, k, d, target, estimator.rng, **size)  # type: ignore[attr-defined]
-            for k, d in parts
+            executor.stream(pb, k, d, target, estimator.rng, **size) for k, d in parts
         )
         for batch in chunks:
             self._check_cancel()

@@ -35,10 +35,18 @@ from typing import Any
 import numpy as np
 
 from pemviz.core.detectors import Detector
-from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, block_bounds
+from pemviz.core.rng import block_bounds
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine import handoff, resources
-from pemviz.engine.executors import ChunkUniforms, check_draws, gather_chunks, simulate_blocks, simulate_chunk
+from pemviz.engine.executors import (
+    gather_chunks,
+    simulate_blocks,
+    simulate_chunk,
+    splittable,
+    stream_block,
+    stream_chunks,
+    stream_size,
+)
 from pemviz.engine.resources import ONE_THREAD_ENV, usable_cpus
 
 IDLE_S = 120
@@ -60,20 +68,6 @@ def _problem(digest: str, blob: bytes) -> Any:
     return problem
 
 
-def _stream_block(
-    problem: Any, n: int, start: int, stop: int, sampler: Detector, target: Detector, state: Any, keep_rows: Any
-) -> tuple[RolloutBatch, int, int]:
-    """Rollouts ``start..stop-1`` (one block) of the serial ``problem.stream(n, ...)``, streamed as one chunk (its
-    object rows elided when ``keep_rows`` is False); the batch, the draws made and the uniforms per rollout."""
-    uniforms = ChunkUniforms(state, n, start, stop)
-    size: dict[str, Any] = {"chunk_size": stop - start}
-    if keep_rows is not None:
-        size["keep_rows"] = keep_rows
-    batches = list(problem.stream(stop - start, sampler, target, uniforms, **size))
-    batch = batches[0] if len(batches) == 1 else RolloutBatch.concatenate(batches)
-    return batch, uniforms.calls, uniforms.per_rollout
-
-
 def _task(
     digest: str,
     blob: bytes,
@@ -93,7 +87,7 @@ def _task(
     problem = _problem(digest, blob)
     with threadpool_limits(1):
         if stream:
-            out = [_stream_block(problem, n, a, b, sampler, target, state, keep_rows) for a, b in blocks]
+            out = [stream_block(problem, n, a, b, sampler, target, state, keep_rows) for a, b in blocks]
         else:
             out = simulate_blocks(problem, n, blocks, sampler, target, state)
     return handoff.pack(out, folder)
@@ -130,16 +124,10 @@ class LocalExecutor:
         """The pool's hand-off folder (:mod:`pemviz.engine.handoff`), made with the pool."""
 
     def eligible(self, n: int, rng: np.random.Generator, problem: Any = None) -> bool:
-        """Whether a batch of ``n`` rollouts of ``problem`` drawn from ``rng`` may go to the pool: two blocks or more,
-        more than one worker, a generator that can jump, and a problem whose rollouts draw only their steps' uniforms
-        (not one over an operating design domain, which draws every rollout's parameters first); else this process,
-        as ``problem.simulate``."""
-        return (
-            self.workers > 1
-            and n > RQMC_BLOCK
-            and isinstance(rng.bit_generator, JUMPABLE)
-            and getattr(problem, "odd", None) is None
-        )
+        """Whether a batch of ``n`` rollouts of ``problem`` drawn from ``rng`` may go to the pool: more than one worker
+        and a batch that can be split into blocks (:func:`pemviz.engine.executors.splittable`); else this process, as
+        ``problem.simulate``."""
+        return self.workers > 1 and splittable(n, rng, problem)
 
     def _pays(self, blocks_left: int, block_s: float) -> bool:
         """Whether to hand the blocks left to the pool: it is started, or they take at least
@@ -213,16 +201,21 @@ class LocalExecutor:
         (None: one block): the same rollouts, bit for bit; ``rng`` is left where the serial stream leaves it once the
         last chunk is handed out. The first block is simulated here and timed; the others here too, or in the pool,
         at most two per worker ahead, where they pay for it (:meth:`_pays`)."""
-        size: dict[str, Any] = {} if chunk_size is None else {"chunk_size": chunk_size}
-        if keep_rows is not None:
-            size["keep_rows"] = keep_rows
         if not self.eligible(n, rng, problem):
-            yield from problem.stream(n, sampler, target, rng, **size)
+            yield from problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
             return
-        state = rng.bit_generator.state
+        blocks = self._blocks(problem, n, sampler, target, rng.bit_generator.state, keep_rows)
+        yield from stream_chunks(problem, n, rng, blocks, chunk_size)
+
+    def _blocks(
+        self, problem: Any, n: int, sampler: Detector, target: Detector, state: Any, keep_rows: bool | None
+    ) -> Iterator[tuple[RolloutBatch, int, int]]:
+        """The streamed blocks' results ``(batch, draws, uniforms per rollout)`` in order: the first here, timed; the
+        others here too, or in the pool, at most two per worker ahead, where they pay for it (:meth:`_pays`); closing
+        this cancels the blocks not handed back."""
         todo = collections.deque(block_bounds(n))
         pending: collections.deque[Any] = collections.deque()
-        drawn, pool, block_s, digest, blob = (0, 0), None, 0.0, "", b""
+        pool, block_s, digest, blob = None, 0.0, "", b""
         try:
             while todo or pending:
                 if pool is None and todo and self._pays(len(todo), block_s):
@@ -233,20 +226,16 @@ class LocalExecutor:
                     args = (sampler, target, state, True, keep_rows, self._folder)
                     pending.append(pool.submit(_task, digest, blob, n, block, *args))
                 if pending:
-                    result = handoff.unpack(pending.popleft().result())
+                    (result,) = handoff.unpack(pending.popleft().result())
                 else:  # in this process, timed: what the blocks left would cost
                     t0 = time.thread_time()
-                    result = [_stream_block(problem, n, *todo.popleft(), sampler, target, state, keep_rows)]
+                    result = stream_block(problem, n, *todo.popleft(), sampler, target, state, keep_rows)
                     block_s = time.thread_time() - t0
-                drawn = check_draws(problem, result)
-                batch = result[0][0]
-                step = chunk_size or batch.n
-                for a in range(0, batch.n, step):
-                    yield batch if batch.n <= step else batch.select(slice(a, a + step))
+                yield result
+                del result
         finally:
             for f in pending:
                 f.cancel()
-        advance(rng, n * drawn[0] * drawn[1])
 
     def close(self) -> None:
         """Shut the pool down, killing its workers (idempotent)."""

@@ -1,8 +1,9 @@
 """The built-in methods' hooks that are not their estimators' own, as :mod:`pemviz.methods` names them (each imported
 when a run first uses it): the builders of ``mc``, ``naive50``, ``mixed50`` (:mod:`pemviz.estimators.fixed`) and
-``tilt`` (:class:`pemviz.estimators.tilt.CommittorTilt`), and the methods' checks, budgets and advice. ``adaptive``,
-``ams`` and ``state`` are built by their classes (:class:`pemviz.estimators.cross_entropy.CrossEntropy`,
-:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`, :class:`pemviz.estimators.state.StateCrossEntropy`).
+``tilt`` (:class:`pemviz.estimators.tilt.CommittorTilt`), and the methods' checks, budgets and advice. ``adaptive``
+and ``ams`` are built by their classes (:class:`pemviz.estimators.cross_entropy.CrossEntropy`,
+:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`); ``state``'s code is its own folder's
+(:mod:`pemviz.methods.state`).
 
 Each builder is ``(config, problem, check) -> Estimator``: the baselines draw ``config.n_per_stage`` rollouts and stop
 their weights at the failure step with ``config.weights_until_failure``, like the adaptive sampler's.
@@ -125,14 +126,6 @@ def adaptive_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, st
             "a stop rule adds final batches; final_estimate = 'last-stage' has none (use pooled " "or fresh)"
         )
     return None
-
-
-def state_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | None:
-    """The state method's settings: the cross-entropy sampler's (:func:`adaptive_conflict`), and the PEM's share with
-    the plain proposal's at most all of a stage."""
-    if config.state.state_share + config.adaptive.plain_share > 1.0:
-        return "state_share", "state_share + plain_share must be <= 1"
-    return adaptive_conflict(config, n_objects)
 
 
 def ams_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | None:

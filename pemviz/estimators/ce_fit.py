@@ -79,6 +79,7 @@ def _action_counts(
     Args:
         inputs: [N, T] proposal inputs (the first observation column), or [N, T, k] inputs of a
             :class:`StateProposal` (distinct rows then).
+        detected: bool [N, T] the detections (the actions).
         row_weight: [N] per rollout, or [N, T] per step (0 leaves a step out), or None (all 1).
         drop_unweighted: leave out the inputs whose steps all weigh 0 (e.g. outside the proposal's window), so an
             epoch does not evaluate the network where it cannot change the loss; ``inverse`` is then None.
@@ -132,6 +133,7 @@ def pretrain_proposal(
     """Fit q_phi to the PEM's own actions by maximum likelihood (full batch), in place.
 
     Args:
+        proposal: the proposal q_phi fitted, in place.
         inputs: float64 [N, T] proposal inputs of PEM-driven rollouts (the first observation column), or [N, T, k]
             inputs of a :class:`StateProposal` (``proposal.features(observations)``).
         detected: bool [N, T] the PEM's detections.
@@ -172,8 +174,11 @@ def ce_update(
     """One cross-entropy stage: minimise ``-sum_i w_i^alpha 1[elite_i] sum_t log q_phi(a_t | d_t)``, in place.
 
     Args:
-        inputs, detected, log_p, log_q: [N, T] from the stage's rollouts (log_p under the PEM, log_q
-            under the proposal that sampled them; nats).
+        proposal: the proposal q_phi fitted, in place.
+        inputs: [N, T] (or [N, T, k]) the proposal inputs of the stage's rollouts.
+        detected: bool [N, T] their detections.
+        log_p: float64 [N, T] each action's log-probability under the PEM (nats).
+        log_q: float64 [N, T] each action's log-probability under the proposal that sampled them (nats).
         elite: bool [N], robustness <= gamma_kappa.
         options: the fit's settings; ``weights = "recomputed"`` always fits every step, in float64.
         smoothing: alpha in (0, 2], the power on the importance weights.
@@ -266,6 +271,7 @@ def fit_elite_steps(
     """The frozen-weight CE fit on the elites' fitted steps: minimise ``-sum_s w_s log q_phi(a_s | h_s)``, in place.
 
     Args:
+        proposal: the proposal q_phi fitted, in place.
         rows: float64 [S] or [S, k] proposal inputs of the steps that count (the elites', inside the step mask), in
             the order drawn (rollout by rollout, step by step).
         actions: bool [S] their detections.

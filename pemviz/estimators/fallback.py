@@ -71,7 +71,7 @@ FIRST_BATCH = 10_000
 precision target's law (:func:`pemviz.estimators.precision.added_batch_size`: as many again while no failure)."""
 UNSTREAMED_BATCH = 20_000
 """The most plain rollouts of one batch, divided by the objects a rollout perceives, on a problem that cannot stream
-its rollouts chunk by chunk (or on another executor): a batch is then held whole (the engine's own threshold,
+its rollouts chunk by chunk: a batch is then held whole (the engine's own threshold,
 :data:`pemviz.engine.experiment.STREAM_ABOVE`)."""
 STREAMED_BATCH = 200_000
 """The most plain rollouts of one batch on a problem that streams them: a stage's per-rollout numbers stay bounded."""
@@ -420,8 +420,8 @@ class PlainFallback(_Speaks):
             if left <= 0:
                 return None
             changes["max_time_s"] = left
-        streams = self.problem.stream is not None and self.config.execution.executor != "ray"
-        batch = STREAMED_BATCH if streams else max(1, UNSTREAMED_BATCH // max(1, self.problem.n_objects))
+        unstreamed = max(1, UNSTREAMED_BATCH // max(1, self.problem.n_objects))
+        batch = STREAMED_BATCH if self.problem.stream is not None else unstreamed
         first = max(MIN_PLAIN, min(FIRST_BATCH, self.cap, batch))
         changes["n_per_stage"] = first  # a cap below the run's N must still hold that first batch
         config = self.config.replace(**changes)

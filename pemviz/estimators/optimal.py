@@ -98,7 +98,9 @@ def relative_variance(log_weight: np.ndarray, failed: np.ndarray, log_mu: float)
     for a relative standard error r (Owen, "Monte Carlo theory, methods and examples", 2013, Ch. 9).
 
     Args:
-        log_weight: importance log-weights [N] (nats); failed: bool [N]; log_mu: the exact log p_fail (nats).
+        log_weight: importance log-weights [N] (nats).
+        failed: bool [N] the failures.
+        log_mu: the exact log p_fail (nats).
     Raises:
         ValueError: on arrays of different shapes or N = 0.
     """

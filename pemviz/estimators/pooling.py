@@ -25,6 +25,8 @@ def pool(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], stage_weights: 
     [n_k] each, computed as the mean over all N = sum n_k rollouts of 1[fail] w lambda_k N / n_k (nats, float64).
 
     Args:
+        parts: the K stages' (log-weights float64 [n_k] in nats, failed bool [n_k], log p before the failure float64
+            [n_k] in nats).
         stage_weights: lambda_k >= 0, [K], summing to 1; None: n_k / N (every rollout alike).
     """
     own = np.concatenate([lw for lw, _, _ in parts])  # the lower bound bets on each rollout's own p/q (estimate)

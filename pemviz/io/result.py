@@ -92,8 +92,8 @@ def result_document(
     Args:
         config: the run's :class:`pemviz.config.ExperimentConfig`.
         final: its :class:`pemviz.engine.events.FinalEstimate`.
-        exact_log_p: the exact log p where the problem has one (nats); reference: its
-            :class:`pemviz.core.estimate.Reference`, or None.
+        exact_log_p: the exact log p where the problem has one (nats).
+        reference: its :class:`pemviz.core.estimate.Reference`, or None.
         recording: where the recording went (a path or a URL), or None.
         command: the command line, for the record.
         problem: the run's :class:`pemviz.core.problems.Problem` (its name, description and formula go in), or None.
@@ -211,7 +211,10 @@ def estimate_document(
 
     Args:
         result: :class:`pemviz.io.rollout_estimate.RolloutEstimate` of the file.
-        rollouts: the rollout file's path; sources: (log p's source, log q's source) as printed.
+        rollouts: the rollout file's path.
+        sources: (log p's source, log q's source) as printed.
+        known: (the exact log p in nats or None, the :class:`pemviz.core.estimate.Reference` or None) of the run.
+        command: the command line, for the record.
         console: the lines ``pemviz estimate`` printed.
     """
     import pemviz

@@ -192,7 +192,11 @@ def estimate_rollouts(
     every rollout.
 
     Args:
-        log_p, log_q: float64 [N, T] (nats).
+        data: the rollout file read (:func:`pemviz.io.rollouts.read_rollouts`).
+        log_p: float64 [N, T] each action's log-probability under the PEM (nats).
+        log_q: float64 [N, T] each action's log-probability under the sampler (nats).
+        metric: the robustness semantics that ranks the rollouts (:data:`pemviz.settings.METRICS`).
+        failure: ``crash`` (classic robustness < 0) or ``metric`` (robustness under ``metric`` < 0).
         weights: one of :data:`pemviz.core.weights.CONVENTIONS`; ``to-failure`` with a formula that is not
             ``G[a,b](state predicate)``, or with ``failure="metric"``, weighs every step but the last (``full``, said in
             :attr:`RolloutEstimate.weights`).

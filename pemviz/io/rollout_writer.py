@@ -179,8 +179,11 @@ class RolloutWriter:
 
         Args:
             batch: rollouts [n, T] with the same T and observation columns as the chunks before.
-            rollout_ids, salient, stage, component, severity: see :func:`rollouts_table` (give ``stage`` and
-                ``severity`` for every chunk or for none).
+            rollout_ids: int [n], as :func:`rollouts_table` (default: continuing from the last chunk's).
+            salient: as :func:`rollouts_table`.
+            stage: as :func:`rollouts_table` (for every chunk or for none).
+            component: as :func:`rollouts_table`.
+            severity: as :func:`rollouts_table` (for every chunk or for none).
         Raises:
             ValueError: wrong shapes, a batch unlike the earlier ones, or a :class:`RolloutFormatError` (NaN, a
                 positive log-probability ...) naming the rollout and step; nothing of this chunk is written.
@@ -337,9 +340,12 @@ def write_rollouts(
         path: ``NAME.parquet``.
         batch: N rollouts [N, T] (observations, detected, log_p, log_q in nats).
         meta: the sidecar (:func:`~pemviz.io.rollout_sidecars.braking_meta` for the braking scenario).
-        rollout_ids, salient, log_probs, stage, component, severity: see :func:`rollouts_table` (``stage`` /
-            ``component`` of a version-2 file: ``RolloutData.stage`` / ``.component``; ``severity``: the optional
-            :data:`SEVERITY_COLUMNS`).
+        rollout_ids: int [N], as :func:`rollouts_table` (default 0..N-1).
+        salient: as :func:`rollouts_table`.
+        log_probs: include ``log_p`` and ``log_q``.
+        stage: as :func:`rollouts_table` (of a version-2 file: ``RolloutData.stage``).
+        component: as :func:`rollouts_table` (of a version-2 file: ``RolloutData.component``).
+        severity: as :func:`rollouts_table`, the optional :data:`SEVERITY_COLUMNS`.
         proposal: a :class:`pemviz.core.sampling.Proposal` that sampled the batch, saved as ``NAME.proposal.pt`` and
             named in the sidecar; None: none saved.
         overwrite: replace existing files of the unit (only ones pemviz wrote).

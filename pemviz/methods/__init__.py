@@ -16,19 +16,23 @@ my_package.my_method``, comma-separated, each module registering at import) or a
 This module imports no estimator: a builder (and every hook) may be given as the text ``"package.module:name"``
 (imported when first used), so listing the methods loads no torch. It sits below the config, which asks a method's
 record to check its settings (:attr:`Method.validate`), and below the estimators, which it names only by such texts.
-Each built-in method's settings are a frozen dataclass in a module of this package, light to import, which the config
-holds as a group: :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
-``adaptive``), :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``) and
-:mod:`pemviz.methods.state` (:class:`~pemviz.methods.state.StateSettings`, its ``state``).
+Each built-in method's settings are a frozen dataclass in a module of this package, light to import: the config holds
+two as groups, :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
+``adaptive``) and :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``); the state
+method's, :class:`pemviz.methods.state.StateSettings`, are its record's :attr:`Method.settings`, as a plugin's are (each
+field made by :func:`pemviz.methods.rows.setting`). A method's own folder (``pemviz/methods/state/``: its settings,
+estimator, fits and hooks) sits above the estimators, the core and the config, which it imports: the registry names
+its code by text only, so that nothing here imports it when loaded (``scripts/import_cycles.py`` checks the layers).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from pemviz.methods.rows import ROW as ROW
+from pemviz.methods.rows import setting as setting
 from pemviz.plugins import Plugins, Ref, resolve
 
 PLUGIN_VARIABLE = "PEMVIZ_METHODS"
@@ -110,8 +114,9 @@ class Method:
             :func:`pemviz.settings.setting`, are its rows of the settings table (symbol, range, unit, help, flag). A
             run of the method holds them as :attr:`pemviz.config.ExperimentConfig.method_settings`, takes them by
             their names (``ExperimentConfig.of(coin_share=0.2)``), records them with the run's other settings and
-            ``pemviz run`` takes each as a flag; None: it has none (the built-in methods' settings are the config's
-            groups).
+            ``pemviz run`` takes each as a flag; None: it has none (the cross-entropy sampler's and splitting's settings
+            are the config's groups). A :data:`Ref` (a built-in method's names its folder's class by text, so that the
+            registry imports no method's folder): read it with :meth:`settings_class`.
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """
@@ -138,7 +143,7 @@ class Method:
     describe: Ref = None
     sampler: str | None = None
     baseline: bool = False
-    settings: type | None = None
+    settings: Ref = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
@@ -147,13 +152,26 @@ class Method:
             raise ValueError(f"Method {self.name}: description must be one line of text")
         if self.build is None:
             raise ValueError(f"Method {self.name}: a builder (config, problem, check) -> Estimator is needed")
-        params = getattr(self.settings, "__dataclass_params__", None)
-        if self.settings is not None and not (isinstance(self.settings, type) and params and params.frozen):
-            raise ValueError(f"Method {self.name}: settings must be a frozen dataclass, got {self.settings!r}")
+        if not isinstance(self.settings, str):  # a text is checked when it is first read
+            self.settings_class()
         if self.cost_model not in COST_MODELS:
             raise ValueError(
                 f"Method {self.name}: cost_model must be one of {', '.join(COST_MODELS)}, got " f"{self.cost_model!r}"
             )
+
+    def settings_class(self) -> type | None:
+        """The method's own settings class (:attr:`settings`, imported where a text names it), or None.
+
+        Raises:
+            ValueError: not a frozen dataclass. ImportError, AttributeError: a text naming nothing.
+        """
+        if self.settings is None:
+            return None
+        cls = resolve(self.settings)
+        params = getattr(cls, "__dataclass_params__", None)
+        if not (isinstance(cls, type) and params and params.frozen):
+            raise ValueError(f"Method {self.name}: settings must be a frozen dataclass, got {cls!r}")
+        return cls
 
     def conflict(self, config: Any, n_objects: int) -> tuple[str, str] | None:
         """(setting, what is allowed) of the first of this method's settings in ``config`` that conflicts with
@@ -172,20 +190,6 @@ class Method:
             "pemviz.core.plan:RunPlan"
         )  # by its path: the core (its stage kinds) sits above the registry
         return run_plan.of([(1, "final", int(config.n_per_stage))])
-
-
-ROW = "pemviz.setting"
-"""The key of a method's setting's row in its dataclass field's metadata (:func:`setting`)."""
-
-
-def setting(default: Any, words: str, help: str, **row: Any) -> Any:
-    """A field of a method's settings dataclass (:attr:`Method.settings`, or a built-in method's group such as
-    :class:`pemviz.methods.adaptive.CrossEntropySettings`) and its row of the settings table
-    (:class:`pemviz.settings.Setting`): ``default``, then what the row says of it (``words``, ``help`` and any of
-    ``kind``, ``symbol``, ``short``, ``unit``, ``lo``, ``hi``, ``lo_open``, ``hi_open``, ``optional``, ``choices``,
-    ``choice_help``, ``flags``, ``panel``: the place of a built-in method's setting in the panel's form); the field's
-    name is the setting's (and the key a run records it by), the method's name its owner."""
-    return dataclasses.field(default=default, metadata={ROW: {"words": words, "help": help, **row}})
 
 
 COST_MODELS = ("plain", "proposal", "look-ahead", "splitting")
@@ -409,11 +413,12 @@ for _record in (
         "cross-entropy importance sampling of each detection (and with --state-fit-errors each error's location and "
         "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
         "report them",
-        "pemviz.estimators.state:StateCrossEntropy",
-        validate="pemviz.estimators.builtin:state_conflict",
+        "pemviz.methods.state.estimator:StateCrossEntropy",
+        validate="pemviz.methods.state.hooks:state_conflict",
         run_adds="plus the replay of each batch's state features",
         baseline=True,
         feature_view=True,
+        settings="pemviz.methods.state:StateSettings",
     ),
 ):
     register_method(_record)

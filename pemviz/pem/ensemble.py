@@ -73,8 +73,14 @@ def train_ensemble(
     ``inputs``.
 
     Args:
-        inputs, labels: the training file, raw salient inputs [N, 11] and detected [N] in {0, 1}.
+        recipe: the detection recipe refitted.
+        inputs: the training file's raw salient inputs [N, 11].
+        labels: its detections [N] in {0, 1}.
         m: members, at least 2.
+        seed: the bootstrap's seed (member k's weights seeded ``seed + 1 + k``).
+        epochs: each member's epochs (None: the recipe's).
+        progress: print each member's training progress.
+        metadata: provenance stored with each member (with its number and seeds).
     Raises:
         ValueError: m < 2, or what :func:`pemviz.pem.training.train_pem` raises.
     """

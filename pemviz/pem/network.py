@@ -127,7 +127,10 @@ def fold_state_dict(
 
     Args:
         state: numpy arrays under :func:`mlnn_shapes`'s keys (e.g. :func:`as_arrays` of a module's ``state_dict()``).
-        hidden, batch_norm, in_dim, out_dim: the architecture.
+        hidden: the hidden layers' widths.
+        batch_norm: a BatchNorm after each hidden Linear.
+        in_dim: the input features (the 14 of the encoding).
+        out_dim: the outputs.
 
     Raises:
         ValueError: the state does not fit the architecture (:func:`state_problem`'s reason).

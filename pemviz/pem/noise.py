@@ -309,8 +309,10 @@ def train_noise_pem(
     Args:
         recipe: the name, family (one of :data:`FAMILIES`), network and optimiser settings (hidden, epochs,
             batch_size, lr, weight_decay, seed).
-        inputs: raw salient inputs ``[M, 11]`` of detected obstacles; errors: their metric errors ``[M, 2]`` (metres).
+        inputs: raw salient inputs ``[M, 11]`` of detected obstacles.
+        errors: their metric errors ``[M, 2]`` (metres).
         norm: z-score statistics of the encoding (default: fitted on ``inputs``; pemviz uses the full file's).
+        progress: print the training's progress.
         metadata: extra provenance stored with the model.
 
     Raises:

@@ -242,7 +242,8 @@ class SalientDetector:
         array, every row of ``hit`` visible) with the noise head's z-score statistics.
 
         Args:
-            rows: float64 [R, G] object rows; u: float64 [H, D] uniforms in (0, 1) of the H rows of ``hit``, in order;
+            rows: float64 [R, G] object rows.
+            u: float64 [H, D] uniforms in (0, 1) of the H rows of ``hit``, in order.
             hit: bool [R], the rows measured (detected).
         Returns:
             (errors float64 [H, D] in metres, log density float64 [H] in nats).

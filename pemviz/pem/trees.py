@@ -247,8 +247,10 @@ def train_tree_pem(
     Args:
         recipe: the name and the settings passed to ``HistGradientBoostingClassifier`` (``epochs``: its ``max_iter``,
             the number of trees; ``seed``: its ``random_state``, the fit is deterministic without early stopping).
-        inputs: raw salient inputs ``[N, 11]``; labels: ``[N]`` in {0, 1}.
-        norm: z-score statistics (default: fitted on ``inputs``; the spec uses the full file's).
+        inputs: raw salient inputs ``[N, 11]``.
+        labels: the detections ``[N]`` in {0, 1}.
+        norm: z-score statistics (default: fitted on ``inputs``; pemviz uses the full file's).
+        metadata: extra provenance stored with the model.
 
     Raises:
         ValueError: mismatched lengths or labels not in {0, 1}.

@@ -29,6 +29,9 @@ def odd_value(scenario: str, name: str, text: str, allowed: tuple[str, ...]) -> 
     the other parameters: :func:`pemviz.scenarios.parameters.check_pairs`).
 
     Args:
+        scenario: the scenario's name (for the message).
+        name: the parameter drawn.
+        text: the distribution's text (after ``~``).
         allowed: the parameters ``scenario`` may draw per rollout
             (:attr:`pemviz.scenarios.registry.Scenario.random_params`).
     Raises:

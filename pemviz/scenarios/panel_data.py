@@ -15,14 +15,14 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Zone:
-    """A zone on the road ahead of the ego's sensor, moving with the ego.
+    r"""A zone on the road ahead of the ego's sensor, moving with the ego.
 
     Attributes:
         name: the scene node's name (letters, digits and ``_``).
         length_m: how far ahead of the sensor it reaches (metres).
         role: ``window`` (where a detection changes what the ego does) or ``margin`` (the failure margin): the panel
             colours it by its role.
-        legend: what it means, for the zones' label (may hold ``\\n``).
+        legend: what it means, for the zones' label (may hold ``\n``).
     """
 
     name: str

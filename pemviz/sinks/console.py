@@ -374,9 +374,12 @@ def next_step(
     one of ``pemviz run``'s.
 
     Args:
-        e: the run's estimate; config: its :class:`~pemviz.config.ExperimentConfig` (None: no advice).
-        exact_log_p, reference: the scenario's exact answer (nats) or plain Monte Carlo reference, where known.
-        n_simulations, wall_s: the run's simulations and wall-clock seconds (None: the line gives no times).
+        e: the run's estimate.
+        config: its :class:`~pemviz.config.ExperimentConfig` (None: no advice).
+        exact_log_p: the scenario's exact log p (nats), where known.
+        reference: its plain Monte Carlo reference, where known.
+        n_simulations: the run's simulations (None: the line gives no times).
+        wall_s: the run's wall-clock seconds (None: the line gives no times).
         plain_s: a plain rollout's seconds measured here after the run (the engine's probe,
             :attr:`pemviz.engine.events.FinalEstimate.plain_rollout_s`); None: from the run's own speed.
         committor: whether the scene has a learned committor (:class:`AdviceText`), for splitting's route.

@@ -377,7 +377,7 @@ def severity_document(sev: FailureSeverity) -> dict:
 
 
 def log_failures(stream: rr.RecordingStream, grouping: FailureGrouping, problem: object = None) -> str:
-    """Log a run's failures to its recording (static): ``failures`` (Markdown, :func:`population_markdown`),
+    r"""Log a run's failures to its recording (static): ``failures`` (Markdown, :func:`population_markdown`),
     ``final/failures`` (every failure, in share order: stage, rollout, share, log-weight, log p, group, and where the
     problem gives them its min distance and impact speed) and ``final/severity_of_failures``: p(severity | failure)
     as bars, one per impact-speed bin (no contact first), each the bin's share of the failures' p, with (AnyValues)

@@ -36,7 +36,7 @@ def settle_pyarrow_without_pandas() -> bool:
     import is refused (it records that pandas is absent), and the converter is shown an empty module named pandas
     (it records none of pandas' types); then the process's modules are as before, and importing pandas later works.
     The price, in this process only: pyarrow no longer recognises pandas' missing-value objects (``pd.NaT``,
-    ``pd.NA``) inside Python sequences. Only the program calls this (:data:`pemviz.cli.AS_PROGRAM`), for a serial
+    ``pd.NA``) inside Python sequences. Only the program calls this (:data:`pemviz.commands.AS_PROGRAM`), for a serial
     recording run, which converts numpy arrays and plain Python values only.
     """
     if "pandas" in sys.modules:
@@ -75,7 +75,7 @@ def import_scipy_special_lean() -> bool:
     ``__getattr__``, ``numpy/__init__.py``). Here numpy's ``__all__`` and ``__dir__`` leave them out while
     scipy.special is imported, and are restored at once; the shim then gets them back as names that import their
     module when first read (a module ``__getattr__``, PEP 562), and in its ``__all__``: every name of the shim still
-    reads what it read before, numpy's included. Only the program calls this (:data:`pemviz.cli.AS_PROGRAM`), in a
+    reads what it read before, numpy's included. Only the program calls this (:data:`pemviz.commands.AS_PROGRAM`), in a
     process that has started no thread yet.
     """
     if "scipy.special" in sys.modules:

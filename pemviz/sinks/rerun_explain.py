@@ -134,6 +134,7 @@ def log_explanation(
     """Log the Explain tab's entities for ``failure``, a one-rollout event (its stage, number, batch row).
 
     Args:
+        stream: the recording logged to.
         failure: the most likely failure as a batch of one rollout; None: the run found no failure (the summary
             says so and nothing else is logged).
         log_p: its log p under the PEM over T - 1 steps (nats): the log-probability of its detections plus, where

@@ -115,6 +115,7 @@ def log_stage_rollouts(
     ones' detections) where a detection can still change the outcome (:func:`deciding`).
 
     Args:
+        stream: the recording logged to.
         ev: the stage's rollouts.
         view: the problem's view (signals; its drawing object gives each rollout its outcome words, e.g. a severity).
         stage_name: the plan's name of the stage.

@@ -146,7 +146,11 @@ def image_box(
     when it is below the camera (``H < h``), at the near one otherwise; the bottom is ``h / Z_near``.
 
     Args:
-        kind, loc_x_m, loc_z_m, rot_y_rad, camera_height_m: as :func:`view` (metres, radians).
+        kind: the objects' class and box.
+        loc_x_m: the objects' centres in the camera frame, to the right (metres).
+        loc_z_m: forward (metres), the shape of ``loc_x_m``.
+        rot_y_rad: KITTI's rotation_y (radians), as :func:`view`.
+        camera_height_m: the camera above the road (metres).
     Returns:
         :class:`ImageBox` of the broadcast shape of ``loc_x_m`` and ``loc_z_m``.
     """
@@ -246,7 +250,8 @@ def view(
 
     Args:
         kind: the objects' class and box.
-        loc_x_m, loc_z_m: the objects' centres in the camera frame, to the right and forward (m), one shape.
+        loc_x_m: the objects' centres in the camera frame, to the right (m).
+        loc_z_m: forward (m), the shape of ``loc_x_m``.
         rot_y_rad: KITTI's rotation_y (radians; 0: facing the camera's right, pi: its left, -pi/2: forward),
             broadcastable to them.
         camera_height_m: the camera above the road (m; KITTI's is 1.65): the salient ``loc_y``, the box's bottom.
@@ -301,11 +306,13 @@ def views(
 
     Args:
         kinds: the M objects' kinds.
-        loc_x_m, loc_z_m: float64 ``[M, ...]``, the centres in the camera frame (m).
+        loc_x_m: float64 ``[M, ...]``, the centres in the camera frame, to the right (m).
+        loc_z_m: float64 ``[M, ...]``, forward (m).
         rot_y_rad: broadcastable to them (radians).
         camera_height_m: as :func:`view`.
-        partly, largely, hidden: the shares from which an object is partly occluded (level 1), largely occluded
-            (level 2) and hidden (not visible); the cut-in's 0.01, 0.35, 0.8 by default.
+        partly: the share from which an object is partly occluded (level 1; the cut-in's 0.01 by default).
+        largely: the share from which it is largely occluded (level 2; 0.35).
+        hidden: the share from which it is hidden, not visible (0.8).
     Returns:
         :class:`CameraView` of arrays ``[M, ...]`` (``salient`` ``[M, ..., 11]``; ``occluded`` the share).
     Raises:
@@ -339,7 +346,8 @@ def measure(
     """Where the camera measures the objects (module docstring): ``Z_m = Z + dZ``, ``X_m = (X + dX) Z_m / Z``.
 
     Args:
-        loc_x_m, loc_z_m: the true centres in the camera frame (m), one shape ``S``.
+        loc_x_m: the true centres in the camera frame, to the right (m), shape ``S``.
+        loc_z_m: forward (m), shape ``S``.
         noise: float64 ``S + [2]``, each object's (range error, lateral error) in metres as the noise PEM draws them
             (:data:`pemviz.stack.detector.NOISE_NAMES`), read only where ``measured``; None: exact measurements.
         measured: bool ``S``, the objects detected (and visible).

@@ -235,8 +235,9 @@ def update(
     Args:
         tracks: the tracks' predictions for this step (arrays of one shape, e.g. ``[M, N]``).
         measured: bool, which objects were measured (detected and visible).
-        z_x, z_y: float64, the measured positions along and across the road (m); finite everywhere (only the
-            measured entries are read).
+        z_x: float64, the measured positions along the road (m); finite everywhere (only the measured entries are
+            read).
+        z_y: float64, across the road (m), as ``z_x``.
         range_m: float64, the measured range along the camera axis (m), for the measurement variances
             (:meth:`TrackerParams.measurement_variances`).
         prior_vx_mps: float64, broadcastable to the tracks (``[N]``, or a number): the velocity along the road (m/s)
@@ -303,11 +304,17 @@ def start_confirmed(
     Args:
         tracks: the tracks (arrays of one shape, e.g. ``[M, N]``).
         where: bool, broadcastable to them: which objects start established.
-        x_m, vx_mps, y_m, vy_mps: float64, broadcastable: the position (m) and velocity (m/s) along and across the
-            road, in the road frame the scene passes to ``update``.
-        var_x_m2, var_vx_m2ps2, var_y_m2, var_vy_m2ps2: their variances (m^2, (m/s)^2), broadcastable; by default
-            about the steady state of the default :class:`TrackerParams` on an object 25 m ahead measured every
-            0.1 s (stds 0.55 m and 0.88 m/s along the road, 0.10 m and 0.31 m/s across).
+        x_m: float64, broadcastable: the position along the road (m), in the road frame the scene passes to
+            ``update``.
+        vx_mps: the velocity along the road (m/s).
+        y_m: the position across the road (m).
+        vy_mps: the velocity across the road (m/s).
+        var_x_m2: the variance of ``x_m`` (m^2). The variances' defaults are about the steady state of the default
+            :class:`TrackerParams` on an object 25 m ahead measured every 0.1 s (stds 0.55 m and 0.88 m/s along the
+            road, 0.10 m and 0.31 m/s across).
+        var_vx_m2ps2: the variance of ``vx_mps`` ((m/s)^2).
+        var_y_m2: the variance of ``y_m`` (m^2).
+        var_vy_m2ps2: the variance of ``vy_mps`` ((m/s)^2).
     Returns:
         new :class:`Tracks` (the input is not modified).
     Raises:

@@ -56,6 +56,10 @@ GAP_GRID_M = np.round(np.arange(0.0, 50.0 + 1e-9, 0.25), 6)
 
 
 class Predictor(Protocol):
+    """A fitted PEM model as the evaluation scores it: ``logit(raw_inputs)`` the logit of p(detect) of each row of raw
+    inputs ``[N, 11]`` -> ``[N]``; ``logit_at_gap(gap_m)`` the logit of p(detect | the braking scenario's lead at gaps
+    ``gap_m``, metres), the gaps' shape."""
+
     def logit(self, raw_inputs: np.ndarray) -> np.ndarray: ...
 
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray: ...

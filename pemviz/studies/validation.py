@@ -382,7 +382,7 @@ def markdown_table(summaries: Sequence[Summary]) -> str:
 
 
 def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
-    """``header`` and ``rows`` as CSV text (the ``csv`` module's dialect: ``\r\n`` line ends)."""
+    r"""``header`` and ``rows`` as CSV text (the ``csv`` module's dialect: ``\r\n`` line ends)."""
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(header)

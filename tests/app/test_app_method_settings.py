@@ -1,8 +1,8 @@
 """The panel's folder *method settings*, without a browser: the *Experiment* tab built on a stand-in of viser's GUI
 with the guide's method of one's own (``tests/estimators/user_method.py``: ``defensive-mc``, two settings) chosen shows
 a field per setting, labelled and hinted by its row, parses a good and a bad value (one error, under its field) and
-makes the config its flags make; another method hides the folder. The browser side is
-``tests/app/test_app_plugin_scenario.py``."""
+makes the config its flags make; another method hides the folder. The state method's own settings are its folder's
+fields alike. The browser side is ``tests/app/test_app_plugin_scenario.py``."""
 
 from __future__ import annotations
 
@@ -83,6 +83,26 @@ def test_the_chosen_methods_own_settings_are_fields_of_the_form(defensive_mc):
     method.pick("defensive-mc")  # back: its defaults again
     assert own.texts("defensive-mc") == {"coin_share": "0.3", "coin_radius_m": ""}
     assert tab.read_form().config.method_settings == defensive_mc.CoinSettings()
+
+
+def test_the_state_methods_settings_are_the_fields_of_its_folder_as_a_plugins_are():
+    tab = ExperimentTab(
+        SimpleNamespace(gui=Gui(), atomic=contextlib.nullcontext),
+        SimpleNamespace(config0=ExperimentConfig.of(), preset_name="default"),
+    )
+    tab.build(lambda: None)
+    tab.choices["method"].pick("state")
+    own = tab.own
+    assert own.folder.visible and own.texts("state") == {
+        "state_share": "0.1",
+        "state_model": "glm",
+        "state_fit_errors": "false",
+    }
+    own.fields["state_share"].value = "0.3"
+    form = tab.read_form()
+    assert form.ok, form.errors
+    assert form.config.method_settings.state_share == 0.3 and form.config.flat()["state_share"] == 0.3
+    assert run_label(1, form.config).endswith("method state, state share 0.3")
 
 
 def test_the_fields_start_at_the_starting_configs_settings_of_that_method(defensive_mc):

@@ -7,6 +7,7 @@ import contextlib
 import functools
 import importlib.util
 import io
+import re
 
 import numpy as np
 import pytest
@@ -21,7 +22,6 @@ from pemviz.engine.executors import (
     gather_chunks,
     get_executor,
     simulate_chunk,
-    task_blocks,
 )
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
@@ -38,15 +38,6 @@ def test_t_draws_of_n_uniforms_are_the_rows_of_one_t_by_n_draw_and_chunks_are_it
     state = np.random.default_rng(11).bit_generator.state
     for a, b in [(0, 7), (0, 3), (3, 4), (4, 7)]:
         np.testing.assert_array_equal(chunk_uniforms(state, 7, 5, a, b), block[:, a:b])
-
-
-def test_tasks_take_runs_of_whole_fixed_blocks_in_order():
-    assert task_blocks(20, 2, block=8) == [[(0, 8)], [(8, 16), (16, 20)]]
-    assert task_blocks(3, 8, block=1) == [[(0, 1)], [(1, 2)], [(2, 3)]]
-    assert task_blocks(20_000, 2) == [[(0, 8192)], [(8192, 16384), (16384, 20_000)]]
-    assert task_blocks(1000, 4) == [[(0, 1000)]]  # one block: nothing to split
-    with pytest.raises(ValueError, match="n, n_tasks, block"):
-        task_blocks(0, 2)
 
 
 def test_simulate_with_pre_drawn_uniforms_reproduces_the_serial_rollouts_chunk_by_chunk():
@@ -181,7 +172,7 @@ def test_ray_tasks_of_whole_blocks_give_the_serial_rollouts_and_estimate_bit_for
     problem = braking_problem(load_pem().with_temperature(4.0))
     serial, serial_batches, serial_stages = _serial_run(uniforms)
     executor = get_executor("ray")
-    assert executor.n_chunks == ray_workers
+    assert (executor.cpus, executor.in_flight) == (ray_workers, 2 * ray_workers)
     remote, remote_batches, remote_stages = _run(BLOCKS.replace(uniforms=uniforms, executor="ray"), problem)
     assert [b.n for b in remote_batches] == [b.n for b in serial_batches] == [20, 20, 20, 9000]
     for a, b in zip(serial_batches, remote_batches, strict=False):
@@ -234,3 +225,76 @@ def test_cli_run_on_ray_prints_the_serial_final_line(ray_workers, seed):
     serial = _final_lines(seed, "serial")
     assert serial[0].startswith("mu_hat = ") and "exact 1.984e-15" in serial[0]
     assert _final_lines.__wrapped__(seed, "ray") == serial
+
+
+@ray_missing
+def test_a_stage_streamed_on_ray_is_the_serial_stream_block_by_block_with_a_bounded_number_of_tasks(
+    ray_workers, tmp_path
+):
+    import os
+
+    import ray
+    from pemviz.core.rollouts import RolloutBatch
+    from pemviz.engine.executors import RayExecutor, ray_block
+    from pemviz.scenarios.problems import problem_for
+
+    problem = problem_for(ExperimentConfig.of(scenario="crossing"))  # two pedestrians: K = 2 uniforms a rollout
+    n, bound = 2 * 8192 + 500, 2
+    serial_rng, ray_rng = np.random.default_rng(3), np.random.default_rng(3)
+    serial = problem.simulate(n, problem.target, problem.target, serial_rng)
+    executor = RayExecutor(in_flight=bound)  # the fixture's cluster
+
+    def noted(path, *args):  # a block's task, noting the worker process that ran it
+        with open(path, "a") as f:
+            f.write(f"{os.getpid()}\n")
+        return ray_block(*args)
+
+    task, submitted = ray.remote(noted), []
+
+    class Counted:  # the executor's task, its submissions counted
+        @staticmethod
+        def remote(*args):
+            submitted.append(args[2:4])
+            return task.remote(str(tmp_path / "pids"), *args)
+
+    executor._task = Counted
+    chunks, ahead = [], []
+    for chunk in executor.stream(problem, n, problem.target, problem.target, ray_rng, keep_rows=False):
+        ahead.append(len(submitted) - len(chunks))  # submitted and not handed out before this chunk, this one's too
+        chunks.append(chunk)
+    assert submitted == [(0, 8192), (8192, 16384), (16384, n)]  # a task a block, in order
+    assert ahead == [2, 2, 1]  # never more than the bound in flight, the next submitted as one is taken
+    assert [c.n for c in chunks] == [8192, 8192, 500]
+    streamed = RolloutBatch.concatenate(chunks)
+    for name in ("observations", "detected", "log_p", "log_q"):
+        np.testing.assert_array_equal(getattr(streamed, name), getattr(serial, name))
+    rows = np.array([0, 8191, 8192, n - 1])
+    np.testing.assert_array_equal(streamed.select(rows).objects, serial.objects[rows])  # the rows replayed
+    assert ray_rng.random() == serial_rng.random()  # the rng left where the serial stream leaves it
+    pids = set((tmp_path / "pids").read_text().split())
+    assert len(pids) == ray_workers  # every worker ran blocks
+
+
+CROSSING_STREAMED = ("--scenario", "crossing", "--method", "mc", "--n", "9000", "--seed", "2", "--chunk", "4000")
+"""Plain Monte Carlo on the crossing whose stage streams (--chunk 4000) in two blocks (8,192 + 808 rollouts)."""
+
+
+@ray_missing
+def test_cli_run_whose_stage_streams_on_ray_prints_the_serial_and_local_pool_s_run(ray_workers, monkeypatch):
+    from pemviz import cli
+    from pemviz.engine import resources
+
+    monkeypatch.setattr(resources, "POOL_PAYS_S", 0.0)  # the local pool after the first block, whatever it cost
+
+    def printed(*how: str) -> list[str]:
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+            assert cli.main(["run", "--no-record", *CROSSING_STREAMED, *how]) == 0
+        lines = [ln for ln in out.getvalue().splitlines() if not re.search(r"\d (s|ms|min)\b|wall s", ln)]
+        return [" ".join(ln.split()[:-1]) if ln.lstrip()[:1].isdigit() or "final " in ln else ln for ln in lines]
+
+    serial = printed("--workers", "1")
+    assert any(ln.startswith("mu_hat = ") and "reference" in ln for ln in serial)
+    assert printed("--executor", "ray") == serial
+    if ray_workers == 2:
+        assert printed("--workers", "2") == serial and get_executor("local", workers=2).started

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pemviz.config import ExperimentConfig
 from pemviz.engine import handoff
-from pemviz.engine.pool import _stream_block
+from pemviz.engine.executors import stream_block
 from pemviz.scenarios.problems import problem_for
 
 FIELDS = ("observations", "detected", "log_p", "log_q", "noise")
@@ -22,7 +22,7 @@ def crossing_block():
     """A streamed block of 300 crossing rollouts, object rows elided (as a pooled block of the run), seed 5."""
     problem = problem_for(ExperimentConfig.of(scenario="crossing", method="mc"))
     state = np.random.default_rng(5).bit_generator.state
-    return problem, _stream_block(problem, 300, 0, 300, problem.target, problem.target, state, False)
+    return problem, stream_block(problem, 300, 0, 300, problem.target, problem.target, state, False)
 
 
 def _same_block(a, b) -> None:

@@ -304,6 +304,29 @@ def test_a_methods_own_settings_are_its_flags_checked_and_recorded(defensive):
         config_from_args(parser.parse_args(["run", "--method", "mc", "--coin-share", "0.2"]))
 
 
+def test_a_methods_settings_named_by_text_are_read_when_used(defensive):
+    """A method's settings class may be named as ``"module:name"`` (as the registry names a method folder's, so that
+    it imports none): read when used (``Method.settings_class``), then the same as the class given itself; a text
+    naming no frozen dataclass is refused when read, a class that is none when registered."""
+    assert get_method("state").settings == "pemviz.methods.state:StateSettings"  # the built-in one's: by text
+    text = f"{defensive.settings.__module__}:{defensive.settings.__qualname__}"
+    record = register_method(dataclasses.replace(defensive, name="coin-by-text", settings=text))
+    try:
+        assert record.settings == text and record.settings_class() is defensive.settings
+        cfg = ExperimentConfig.of(method="coin-by-text", coin_share=0.2)
+        assert type(cfg.method_settings) is defensive.settings and cfg.method_settings.coin_share == 0.2
+        assert list(cfg.flat())[-2:] == ["coin_share", "coin_radius_m"]
+    finally:
+        unregister_method("coin-by-text")
+    bad = dataclasses.replace(defensive, name="coin-bad", settings="pemviz.methods.rows:ROW")  # a text: kept
+    with pytest.raises(
+        ValueError, match="^Method coin-bad: settings must be a frozen dataclass, got 'pemviz.setting'$"
+    ):
+        bad.settings_class()
+    with pytest.raises(ValueError, match="^Method coin-bad: settings must be a frozen dataclass, got <class 'dict'>$"):
+        dataclasses.replace(defensive, name="coin-bad", settings=dict)
+
+
 def test_a_methods_own_setting_out_of_range_is_one_line(tmp_path):
     proc = _pemviz("run", "--method", "defensive-mc", "--coin-radius", "-1", "--no-record", cwd=tmp_path)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr

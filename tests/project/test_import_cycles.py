@@ -1,4 +1,5 @@
-"""scripts/import_cycles.py: no import circle among pemviz's modules, and the script finds the circles it should."""
+"""scripts/import_cycles.py: no import circle among pemviz's modules or folders, the folders in the layer order (each
+method's folder a node of its own), and the script finds the circles and the imports against the order it should."""
 
 from __future__ import annotations
 
@@ -79,81 +80,83 @@ def test_a_folder_that_is_no_package_or_does_not_parse_is_refused(tmp_path, caps
     assert "bad.py:1" in capsys.readouterr().err
 
 
-LOWER = ("core", "engine", "estimators", "stl", "pem", "stack")
-"""The folders that know no scenario, file, sink, panel or command."""
-UPPER = ("scenarios", "io", "sinks", "app", "commands")
+def planted(root: Path, files: dict[str, str]) -> Path:
+    """A package ``pemviz`` of ``files`` under ``root`` (its folder returned)."""
+    for name, text in files.items():
+        (root / "pemviz" / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / "pemviz" / name).write_text(text)
+    return root / "pemviz"
 
 
-def folder_imports(root: Path) -> dict[tuple[str, str], list[str]]:
-    """(folder, folder it imports) -> the ``file:line`` of each import statement (lazy, TYPE_CHECKING and indented
-    ones included), read from the source of the package at ``root``; a module at the top of the package (the
-    config, the settings) counts as a folder of its own."""
-    import ast
-
-    found: dict[tuple[str, str], list[str]] = {}
-    for f in sorted(root.rglob("*.py")):
-        parts = f.relative_to(root).parts
-        here = parts[0] if len(parts) > 1 else parts[0].removesuffix(".py")
-        if here == "__init__":
-            continue
-        for node in ast.walk(ast.parse(f.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module:
-                names = [node.module]
-            elif isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            else:
-                continue
-            for name in names:
-                p = name.split(".")
-                known = (root / p[1]).is_dir() or (root / f"{p[1]}.py").is_file() if len(p) > 1 else False
-                if p[0] == root.name and known and p[1] not in (here, "__init__"):
-                    found.setdefault((here, p[1]), []).append(f"{f.relative_to(root)}:{node.lineno}")
-    return found
-
-
-def folder_circles(edges) -> list[set[str]]:
-    """The sets of folders that import one another in a circle (strongly connected, more than one)."""
-    graph: dict[str, set[str]] = {}
-    for a, b in edges:
-        graph.setdefault(a, set()).add(b)
-    reach = {a: set() for a in graph}
-    for a in graph:
-        todo = list(graph[a])
-        while todo:
-            b = todo.pop()
-            if b not in reach[a]:
-                reach[a].add(b)
-                todo.extend(graph.get(b, ()))
-    circles = {frozenset({a} | {b for b in reach[a] if a in reach.get(b, ())}) for a in graph if a in reach[a]}
-    return [set(c) for c in circles]
-
-
-def test_the_lower_layers_import_no_scenario_file_sink_panel_or_command():
-    found = folder_imports(REPO / "pemviz")
-    upward = {k: v for k, v in found.items() if k[0] in LOWER and k[1] in UPPER}
-    assert upward == {}, upward
-
-
-def test_the_folders_import_one_another_in_no_circle():
-    assert folder_circles(folder_imports(REPO / "pemviz")) == []
+def test_the_folders_keep_the_layer_order_and_import_one_another_in_no_circle():
+    ic = load_script(SCRIPT)
+    graph = ic.build_graph(REPO / "pemviz")
+    found = ic.folder_imports(graph)
+    assert ("estimators", "core") in found and ("commands", "config") in found  # the rule reads the package
+    assert ic.folder_rules(graph) == ([], {})
 
 
 def test_an_upward_import_and_a_folder_circle_are_found(tmp_path):
-    root = tmp_path / "pemviz"
-    planted = {
-        "core/a.py": "def f():\n    from pemviz.sinks import b\n",
-        "sinks/b.py": "import pemviz.core.a\n",
-        "stl/c.py": "from pemviz.config import X\n",
-        "config.py": "from pemviz.stl.c import y\n",
-    }
-    for name, text in planted.items():
-        (root / name).parent.mkdir(parents=True, exist_ok=True)
-        (root / name).write_text(text)
-    found = folder_imports(root)
-    assert found == {
+    ic = load_script(SCRIPT)
+    root = planted(
+        tmp_path,
+        {
+            "core/a.py": "def f():\n    from pemviz.sinks import b\n",
+            "sinks/b.py": "import pemviz.core.a\n",
+            "stl/c.py": "from pemviz.config import X\n",
+            "config.py": "from pemviz.stl.c import y\n",
+        },
+    )
+    graph = ic.build_graph(root)
+    assert ic.folder_imports(graph) == {
+        ("config", "stl"): ["config.py:1"],
         ("core", "sinks"): ["core/a.py:2"],
         ("sinks", "core"): ["sinks/b.py:1"],
         ("stl", "config"): ["stl/c.py:1"],
-        ("config", "stl"): ["config.py:1"],
     }
-    assert sorted(folder_circles(found), key=sorted) == [{"config", "stl"}, {"core", "sinks"}]
+    circles, against = ic.folder_rules(graph)
+    assert circles == [["config", "stl"], ["core", "sinks"]]
+    assert against == {("core", "sinks"): ["core/a.py:2"]}  # the core knows no sink, lazily neither
+
+
+def test_a_method_folder_is_a_node_above_the_framework_and_a_low_module_importing_it_is_reported(tmp_path, capsys):
+    ic = load_script(SCRIPT)
+    root = planted(
+        tmp_path,
+        {
+            "__init__.py": "",
+            # the registry names the folder's code by text (a Ref): no edge; importing its settings is one
+            "methods/__init__.py": 'BUILD = "pemviz.methods.coin.estimator:Coin"\nfrom .coin import CoinSettings\n',
+            "methods/rows.py": "",
+            "methods/coin/__init__.py": "from pemviz.methods.rows import setting\n",
+            "methods/coin/estimator.py": "from typing import TYPE_CHECKING\nfrom pemviz.estimators.base import Check\n"
+            "from pemviz.settings import settings_of\nif TYPE_CHECKING:\n    from pemviz.config import C\n",
+            "estimators/base.py": "from pemviz.methods import rows\n",
+            "estimators/builtin.py": "def f():\n    from pemviz.methods import coin\n",  # lazy: reported too
+            "settings.py": "from pemviz.methods.rows import setting\n",
+            "config.py": "from pemviz.methods.coin import CoinSettings\n",  # at import time
+            "sinks/words.py": "from pemviz.methods.coin.estimator import Coin\n",  # above the method: allowed
+        },
+    )
+    graph = ic.build_graph(root)
+    found = ic.folder_imports(graph)
+    assert found[("methods/coin", "methods")] == ["methods/coin/__init__.py:1"]  # its own node, not the registry's
+    assert found[("sinks", "methods/coin")] == ["sinks/words.py:1"]
+    circles, against = ic.folder_rules(graph)
+    assert against == {
+        ("config", "methods/coin"): ["config.py:1"],
+        ("estimators", "methods/coin"): ["estimators/builtin.py:2"],
+        ("methods", "methods/coin"): ["methods/__init__.py:2"],
+    }
+    assert circles == [["config", "estimators", "methods", "methods/coin", "settings"]]
+    assert ic.main(["--root", str(root)]) == 0  # no circle among module-level imports
+    assert ic.main(["--root", str(root), "--strict"]) == 1
+    out = capsys.readouterr().out
+    assert "3 folder imports against the layer order" in out
+    assert "  config -> methods/coin (a method's folder sits above it: name its code by text" in out
+    # the registry's text reference alone, with nothing low importing the folder: no rule broken
+    (root / "methods" / "__init__.py").write_text('BUILD = "pemviz.methods.coin.estimator:Coin"\n')
+    (root / "config.py").write_text("")
+    (root / "estimators" / "builtin.py").write_text("")
+    assert ic.folder_rules(ic.build_graph(root)) == ([], {})
+    assert ic.main(["--root", str(root), "--strict"]) == 0

@@ -1,7 +1,7 @@
-"""Static checks in the test command: ruff's lint (pycodestyle, pyflakes, bugbear; lines <= 120) over every Python
-folder, and mypy over the whole package (``pemviz``: the settings in ``pyproject.toml``). Each check is first shown
-to fail on a file with a planted fault, so a check that cannot fail (a missing tool, a configuration that selects
-nothing) fails here."""
+"""Static checks in the test command: ruff's lint (pycodestyle, pyflakes, bugbear, import sorting, pyupgrade; lines
+<= 120) over every Python folder and its docstring rules over the package, mypy over the whole package (``pemviz``:
+the settings in ``pyproject.toml``). Each check is first shown to fail on a file with a planted fault, so a check that
+cannot fail (a missing tool, a configuration that selects nothing) fails here."""
 
 from __future__ import annotations
 
@@ -21,9 +21,14 @@ def _tool(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
 
 def test_ruff_flags_a_planted_fault_and_passes_the_tree(tmp_path):
     bad = tmp_path / "bad.py"
-    bad.write_text("import os\n\n\ndef f(xs=[]):\n    return xs\n")
+    # an unused import, a mutable default, an undocumented public function, an Args: section that misses ``b``
+    bad.write_text(
+        "import os\n\n\ndef f(xs=[]):\n    return xs\n\n\n"
+        'def g(a, b):\n    """Sum.\n\n    Args:\n        a: one.\n    """\n    return a + b\n'
+    )
     planted = _tool("ruff", "check", "--config", str(REPO / "pyproject.toml"), str(bad))
-    assert planted.returncode == 1 and "F401" in planted.stdout and "B006" in planted.stdout, planted.stdout
+    assert planted.returncode == 1, planted.stdout
+    assert all(code in planted.stdout for code in ("F401", "B006", "D103", "D417")), planted.stdout
     tree = _tool("ruff", "check", *FOLDERS)
     assert tree.returncode == 0, tree.stdout[-4000:]
 

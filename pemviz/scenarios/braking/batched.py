@@ -302,9 +302,14 @@ def summarise_batched(
     the same ``rng``.
 
     Args:
+        params: scenario constants (None: :class:`BrakingParams` defaults), as :func:`simulate_batched`.
+        n: number of rollouts (>= 1).
+        sampler: the detector that draws the actions.
+        target: the PEM whose probabilities weight the rollouts.
+        rng: numpy Generator, consumed as :func:`simulate_batched` consumes it.
         failed: the problem's failure event on a chunk, bool [m]: :meth:`pemviz.core.problems.Problem.failed` (classic
             robustness of the safety formula < 0; for the braking problem the gap drops below the crash gap).
-        other arguments: as :func:`simulate_batched`.
+        chunk_size: rollouts simulated together (bounds the working memory).
     Returns:
         :class:`RolloutSummary` of the n rollouts, in order.
     Raises:

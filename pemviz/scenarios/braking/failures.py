@@ -168,6 +168,7 @@ def controller_trace(detected: np.ndarray, params: BrakingParams | None = None) 
 
     Args:
         detected: bool [T] the detector's output at each step, T <= ``params.n_steps``.
+        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Raises:
         ValueError: ``detected`` not 1-D or longer than the scenario.
     """
@@ -197,6 +198,7 @@ def min_gaps(detected: np.ndarray, params: BrakingParams | None = None) -> np.nd
 
     Args:
         detected: bool [N, T] detection sequences, T <= ``params.n_steps``.
+        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     """
     p = params or BrakingParams()
     d = np.asarray(detected, dtype=bool)
@@ -266,6 +268,7 @@ def minimal_miss_set(
 
     Args:
         detected: bool [T] a failing rollout's detections.
+        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
         candidates: int [M] the misses to consider (default: every miss before the last step).
     Returns:
         (int [k] the set's steps in order, the smallest gap with them flipped in metres, whether it is the
@@ -309,6 +312,7 @@ def counterfactual(detected: np.ndarray, params: BrakingParams | None = None) ->
 
     Args:
         detected: bool [T] the rollout's detections, T <= ``params.n_steps``.
+        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Raises:
         ValueError: ``detected`` not 1-D or longer than the scenario.
     """
@@ -360,6 +364,7 @@ def last_saving_steps(detected: np.ndarray, params: BrakingParams | None = None)
 
     Args:
         detected: bool [F, T] the rollouts' detections, T <= ``params.n_steps``.
+        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Returns:
         int [F]: the step, -1 where no single detection saves the rollout or where it does not fail.
     Raises:
@@ -418,7 +423,10 @@ def describe(
 
     Args:
         detected: bool [T] the rollout's detections.
-        sev, ctrl, cf: :func:`severity`, :func:`controller_trace` and :func:`counterfactual` of the same rollout.
+        sev: :func:`severity` of the rollout.
+        ctrl: :func:`controller_trace` of the same rollout.
+        cf: :func:`counterfactual` of the same rollout.
+        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     """
     p = params or BrakingParams()
     dt = p.dt_s
@@ -500,6 +508,7 @@ def story(gap_m: np.ndarray, detected: np.ndarray, params: BrakingParams | None 
     Args:
         gap_m: float64 [T] the recorded gap (metres).
         detected: bool [T] the recorded detections, T <= ``params.n_steps``.
+        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Raises:
         ValueError: the arrays are not 1-D of one length, or longer than the scenario.
     """

@@ -113,7 +113,8 @@ def explain(
     Args:
         gap_m: float64 [T] recorded gap (metres).
         detected: bool [T] the detections taken.
-        log_p, log_q: float64 [T] log-probability of each action under the PEM and the sampler (nats).
+        log_p: float64 [T] log-probability of each action under the PEM (nats).
+        log_q: float64 [T] log-probability of each action under the sampler (nats).
         params: the scenario's constants (crash gap, dt; default
             :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Raises:

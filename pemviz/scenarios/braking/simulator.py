@@ -165,6 +165,7 @@ def ego_acceleration(
     """One control step of the ego, vectorised over rollouts.
 
     Args:
+        params: the scenario's constants.
         detected: bool [N], the detector's output at this step.
         gap_m: [N] gap from the ego's camera to the lead's rear (metres).
         ego_speed_mps: [N] ego speed (m/s).
@@ -239,9 +240,12 @@ def braking_step(
     """One step of the braking scenario for many states at once.
 
     Args:
+        params: the scenario's constants.
         lead_speed_mps: the lead's speed at this step (m/s).
-        gap_m, speed_mps, integral, pending: state [...] at this step: gap (m), ego speed (m/s), PID
-            integral (km/h s), emergency-brake command of the previous step (bool).
+        gap_m: float64 [...] the gap at this step (metres).
+        speed_mps: float64 [...] the ego's speed (m/s).
+        integral: float64 [...] the PID integral (km/h s).
+        pending: bool [...] the emergency-brake command of the previous step.
         detected: bool [...], the detector's output at this step.
     Returns:
         the state at the next step (same shapes): gap' = gap + (v_lead - v) dt; v' = max(v + a dt, 0).
@@ -262,6 +266,7 @@ def braking_replay(params: BrakingParams, detected: np.ndarray) -> np.ndarray:
     """Gaps of rollouts with given detection sequences, float64 [N, T] (metres), deterministic.
 
     Args:
+        params: the scenario's constants.
         detected: bool [N, T] (or [N, <T]: missing steps count as misses).
     """
     detected = np.atleast_2d(np.asarray(detected, dtype=bool))

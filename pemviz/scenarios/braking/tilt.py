@@ -161,7 +161,8 @@ def solve_committor(
     Args:
         params: the scene.
         logit_at_gap: logit p_PEM(detect | gap), float64 [K] for gaps [K] (metres), e.g. ``pem.logit_at_gap``.
-        n_gap, n_speed: the grid's nodes (>= 2 each).
+        n_gap: the grid's nodes along the gap (>= 2).
+        n_speed: the grid's nodes along the ego's speed (>= 2).
     Raises:
         ValueError: fewer than 2 nodes on an axis; a scene whose gap never drops below the braking distance
             (:func:`~pemviz.scenarios.braking.truth.branching_start`: nothing is random).

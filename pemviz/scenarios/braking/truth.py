@@ -281,8 +281,8 @@ def braking_exact(
         logit_at_gap: logit p_PEM(detect | gap) (e.g. ``pem.logit_at_gap``).
         params: the scenario (default :class:`BrakingParams`).
         log_prune: drop threshold (nats); lower = tighter bracket, more sequences.
-        bound_grid: points per axis of the miss-bound grid (:func:`exact_bound`); ``bound`` reuses one already
-            computed.
+        bound_grid: points per axis of the miss-bound grid (:func:`exact_bound`).
+        bound: a miss bound already computed, reused (None: computed on ``bound_grid``).
         max_paths: refuse to go on beyond this many live sequences (memory).
         start: the state to enumerate from (None: :func:`branching_start`), a state at or after the branching start
             (``bound``, when given, made from a start no later): the result is then the committor of that state,

@@ -115,9 +115,12 @@ def speed_ranges(
     """The range of the ego's next speed over each speed cell and the integral's range, and the next brake command.
 
     Args:
+        params: the scenario's constants.
         speed_edges: cell edges (m/s), float64 [S + 1], increasing.
-        integral_lo, integral_hi: the PID integral's range (km/h s, :func:`integral_range`).
-        pending, detected: the brake command of the last step and this step's detector output.
+        integral_lo: the PID integral's least value (km/h s, :func:`integral_range`).
+        integral_hi: its largest value (km/h s).
+        pending: the brake command of the last step.
+        detected: this step's detector output.
         samples: speeds evaluated per cell.
     Returns:
         (lo [S], hi [S]) in m/s with lo <= v' <= hi for every speed of the cell and integral of the range (gap inside
@@ -260,7 +263,8 @@ def cell_miss_bound(
     Args:
         params: the scenario (any crash gap >= 0).
         start: the branching start (:func:`pemviz.scenarios.braking.truth.branching_start`).
-        n_gap, n_speed: cells per axis.
+        n_gap: cells along the gap.
+        n_speed: cells along the ego's speed.
         speed_margin_mps: the speed axis reaches max(start speed, target speed) plus this.
     Returns:
         :class:`CellMissBound`. M_{T-1} = no crash; M_t(cell, b) = min over the detector output of

@@ -222,7 +222,8 @@ class BatchedCrossing:
         """Advance every rollout one step: measure the detected pedestrians, update the tracks, brake on a threat.
 
         Args:
-            detected: bool [n, M]; noise: float64 [n, M, 2] (range, lateral error; metres) or None.
+            detected: bool [n, M] the pedestrians detected.
+            noise: float64 [n, M, 2] (range, lateral error; metres) or None.
         """
         p = self.p
         loc_x, loc_z, view, _ = self._view()

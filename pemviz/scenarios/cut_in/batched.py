@@ -258,8 +258,8 @@ class BatchedCutIn:
         """Advance every rollout one step of ``dt`` seconds.
 
         Args:
-            detected: bool ``[N, M]``; noise: float64 ``[N, M, 2]`` (range, lateral error; metres; read where
-                detected) or None (no error).
+            detected: bool ``[N, M]`` the cars detected.
+            noise: float64 ``[N, M, 2]`` (range, lateral error; metres; read where detected) or None (no error).
         Raises:
             RuntimeError: the rollouts are over.
             ValueError: ``detected`` or ``noise`` of the wrong shape.

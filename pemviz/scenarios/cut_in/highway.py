@@ -192,7 +192,8 @@ class CutInScenario:
         """Advance one step of ``dt`` seconds given this step's detections and measurement errors.
 
         Args:
-            detected: bool ``[M]``; noise: float64 ``[M, 2]`` (range, lateral error; metres) or None (no error).
+            detected: bool ``[M]`` the cars detected.
+            noise: float64 ``[M, 2]`` (range, lateral error; metres) or None (no error).
         Raises:
             RuntimeError: the rollout is over (``n_steps`` steps taken).
             ValueError: ``detected`` or ``noise`` of the wrong shape.

@@ -79,6 +79,7 @@ def features(state: CutInBatchState, traffic: Any, errors: bool = False) -> np.n
     Args:
         state: N rollouts' state.
         traffic: the step's true traffic (:class:`pemviz.scenarios.cut_in.highway.TrafficTrajectory` entry).
+        errors: append the track's errors against the car's true state (metres, m/s along and across the road).
     """
     tr = state.tracks
     log = exact.log  # the same on every CPU: the regimes and the effect model's splits read these
@@ -294,6 +295,9 @@ class CutInLookAhead:
         ``sim`` at their step, the other cars taking the step's own uniforms ``u`` [N, M, 3].
 
         Args:
+            sim: the N rollouts, at their step.
+            idx: int [k] the rollouts branched.
+            u: float64 [N, M, 3] the step's uniforms (detection, range error, lateral error) of every car.
             rows: the step's object rows [N, M, G].
             prefix_min: each rollout's operand minimum so far [N] (metres).
             reps: the branches' uniforms of the cut-in car [B, 3] (None: the grid's NBRANCH).

@@ -71,6 +71,7 @@ def cut_in_problem(
         pem: the detection PEM (``pemviz.pem.load_pem()``).
         params: the scenario (default: the ``moderate`` setting, about 9e-5).
         noise: the noise PEM (default: the shipped ``hetero-t``).
+        name: the problem's name (the scenario's registered name).
     """
     from pemviz.pem.perception import SalientDetector
     from pemviz.pem.store import load_noise_pem

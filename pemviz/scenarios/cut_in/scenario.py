@@ -389,7 +389,11 @@ def idm_acceleration(
     Rev. E 62, eq. (1)-(2), as highway-env 1.12 writes it (no ``max(0, .)`` on ``d*``; ``d`` at least 0.01 m).
 
     Args:
-        speed_mps, distance_m, closing_speed_mps: float64 ``[N]`` (m/s, m, m/s).
+        idm: the IDM's constants (:class:`IDMParams`).
+        target_speed_mps: v0, the desired speed (m/s).
+        speed_mps: float64 ``[N]``, v (m/s).
+        distance_m: float64 ``[N]``, d (metres; ``inf``: no vehicle followed).
+        closing_speed_mps: float64 ``[N]``, dv (m/s).
     Returns:
         float64 ``[N]``, m/s^2.
     """
@@ -415,9 +419,13 @@ def acc_control(
     centre distance and closing speed; the free-road IDM term when none.
 
     Args:
-        track_x, track_y, track_vx: the tracks' estimates ``[M, N]`` (object-major; m, m, m/s); active: bool ``[M, N]``,
-            the tracks the ACC may follow.
-        ego_x_m, ego_speed_mps: ``[N]``.
+        params: the scenario's constants (lane, IDM, ego's set speed, dt).
+        track_x: float64 ``[M, N]`` the tracks' estimated centres along the road (object-major; metres).
+        track_y: float64 ``[M, N]`` across the road (metres).
+        track_vx: float64 ``[M, N]`` their estimated speeds along the road (m/s).
+        active: bool ``[M, N]``, the tracks the ACC may follow.
+        ego_x_m: float64 ``[N]`` the ego's position along the road (metres).
+        ego_speed_mps: float64 ``[N]`` its speed (m/s).
     Returns:
         (followed int64 ``[N]``: the object followed, -1 when none; acceleration float64 ``[N]``, m/s^2, never below
         ``-speed / dt`` so that the ego does not reverse).

@@ -244,6 +244,9 @@ def measure(
     """The measured positions of the objects (module docstring), ``[M, N]`` each.
 
     Args:
+        params: the scenario's constants.
+        view: the camera's view of the objects (:func:`camera_view`).
+        ego_x_m: float64 ``[N]`` the ego's position along the road (metres).
         noise: float64 ``[M, N, 2]`` (range error, lateral error; metres), read only where ``measured``.
         measured: bool ``[M, N]`` (detected and visible).
     Returns:
@@ -274,7 +277,13 @@ def object_rows(
     rows of every rollout's objects together, is a view too.
 
     Args:
-        ego_x_m, ego_speed_mps, ego_accel_mps2: ``[N]``; tracks: the trackers' predictions ``[M, N]`` for this step;
+        params: the scenario's constants.
+        traffic: the other vehicles at this step.
+        view: the camera's view of them (:func:`camera_view`).
+        ego_x_m: float64 ``[N]`` the ego's position along the road (metres).
+        ego_speed_mps: float64 ``[N]`` its speed (m/s).
+        ego_accel_mps2: float64 ``[N]`` its acceleration (m/s^2).
+        tracks: the trackers' predictions ``[M, N]`` for this step.
         followed: int ``[N]``, the object the ACC followed at the last step (-1 none).
     """
     m, n = view.loc_z_m.shape
@@ -364,7 +373,12 @@ def decide(
     (:func:`~pemviz.scenarios.cut_in.scenario.acc_control`) on the confirmed tracks.
 
     Args:
-        tracks: the trackers' predictions for this step ``[M, N]``; detected: bool ``[M, N]``;
+        params: the scenario's constants.
+        view: the camera's view of the objects (:func:`camera_view`).
+        ego_x_m: float64 ``[N]`` the ego's position along the road (metres).
+        ego_speed_mps: float64 ``[N]`` its speed (m/s).
+        tracks: the trackers' predictions for this step ``[M, N]``.
+        detected: bool ``[M, N]`` the objects detected.
         noise: float64 ``[M, N, 2]`` measurement errors (metres; read where detected), or None (no error).
     Returns:
         (the tracks after the update, followed int64 ``[N]`` (-1 none), the ACC's acceleration ``[N]`` in m/s^2).

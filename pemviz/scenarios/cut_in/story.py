@@ -262,10 +262,13 @@ def cut_in_story(
 
     Args:
         observations: float64 [T, F] its scene signals, named by ``observation_names``.
+        observation_names: the F signals' names.
         rows: float64 [T, M, G] its object rows, named by ``object_names``.
+        object_names: the G columns' names.
         detected: bool [T, M] the camera's detections.
         dt_s: seconds per step.
-        obj, name: the cut-in car's index and its name in the sentences.
+        obj: the cut-in car's index among the M objects.
+        name: its name in the sentences.
     Raises:
         ValueError: a column the story reads is missing (:func:`has_story_columns`).
     """

@@ -167,9 +167,14 @@ class CutInTilt(CutInLookAhead):
         shift of it, the chain U_{t+1} its value.
 
         Args:
-            u: the step's uniforms [N, M, 3]; rows: its object rows [N, M, G]; prefix_min: the operand's minimum so
-                far [N] (metres); sfeat: :func:`~pemviz.scenarios.cut_in.lookahead.features` of the rollouts [k, F];
-                p0: the cut-in car's p(detect) [k].
+            sim: the N rollouts, at step ``t``.
+            t: the step.
+            idx: int [k] the rollouts.
+            u: the step's uniforms [N, M, 3].
+            rows: its object rows [N, M, G].
+            prefix_min: the operand's minimum so far [N] (metres).
+            sfeat: :func:`~pemviz.scenarios.cut_in.lookahead.features` of the rollouts [k, F].
+            p0: the cut-in car's p(detect) [k].
         """
         assert self.chain is not None, "solve() before stage()"
         r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min, self.grid.reps[1:2])
@@ -189,6 +194,7 @@ class CutInTilt(CutInLookAhead):
         """``n`` rollouts drawn from the tilted proposal.
 
         Args:
+            n: the rollouts.
             rng: the draws: per step ``rng.random((n, M, 3))``, then at a tilted step one uniform a rollout for its
                 class and three inside it.
             given: float64 [T, n, M, 3]: replay these uniforms (their classes scored, nothing drawn).

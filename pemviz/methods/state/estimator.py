@@ -4,7 +4,7 @@ state of the object, the ego's), for every perception event of a step.
 
 The paper's proposal is q_phi(detect | salient variables), a network fitted by cross-entropy; here q(detect) sees each
 object row with its object's and its ego's state features appended: by default the PEM's own logit plus a linear
-function of them (:class:`pemviz.estimators.state_glm.StateGLM`), or the paper's network over them
+function of them (:class:`pemviz.methods.state.glm.StateGLM`), or the paper's network over them
 (:class:`pemviz.core.sampling.FeatureProposal`, a :class:`~pemviz.core.sampling.StateProposal` with more input
 columns); with ``state_fit_errors`` a measurement-error head reads them too (:class:`pemviz.core.torch_fits.NoiseShift`:
 the location and log-scale shifts of the error), else the errors are the PEM's. All are fitted by the same CE stages,
@@ -30,7 +30,8 @@ from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import FeatureProposal, Proposal
 from pemviz.estimators.base import Check
 from pemviz.estimators.cross_entropy import CrossEntropy
-from pemviz.methods import CROSS_ENTROPY_METHOD, STATE_METHOD
+from pemviz.methods import CROSS_ENTROPY_METHOD
+from pemviz.methods.state import StateSettings, state_settings
 from pemviz.settings import settings_of
 
 if TYPE_CHECKING:
@@ -100,21 +101,22 @@ def reports_state(problem: Problem) -> bool:
 
 class StateCrossEntropy(CrossEntropy):
     """The cross-entropy sampler with the state-dependent proposal (module docstring); settings: the adaptive sampler's
-    and :class:`pemviz.methods.state.StateSettings`.
+    and the method's own, :class:`pemviz.methods.state.StateSettings` (:func:`pemviz.methods.state.state_settings`).
 
     Raises:
         ValueError: the problem's simulator reports no state features (:func:`no_features_refusal`).
     """
 
-    SETTINGS = (*settings_of(CROSS_ENTROPY_METHOD), *settings_of(STATE_METHOD))
+    SETTINGS = (*settings_of(CROSS_ENTROPY_METHOD), *StateSettings.__dataclass_fields__)
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         if not reports_state(problem):
             raise ValueError(no_features_refusal(problem))
         self._first = FirstColumns(problem.target)
         super().__init__(config, dataclasses.replace(problem, target=self._first), check)
-        self.ce = dataclasses.replace(self.ce, target_share=float(config.state.state_share))
-        self.fits_errors = bool(config.state.state_fit_errors)
+        self.own = state_settings(config)
+        self.ce = dataclasses.replace(self.ce, target_share=float(self.own.state_share))
+        self.fits_errors = bool(self.own.state_fit_errors)
         self.replayed = 0
         """Rollouts whose state features were replayed for the fits and weights (rollout-equivalents)."""
 
@@ -130,14 +132,14 @@ class StateCrossEntropy(CrossEntropy):
         return with_state(batch, features)
 
     def _new_proposal(self, batch: RolloutBatch) -> Proposal:
-        """A :class:`FeatureProposal` (``state_model = "network"``) or a :class:`~pemviz.estimators.state_glm.StateGLM`
+        """A :class:`FeatureProposal` (``state_model = "network"``) or a :class:`~pemviz.methods.state.glm.StateGLM`
         (``"glm"``) over every column of the rows with their state features: the first (the gap) scaled by the
         problem's ``h_scale``, the others by their largest magnitude in the pretraining rollouts."""
         rows, _ = batch.events()
         scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])]
         shape = (tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
-        if self.config.state.state_model == "glm":
-            from pemviz.estimators.state_glm import StateGLM
+        if self.own.state_model == "glm":
+            from pemviz.methods.state.glm import StateGLM
 
             return StateGLM(*shape, self._first)
         return FeatureProposal(*shape)

@@ -1,0 +1,87 @@
+"""The state method's folder (``method = "state"``): the cross-entropy sampler whose proposal reads the state the stack
+acts on. Its estimator is :mod:`pemviz.methods.state.estimator` (``StateCrossEntropy``), the proposal's linear model
+:mod:`pemviz.methods.state.glm`, the check of its settings against the others :mod:`pemviz.methods.state.hooks`; the
+registry (:mod:`pemviz.methods`) names them, and the settings here,
+by text only (``"pemviz.methods.state:StateSettings"``), so that nothing below this folder imports it.
+
+This module holds the method's settings: :class:`StateSettings`, the method's own
+(:attr:`pemviz.methods.Method.settings`; a run of it holds them as
+:attr:`pemviz.config.ExperimentConfig.method_settings`). Each field, made by :func:`pemviz.methods.rows.setting`,
+carries its row of the settings table (range, help, flag; owner ``state``): a field added here is the method's setting,
+checked, a flag of ``pemviz run``, a field of the panel's *method settings* and recorded by its name;
+:class:`pemviz.methods.state.estimator.StateCrossEntropy` reads them (:func:`state_settings`; with the cross-entropy
+sampler's own, :class:`pemviz.methods.adaptive.CrossEntropySettings`, for its stages and fits). Light to import (it
+imports :mod:`pemviz.methods.rows` alone): the settings table reads its defaults when it is loaded."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from pemviz.methods.rows import setting
+
+STATE_MODELS = ("network", "glm")
+"""The state proposal's model of q(detect) (:attr:`StateSettings.state_model`)."""
+
+
+@dataclass(frozen=True)
+class StateSettings:
+    """The cross-entropy sampler of Innes & Ramamoorthy (2022) with the paper's q(detect | salient variables)
+    generalised to every perception event of a step as a function of the state the stack acts on
+    (:mod:`pemviz.core.features`).
+
+    Attributes:
+    state_share: the PEM's own share of the rollouts of every stage drawn after a stage reached the failure level
+        and of the final batch (the adaptive sampler's ``target_share``, for this method): each of those rollouts'
+        weights is at most 1 / ``state_share`` (a defensive mixture over whole rollouts: Hesterberg 1995; Owen &
+        Zhou 2000), in (0, 1).
+    state_model: q(detect)'s model, one of :data:`STATE_MODELS`: ``network``, the paper's network
+        (:class:`pemviz.core.sampling.FeatureProposal`) over the row and its features; ``glm``, the PEM's own logit
+        plus a linear function of them (:class:`pemviz.methods.state.glm.StateGLM`). The measurement error's
+        location and log-scale shifts, where fitted (``state_fit_errors``), are linear in them either way.
+    state_fit_errors: the proposal fits the measurement errors' location and log-scale shifts too
+        (:class:`pemviz.core.torch_fits.NoiseShift`, linear in the row and its features); False: the errors are drawn
+        from the PEM's own error model and only the detections are proposed. The defaults (``glm``, the PEM's errors)
+        are the variant measured closest to the answer on the crossing (the Validation page).
+    """
+
+    state_share: float = setting(
+        0.1,
+        "the PEM's share of the state proposal's mixture",
+        "the share of the rollouts drawn by the PEM itself in every stage after the failure level and in the final "
+        "batch: each weight at most 1 / share",
+        kind="real",
+        lo=0.0,
+        hi=1.0,
+        lo_open=True,
+        hi_open=True,
+        flags=("--state-share",),
+    )
+    state_model: str = setting(
+        "glm",
+        "the state proposal's model",
+        "q(detect) as a function of the row and its state features",
+        kind="choice",
+        choices=STATE_MODELS,
+        flags=("--state-model",),
+        choice_help=(
+            ("network", "the paper's network over the row and its features"),
+            ("glm", "the PEM's own logit plus a linear function of the row and its features"),
+        ),
+    )
+    state_fit_errors: bool = setting(
+        False,
+        "the state proposal's error shifts",
+        "the state proposal fits the measurement errors' location and log-scale shifts too (off: they are drawn from "
+        "the PEM, only the detections proposed)",
+        kind="bool",
+        flags=("--state-fit-errors",),
+    )
+
+
+def state_settings(config: Any) -> StateSettings:
+    """The state method's settings of ``config`` (a :class:`pemviz.config.ExperimentConfig`): its
+    :attr:`~pemviz.config.ExperimentConfig.method_settings` in a run of the method, their defaults in a config of
+    another (an estimator built on it by hand)."""
+    own = config.method_settings
+    return own if isinstance(own, StateSettings) else StateSettings()
