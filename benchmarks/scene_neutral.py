@@ -28,8 +28,8 @@ Usage::
     python benchmarks/scene_neutral.py --scenes cut-in cut-in-21 --variants adaptive --seeds 2   # ~5 min a run
     python benchmarks/scene_neutral.py --scenes crossing --seeds 5
     python benchmarks/scene_neutral.py --scenes crossing --variants lookahead-400 --seeds 10 --scored-steps 10
-    nice -n 10 python benchmarks/scene_neutral.py --scenes crossing crossing-1e-4 --variants learned-400 \
-        --first-seed 1 --seeds 10 --jobs 1
+    nice -n 10 python benchmarks/scene_neutral.py --scenes crossing-1e-4 --variants lookahead-400 --first-seed 1 \
+        --seeds 10 --jobs 1
 
 Measured figures: the Validation page ("A scene-neutral sampler").
 """
@@ -77,12 +77,10 @@ SAMPLERS: dict[str, tuple[str, ...]] = {
     "ce-only": ("--method", "adaptive", "--plain-fallback", "0"),
     "lookahead-200": (*LOOKAHEAD, "--n", "200", "--ams-killed", "20"),
     "lookahead-400": (*LOOKAHEAD, "--n", "400", "--ams-killed", "40"),
-    "learned-400": ("--method", "ams", "--ams-score", "learned", "--n", "400", "--ams-killed", "40"),
 }
 """The variants: the scene's default command; the default sampler by name (the cross-entropy stages, then plain Monte
 Carlo where their weights back no interval: on the cut-ins, whose default is their own tilt); the cross-entropy
-stages alone (``--plain-fallback 0``); the look-ahead splitting at 200 and 400 particles; splitting at 400 particles
-ranked by a score learned on a pilot's state features (:mod:`pemviz.estimators.learned_score`)."""
+stages alone (``--plain-fallback 0``); the look-ahead splitting at 200 and 400 particles."""
 
 
 @dataclass(frozen=True)
