@@ -16,8 +16,10 @@ engine, no recording) over seeds 0 .. K-1 and prints:
   about normal with standard deviation sqrt((1 - p) / (N p))), and their ratio: below 0.1 is the target.
 
 Scenes: the crossing (two pedestrians, a noisy detector, a Kalman tracker, an emergency brake; reference 2.98e-4),
-the crowd toy with measurement noise (exact), the cut-in (reference 7.95e-5) and the cut-in at ``cut_in_gap_m=21``
-(reference 2.48e-5 from 7.3 x 10^6 plain rollouts, :data:`GAP_21_REFERENCE`), and braking (exact 1.98e-15).
+the crossing at ``brake_ttc_s=1.5`` (the rarity ladder's crossing-1e-4 rung, reference 1.29e-4,
+:data:`CROSSING_1E4_REFERENCE`), the crowd toy with measurement noise (exact), the cut-in (reference 7.95e-5) and the
+cut-in at ``cut_in_gap_m=21`` (reference 2.48e-5 from 7.3 x 10^6 plain rollouts, :data:`GAP_21_REFERENCE`), and
+braking (exact 1.98e-15).
 
 Usage::
 
@@ -26,6 +28,8 @@ Usage::
     python benchmarks/scene_neutral.py --scenes cut-in cut-in-21 --variants adaptive --seeds 2   # ~5 min a run
     python benchmarks/scene_neutral.py --scenes crossing --seeds 5
     python benchmarks/scene_neutral.py --scenes crossing --variants lookahead-400 --seeds 10 --scored-steps 10
+    nice -n 10 python benchmarks/scene_neutral.py --scenes crossing-1e-4 --variants lookahead-400 --first-seed 1 \
+        --seeds 10 --jobs 1
 
 Measured figures: the Validation page ("A scene-neutral sampler").
 """
@@ -50,6 +54,10 @@ engine draws, the Validation page), seed 0 10^6 rollouts (27 failures), seeds 1-
 1,540,096 (40), 1,642,496 (46) and 1,642,496 (30); today ``python benchmarks/cut_in_mc.py --param cut_in_gap_m=21
 --n N --seed S``."""
 
+CROSSING_1E4_REFERENCE = (414, 3_200_000)
+"""Plain Monte Carlo of the crossing at ``brake_ttc_s=1.5`` (the rarity ladder's crossing-1e-4 rung,
+``benchmarks/rarity_ladder.py``): (failures, rollouts), p = 1.29e-4 [1.17e-4, 1.42e-4]."""
+
 LOOKAHEAD = ("--method", "ams", "--ams-score", "lookahead")
 """The scene-neutral sampler's flags (its particles and k given per variant)."""
 
@@ -58,6 +66,7 @@ SCENES: dict[str, tuple[str, ...]] = {
     "crowd": ("--scenario", "crowd"),
     "cut-in": ("--scenario", "cut-in"),
     "cut-in-21": ("--scenario", "cut-in", "--param", "cut_in_gap_m=21"),
+    "crossing-1e-4": ("--scenario", "crossing", "--param", "brake_ttc_s=1.5"),
     "braking": ("--scenario", "braking"),
 }
 """Each scene's flags."""
@@ -120,6 +129,8 @@ def one_run(scene: str, variant: str, seed: int, scored_steps: int | None = None
         problem = problem_for(cfg)
         if scene == "cut-in-21":
             truth = math.log(GAP_21_REFERENCE[0] / GAP_21_REFERENCE[1])
+        elif scene == "crossing-1e-4":
+            truth = math.log(CROSSING_1E4_REFERENCE[0] / CROSSING_1E4_REFERENCE[1])
         elif problem.exact_log_p is not None:
             truth = float(problem.exact_log_p)
         else:

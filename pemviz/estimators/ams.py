@@ -416,11 +416,17 @@ def committor_score(problem: Problem, score: str) -> GradedScore | None:
 
 
 def run_ams(
-    problem: Problem, n: int, killed: int, seed: int = 0, max_iterations: int = 100_000, score: str = "robustness"
+    problem: Problem,
+    n: int,
+    killed: int,
+    seed: int = 0,
+    max_iterations: int = 100_000,
+    score: str | GradedScore = "robustness",
 ) -> Splitting:
     """One whole AMS run without the engine (for studies and tests): N particles from ``problem.target``, seeded
-    like ``method = "ams"`` with ``seed`` and ranked by ``score`` (``ams_score``); returns the finished
-    :class:`Splitting` (``.estimate()``, ``.n_simulations``).
+    like ``method = "ams"`` with ``seed`` and ranked by ``score`` (an ``ams_score`` name, or a study's own
+    :class:`GradedScore`, which then draws the particles); returns the finished :class:`Splitting`
+    (``.estimate()``, ``.n_simulations``).
 
     Raises:
         ValueError: as :class:`AdaptiveMultilevelSplitting`.
@@ -431,9 +437,12 @@ def run_ams(
         ams_killed=killed,
         ams_max_iterations=max_iterations,
         seed=seed,
-        ams_score=score,
+        ams_score=score if isinstance(score, str) else "robustness",
     )
     est = AdaptiveMultilevelSplitting(cfg, problem)
+    if not isinstance(score, str):  # a study's own score: the method's streams, this score
+        est.rng = np.random.default_rng(seed)
+        est.ams = Splitting(problem, killed, max_iterations, est.rng, np.random.default_rng((seed, 1)), score)
     if est.ams.scorer is not None:
         est.ams.start(*est.ams.scorer.simulate(n, est.rng))
     else:
