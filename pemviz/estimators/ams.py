@@ -92,8 +92,13 @@ def running_score(
     column is below 0 exactly when the rollout fails.
 
     Args:
-        prefix, at: a branch's parents' running scores [N, T] and its branching steps int [N]: the score up to and
-            including ``at`` is the parent's (the same state).
+        problem: the problem whose formula's operand gives the robustness (metres for a gap).
+        batch: the rollouts [N, T].
+        graded: a :class:`GradedScore`'s scores float64 [N, T] (lower = closer to failure), or None: the robustness.
+        prefix: a branch's parents' running scores float64 [N, T], or None (initial rollouts).
+        at: the branch's branching steps int [N]: the score up to and including ``at`` is the parent's (the same
+            state).
+
     Raises:
         ValueError: a formula that is not ``G[a,b](state predicate)``.
     """
