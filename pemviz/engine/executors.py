@@ -39,7 +39,9 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import signal
 import socket
+import threading
 from collections.abc import Iterator, Mapping
 from typing import Any, Protocol
 
@@ -343,6 +345,23 @@ def ray_block(
     return simulate_chunk(problem, n, start, stop, sampler, target, rng_state)
 
 
+@contextlib.contextmanager
+def kept_signal_handlers(signals: tuple[int, ...] = (signal.SIGTERM, signal.SIGINT)) -> Iterator[None]:
+    """Put back the Python handlers of ``signals`` that the block replaced (``ray.init`` installs its own for SIGTERM,
+    and its C++ core a failure handler that prints a stack dump and kills the process), so that the run's own
+    handling holds: SIGTERM like Ctrl-C, what was finished kept. Outside the main thread nothing is changed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {sig: signal.getsignal(sig) for sig in signals}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            if handler is not None:
+                signal.signal(sig, handler)
+
+
 class RayExecutor:
     """Simulates each batch as Ray tasks, one per block of rollouts, a bounded number in flight (module docstring).
 
@@ -370,7 +389,8 @@ class RayExecutor:
         self._started = False
         if not ray.is_initialized():
             probe_ray_address(address)
-            ray.init(address=address, include_dashboard=False, **init_kwargs)
+            with kept_signal_handlers():  # Ray's driver would take SIGTERM and SIGINT from the run (a C stack dump)
+                ray.init(address=address, include_dashboard=False, **init_kwargs)
             self._started = True
         self.cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
         """The cluster's CPUs when this executor was made."""

@@ -298,3 +298,38 @@ def test_cli_run_whose_stage_streams_on_ray_prints_the_serial_and_local_pool_s_r
     assert printed("--executor", "ray") == serial
     if ray_workers == 2:
         assert printed("--workers", "2") == serial and get_executor("local", workers=2).started
+
+
+@ray_missing
+def test_sigterm_during_a_ray_run_is_the_run_s_one_line_not_ray_s_stack_dump(tmp_path):
+    """``ray.init`` installs Ray's own SIGTERM handling in the driver (its C++ core prints ``*** SIGTERM received``
+    and a stack dump, and the process dies without the run's words); the executor puts the run's handler back, so
+    SIGTERM mid-stage ends the run as Ctrl-C does: exit 143, one line saying no stage finished, no file written.
+    (During ``ray.init`` itself, a few seconds, Ray's handling holds.)"""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "r.parquet"
+    args = ["--scenario", "crossing", "--method", "mc", "--n", "200000", "--executor", "ray", "--no-record"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pemviz.cli", "run", *args, "--save-rollouts", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    seen = []
+    deadline = time.monotonic() + 300
+    assert proc.stdout is not None
+    for line in proc.stdout:  # wait until the stage is under way on the cluster (made after the stage's line)
+        seen.append(line)
+        if "Started a local Ray instance" in line or time.monotonic() > deadline:
+            break
+    time.sleep(3.0)
+    proc.send_signal(signal.SIGTERM)
+    rest, _ = proc.communicate(timeout=120)
+    text = "".join(seen) + rest
+    assert proc.returncode == 143, text
+    assert "interrupted (SIGTERM); 0 stage(s) finished" in text and "SIGTERM received" not in text, text
+    assert "Traceback" not in text and not out.exists()
