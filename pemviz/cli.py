@@ -90,7 +90,13 @@ def build_parser(command: str | None = None, *, full: bool = True) -> argparse.A
     return parser
 
 
+_SIGTERM_SEEN: list[bool] = []
+"""Non-empty once SIGTERM reached the run: a library that turns the handler's :class:`Terminated` into a plain
+``KeyboardInterrupt`` (Ray's ``ray.get`` does while it waits) does not make it read as Ctrl-C."""
+
+
 def _raise_terminated(signum: int, frame: object) -> None:
+    _SIGTERM_SEEN.append(True)
     raise Terminated()
 
 
@@ -172,7 +178,7 @@ def _run(argv: list[str] | None) -> int:
 
 
 def _interrupted(name: str, exc: KeyboardInterrupt) -> int:
-    how, code = ("SIGTERM", 143) if isinstance(exc, Terminated) else ("Ctrl-C", 130)
+    how, code = ("SIGTERM", 143) if isinstance(exc, Terminated) or _SIGTERM_SEEN else ("Ctrl-C", 130)
     done = f"; {exc.args[0]}" if exc.args else "; nothing written"
     print(f"{name}: interrupted ({how}){done}", file=sys.stderr)
     return code
