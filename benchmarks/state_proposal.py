@@ -1,4 +1,4 @@
-"""The state-dependent proposal (``--method state``, :mod:`pemviz.methods.state.estimator`) against each scene's default
+"""The state-dependent proposal (``--method state``, :mod:`pemviz.estimators.state`) against each scene's default
 command and plain Monte Carlo, one row per scene and sampler: the study behind the Validation page's section "A
 proposal that reads the tracker's state".
 
@@ -78,7 +78,7 @@ class Run:
 
 def one_run(scene: str, sampler: str, seed: int) -> Run:
     """The run of ``scene`` and ``sampler`` at ``seed``, the state method's replays counted."""
-    from pemviz.methods.state.estimator import StateCrossEntropy
+    from pemviz.estimators.state import StateCrossEntropy
 
     counted = {"n": 0, "s": 0.0}
     replay = StateCrossEntropy._with_state

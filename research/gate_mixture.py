@@ -150,7 +150,7 @@ def estimate(
     """The estimate stage (module docstring, 3.): the run's final :class:`pemviz.engine.experiment` result, the
     rollouts it simulated (each replayed once more for its features) and its final batch's
     :class:`pemviz.engine.events.RolloutsSampled`."""
-    from pemviz.methods.state.estimator import StateCrossEntropy
+    from pemviz.estimators.state import StateCrossEntropy
 
     restore = state_gate.install(True, 2, None, True, gates[0], gates)
     cap = StateCrossEntropy.__dict__.get("verdict_cap")

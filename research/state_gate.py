@@ -2,7 +2,7 @@
 interval when its proposal departs from the PEM only on the few events that decide a failure, or when its fits'
 weights are tempered? Its figures are on the Validation page, "A proposal that reads the tracker's state".
 
-The proposal (patched into :class:`pemviz.methods.state.estimator.StateCrossEntropy` by :func:`install`, the package
+The proposal (patched into :class:`pemviz.estimators.state.StateCrossEntropy` by :func:`install`, the package
 untouched): q(detect) and the measurement errors are the PEM's except inside a gate, an intersection of up to
 ``--depth`` intervals of columns of the object rows with their state features (the tracker's, the ego's), where the
 detection's logit is shifted by c and the errors' scale widened by exp(b) per component. Each CE stage refits gate, c
@@ -232,8 +232,8 @@ def install(
     (``min_ess``; None: the method's own weights), and (``mixture``) every stage drawn from a mixture over whole
     rollouts of the PEM (its share ``state_share``, whether or not a stage reached the failure level) and the gates,
     in equal shares, each alone inside the window. Returns the function that undoes the patches."""
-    from pemviz.methods.state.estimator import StateCrossEntropy
-    from pemviz.methods.state.glm import StateGLM
+    from pemviz.estimators.state import StateCrossEntropy
+    from pemviz.estimators.state_glm import StateGLM
 
     names = ("_pool_log_weight", "_pretrain", "_fit_noise", "gate", "gated_head", "noise_shift", "detect_logit")
     names = (*names, "_mixture")

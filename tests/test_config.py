@@ -250,13 +250,13 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     import pemviz.estimators.ams as ams
     import pemviz.estimators.cross_entropy as ce
     import pemviz.estimators.fallback as fallback
+    import pemviz.estimators.state as state
     import pemviz.methods.adaptive as adaptive
-    import pemviz.methods.state.estimator as state
     from pemviz.estimators.ams import AdaptiveMultilevelSplitting
     from pemviz.estimators.cross_entropy import CrossEntropy
     from pemviz.estimators.fallback import PlainFallback
+    from pemviz.estimators.state import StateCrossEntropy
     from pemviz.methods.state import StateSettings
-    from pemviz.methods.state.estimator import StateCrossEntropy
     from pemviz.settings import FallbackSettings
 
     own = {f.name for f in dataclasses.fields(StateSettings)}  # the state method's own settings

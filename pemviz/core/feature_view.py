@@ -6,7 +6,7 @@ q(detect | gap) that says what it learned: it may leave the gap to the PEM and m
 predicted time to collision. :func:`feature_effects` measures, for every column of the rows with their features, how
 far the proposal's log-odds shift from the PEM, ``s = logit q(detect) - logit p_PEM(detect)``, changes across one
 standard deviation of that column over the rows (its finite difference over one sd, centred: for the generalised linear
-model :class:`pemviz.methods.state.glm.StateGLM` exactly ``|w_j| sd_j / scale_j``, for a network the mean of
+model :class:`pemviz.estimators.state_glm.StateGLM` exactly ``|w_j| sd_j / scale_j``, for a network the mean of
 ``|ds/dx_j| sd_j`` at that resolution): a sensitivity measure of a fitted model that needs neither its form nor a
 reference state (cf. the sigma-normalised derivatives of Saltelli et al., "Global Sensitivity Analysis: The Primer",
 Wiley 2008, ch. 1). :func:`feature_curve` takes the column with the largest and bins the rows by it: per bin the mean

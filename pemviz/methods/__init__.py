@@ -413,8 +413,8 @@ for _record in (
         "cross-entropy importance sampling of each detection (and with --state-fit-errors each error's location and "
         "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
         "report them",
-        "pemviz.methods.state.estimator:StateCrossEntropy",
-        validate="pemviz.methods.state.hooks:state_conflict",
+        "pemviz.estimators.state:StateCrossEntropy",
+        validate="pemviz.estimators.state_hooks:state_conflict",
         run_adds="plus the replay of each batch's state features",
         baseline=True,
         feature_view=True,

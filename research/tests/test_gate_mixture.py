@@ -74,7 +74,7 @@ def test_the_estimate_stage_counts_its_rollouts_and_its_verdict_is_not_capped():
     assert simulated == 100 + 20 + 1500  # pretraining, the one CE stage, the final batch
     e = final.estimate
     assert "never fitted to a failure" not in e.reason
-    from pemviz.methods.state.estimator import StateCrossEntropy
+    from pemviz.estimators.state import StateCrossEntropy
 
     assert "verdict_cap" not in StateCrossEntropy.__dict__  # the patch undone
     assert final.n_simulations == simulated and ev.kind == "final" and ev.batch.n == 1500

@@ -74,7 +74,7 @@ def test_the_gated_proposal_weighs_its_rollouts_exactly():
         seen, _, _ = study.draw(0, ["--k", "1", "--n", "50", "--n-final", "1500"])
     finally:
         restore()
-    from pemviz.methods.state.glm import StateGLM
+    from pemviz.estimators.state_glm import StateGLM
 
     assert "noise_shift_of" not in StateGLM.__dict__  # undone
     w = np.exp(np.asarray(seen[-1].log_weight))

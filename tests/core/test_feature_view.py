@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from pemviz.core.detectors import StageSamplers
 from pemviz.core.feature_view import feature_curve, feature_effects, state_proposal_of
-from pemviz.methods.state.estimator import FirstColumns
-from pemviz.methods.state.glm import StateGLM
+from pemviz.estimators.state import FirstColumns
+from pemviz.estimators.state_glm import StateGLM
 from scipy.special import expit
 
 NAMES = ("gap_m", "object track_misses", "ego ttc_s", "ego constant")

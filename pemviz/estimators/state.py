@@ -4,7 +4,7 @@ state of the object, the ego's), for every perception event of a step.
 
 The paper's proposal is q_phi(detect | salient variables), a network fitted by cross-entropy; here q(detect) sees each
 object row with its object's and its ego's state features appended: by default the PEM's own logit plus a linear
-function of them (:class:`pemviz.methods.state.glm.StateGLM`), or the paper's network over them
+function of them (:class:`pemviz.estimators.state_glm.StateGLM`), or the paper's network over them
 (:class:`pemviz.core.sampling.FeatureProposal`, a :class:`~pemviz.core.sampling.StateProposal` with more input
 columns); with ``state_fit_errors`` a measurement-error head reads them too (:class:`pemviz.core.torch_fits.NoiseShift`:
 the location and log-scale shifts of the error), else the errors are the PEM's. All are fitted by the same CE stages,
@@ -132,14 +132,14 @@ class StateCrossEntropy(CrossEntropy):
         return with_state(batch, features)
 
     def _new_proposal(self, batch: RolloutBatch) -> Proposal:
-        """A :class:`FeatureProposal` (``state_model = "network"``) or a :class:`~pemviz.methods.state.glm.StateGLM`
+        """A :class:`FeatureProposal` (``state_model = "network"``) or a :class:`~pemviz.estimators.state_glm.StateGLM`
         (``"glm"``) over every column of the rows with their state features: the first (the gap) scaled by the
         problem's ``h_scale``, the others by their largest magnitude in the pretraining rollouts."""
         rows, _ = batch.events()
         scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])]
         shape = (tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
         if self.own.state_model == "glm":
-            from pemviz.methods.state.glm import StateGLM
+            from pemviz.estimators.state_glm import StateGLM
 
             return StateGLM(*shape, self._first)
         return FeatureProposal(*shape)

@@ -34,7 +34,7 @@ class StateGLM(FeatureProposal):
         columns, scales, reference: as :class:`pemviz.core.sampling.StateProposal` (every column of the rows with
             their features, the gap first).
         offset: the target's detector at such rows (it reads the rows' own columns:
-            :class:`pemviz.methods.state.estimator.FirstColumns`), whose logit is the offset.
+            :class:`pemviz.estimators.state.FirstColumns`), whose logit is the offset.
     """
 
     def __init__(self, columns: tuple[int, ...], scales: tuple[float, ...], reference: tuple[float, ...], offset: Any):

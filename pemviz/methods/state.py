@@ -1,17 +1,7 @@
-"""The state method's folder (``method = "state"``): the cross-entropy sampler whose proposal reads the state the stack
-acts on. Its estimator is :mod:`pemviz.methods.state.estimator` (``StateCrossEntropy``), the proposal's linear model
-:mod:`pemviz.methods.state.glm`, the check of its settings against the others :mod:`pemviz.methods.state.hooks`; the
-registry (:mod:`pemviz.methods`) names them, and the settings here,
-by text only (``"pemviz.methods.state:StateSettings"``), so that nothing below this folder imports it.
-
-This module holds the method's settings: :class:`StateSettings`, the method's own
-(:attr:`pemviz.methods.Method.settings`; a run of it holds them as
-:attr:`pemviz.config.ExperimentConfig.method_settings`). Each field, made by :func:`pemviz.methods.rows.setting`,
-carries its row of the settings table (range, help, flag; owner ``state``): a field added here is the method's setting,
-checked, a flag of ``pemviz run``, a field of the panel's *method settings* and recorded by its name;
-:class:`pemviz.methods.state.estimator.StateCrossEntropy` reads them (:func:`state_settings`; with the cross-entropy
-sampler's own, :class:`pemviz.methods.adaptive.CrossEntropySettings`, for its stages and fits). Light to import (it
-imports :mod:`pemviz.methods.rows` alone): the settings table reads its defaults when it is loaded."""
+"""The state method's settings (``method = "state"``: the cross-entropy sampler whose proposal reads the state the
+stack acts on), light: it imports :mod:`pemviz.methods.rows` alone. Its estimator is :mod:`pemviz.estimators.state`
+(``StateCrossEntropy``), the proposal's linear model :mod:`pemviz.estimators.state_glm`, the check of its settings
+against the others :mod:`pemviz.estimators.state_hooks`; the registry (:mod:`pemviz.methods`) names them by text."""
 
 from __future__ import annotations
 
@@ -37,7 +27,7 @@ class StateSettings:
         Zhou 2000), in (0, 1).
     state_model: q(detect)'s model, one of :data:`STATE_MODELS`: ``network``, the paper's network
         (:class:`pemviz.core.sampling.FeatureProposal`) over the row and its features; ``glm``, the PEM's own logit
-        plus a linear function of them (:class:`pemviz.methods.state.glm.StateGLM`). The measurement error's
+        plus a linear function of them (:class:`pemviz.estimators.state_glm.StateGLM`). The measurement error's
         location and log-scale shifts, where fitted (``state_fit_errors``), are linear in them either way.
     state_fit_errors: the proposal fits the measurement errors' location and log-scale shifts too
         (:class:`pemviz.core.torch_fits.NoiseShift`, linear in the row and its features); False: the errors are drawn

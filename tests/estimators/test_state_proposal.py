@@ -1,4 +1,4 @@
-"""The state-dependent proposal (``--method state``, pemviz.methods.state.estimator): a sampler that reads the state
+"""The state-dependent proposal (``--method state``, pemviz.estimators.state): a sampler that reads the state
 features is asked about each object row with the step's features appended (run_batched), while the target reads the rows
 alone, so every log p stays the PEM's own, bit for bit; the method is unbiased on the toy from a poor start; a scene
 without features is refused in one line; and the existing methods draw the same rollouts, bit for bit, as before the
@@ -18,7 +18,7 @@ from pemviz.core.rng import RQMC_BLOCK
 from pemviz.engine.events import RolloutChunk
 from pemviz.engine.experiment import Experiment
 from pemviz.estimators import build_estimator
-from pemviz.methods.state.estimator import FirstColumns
+from pemviz.estimators.state import FirstColumns
 from pemviz.scenarios.crossing.problem import crossing_problem
 from pemviz.scenarios.crossing.scene import FEATURE_NAMES, OBJECT_NAMES, BatchedCrossing, CrossingParams
 from pemviz.scenarios.problems import problem_for
@@ -113,7 +113,7 @@ def test_the_state_method_is_unbiased_on_the_toy_from_a_poor_start():
 
 
 def test_the_glm_is_the_pem_until_fitted_and_its_fit_moves_it_toward_the_elites_misses():
-    from pemviz.methods.state.glm import StateGLM
+    from pemviz.estimators.state_glm import StateGLM
     from pemviz.scenarios.toy.simulator import ToyDetector, ToyParams
 
     target = ToyDetector(ToyParams(10, 5, 3, 0.9))
