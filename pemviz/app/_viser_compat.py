@@ -1,8 +1,6 @@
-"""The one place pemviz reaches into viser's private API (viser 1.1, pinned in pyproject.toml).
-
-viser has no public way to send a GUI input's value to the browser again when it has not changed on the server;
-:func:`resend_value` does it with viser's own update message. When viser changes these internals, this module is
-the one to adapt (``tests/app/test_app.py`` drives the panel in a browser and finds out).
+"""The one place pemviz reaches into viser's private API (viser 1.1, pinned): :func:`resend_value` sends a GUI
+input's unchanged value to the browser again with viser's own update message (``tests/app/test_app.py`` finds out
+when viser changes).
 """
 
 from __future__ import annotations
@@ -30,9 +28,7 @@ def resend_value(handle: Any) -> None:
 
 
 def set_value(handle: _GuiInputHandle[T], value: T) -> None:
-    """``handle.value = value``: set a GUI input's value (viser sends it to the browser and runs its callbacks).
-
-    viser 1.1 defines the ``value`` setter apart from its getter, so mypy takes the property for read-only; the
-    assignment is typed here once, against the handle's value type.
+    """``handle.value = value``: set a GUI input's value (viser sends it and runs its callbacks), typed once here
+    because mypy takes viser 1.1's property for read-only.
     """
     handle.value = value  # type: ignore[misc]  # viser 1.1: setter not adjacent to the getter, mypy sees read-only

@@ -1,8 +1,5 @@
-"""Charts with a short title and their explanation in a caption below them.
-
-A uPlot title is one line of a few words (at most :data:`MAX_TITLE` characters: what the chart shows); what the reader
-needs to read it (what is ringed, which points are off scale, how many runs are left out, what a unit or an
-abbreviation means) goes in a small caption right below the chart, shown and hidden with it.
+"""Charts with a short title (at most :data:`MAX_TITLE` characters) and their explanation (what is ringed, off
+scale, left out; units and abbreviations) in a caption below them, shown and hidden with them.
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
 """uPlot figures of what the sampler really did, the charts of *Live* (viser's ``add_uplot``): q(detect) of each
-stage's sampler over the states its rollouts visited, per gap bin, beside the PEM's (:mod:`pemviz.core.proposal_view`),
-on a probability and on a log-odds scale, and the 95 % interval and the exact answer on the log10 mu_hat chart. Colours
-from :mod:`pemviz.sinks.colours`; every range set from the data that exists, by :func:`pemviz.app.plots.robust_range`:
-values far from the rest are drawn at the edge, ringed, and counted in the title. A gap bin with fewer than
-:data:`MIN_BIN_STATES` visited states is not joined into its stage's line. The charts of *Explain* (a rollout's
-controller, the tracker and the ACC) are :mod:`pemviz.app.explain_charts`'.
+stage's sampler over the states its rollouts visited, per gap bin, beside the PEM's
+(:mod:`pemviz.core.proposal_view`), and the log10 mu_hat chart with its interval and the exact answer. Ranges come
+from :func:`pemviz.app.plots.robust_range`; the *Explain* charts are :mod:`pemviz.app.explain_charts`'.
 """
 
 from __future__ import annotations
@@ -91,10 +88,8 @@ def marginal_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
 
 
 def unchanged_share(values: np.ndarray, edges_m: np.ndarray) -> np.ndarray:
-    """Per bin (``edges_m``, metres, as :func:`pemviz.core.proposal_view.proposal_view` bins), the share of the
-    visited states ``values`` [N, T] (metres, e.g. the gap) whose value equals the same rollout's one step before:
-    both cars at rest (or moving together), one state counted again each step. float64 [B]; nan for an empty bin; a
-    first step counts as changed."""
+    """Per bin (``edges_m``, metres), the share of the visited states ``values`` [N, T] equal to the same rollout's
+    one step before (cars at rest, one state counted again each step): float64 [B], nan for an empty bin."""
     gap = np.asarray(values, dtype=np.float64)
     edges = np.asarray(edges_m, dtype=np.float64)
     same = np.zeros(gap.shape, bool)
@@ -172,23 +167,15 @@ def fill_marginal_plots(
     plots: dict[str, viser.GuiUplotHandle], record: PanelRun, note: viser.GuiHtmlHandle | None = None
 ) -> None:
     """Each stage's mean q(detect) and median log-odds of a miss (nats) over its visited states, per bin of the view's
-    axis (:attr:`pemviz.app.runs.PanelRun.proposal_axis`: e.g. the gap in 0.5 m bins of a scene of one object a
-    step, or one car's gap ahead among several in 1 m bins over the states where the camera sees it,
-    :func:`pemviz.app.runs.object_proposal_view`),
-    the PEM's at the newest stage's states, and the newest stage's 10-90 % spread as a band. Without a view to draw
-    both charts are hidden and ``note`` says why (:func:`marginal_note`).
+    axis (:attr:`pemviz.app.runs.PanelRun.proposal_axis`), the PEM's at the newest stage's states, and the newest
+    stage's 10-90 % spread as a band; without a view both charts are hidden and ``note`` says why
+    (:func:`marginal_note`).
 
-    A bin with fewer than :data:`MIN_BIN_STATES` states is left out of every line (its mean is mostly noise); the
-    newest stage's such bins are drawn as hollow rings at their value and the title counts them. The newest stage's
-    bins crowded with standing states (:func:`standing_bins`) are ringed in grey on the probability chart and its
-    title gives each one's count and share of standing states: their value is real, not noise. For example, the
-    6.0-6.5 m bin of the default run's final batch (for example, of the braking scenario) holds 6,048 states, 3.4x its
-    neighbours, 77 % of them a car that stopped in time standing behind the stopped object ahead for the rest of the
-    episode, where the sampler does not steer and its q(detect) is the PEM's 0.993: the bin's mean q is 0.90 against
-    0.47-0.51 beside it (0.56 over its moving states). The log-odds chart's range is
-    :func:`pemviz.app.plots.robust_range` of the medians of the bins with enough states, at most -12..12 nats; a
-    median beyond is drawn at the edge.
-    """
+    Bins with fewer than :data:`MIN_BIN_STATES` states are left out of the lines (the newest stage's drawn as hollow
+    rings, counted in the title); bins crowded with standing states (:func:`standing_bins`) are ringed in grey,
+    their count and share in the title (a real value, e.g. a stopped car behind a stopped object, where the sampler
+    does not steer). The log-odds range is :func:`pemviz.app.plots.robust_range` of the medians, at most -12..12
+    nats."""
     stages = _view_stages(record)
     if note is not None:
         note.content = marginal_note(record)
@@ -305,13 +292,10 @@ def fill_marginal_plots(
 
 
 def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
-    """The log10 mu_hat chart (log10 probability) with each run's 95 % interval per stage as a band between dashed
-    lines and the exact answer as a black line where the run knows it. Drawn after (and over)
-    :func:`pemviz.app.plots.fill_stage_plot`'s chart, whose runs and stages it keeps.
-
-    The y range is :func:`pemviz.app.plots.robust_range` (:data:`MU_HAT_RULE`) of the estimates and the interval
-    bounds of the stages with at least one failure, widened to the exact answer: a stage without failures has the
-    upper bound log10 1 = 0 (the interval says nothing), drawn at the top edge, ringed, and counted in the caption.
+    """The log10 mu_hat chart (log10 probability) with each run's 95 % interval per stage as a band and the exact
+    answer as a black line, drawn over :func:`pemviz.app.plots.fill_stage_plot`'s chart. The y range is
+    :func:`pemviz.app.plots.robust_range` (:data:`MU_HAT_RULE`) of the stages with a failure, widened to the exact
+    answer; a stage without failures (upper bound 0) is drawn at the top edge, ringed and counted.
     """
     if not runs:
         return

@@ -1,19 +1,10 @@
 """The *Compare* tab's chart and table: every kept run's final estimate side by side, and the settings that differ.
 
-The chart (viser's ``add_uplot``) puts each kept run at its own position on the x axis (1, 2, ... in the order the
-runs are kept, the tick labelled with the run's short label) and draws, on a log10 scale (y: log10 of a probability):
-the run's final mu_hat as a dot in the run's colour (:func:`pemviz.app.plots.run_colour`), its 95 % interval as an
-error bar of the same colour, and, where the run's problem knows it, the exact answer (black) or the plain Monte Carlo
-reference (grey, dashed) as a short horizontal bar across the run's position: runs of different scenarios have
-different answers. A run with no failure has no point estimate (mu_hat = 0, log10 = -inf): where its rollouts bound p
-(plain Monte Carlo's rule of three) the bound is drawn as a dashed cap with a dashed line down to the chart's bottom
-and the tick says ``p < bound``; otherwise, and for a run without a final estimate, nothing is drawn and the note under
-the chart says why. No nan or inf value reaches the browser as a range: both scales are set explicitly from the finite
-values drawn.
-
-The table lists the result rows (mu_hat, interval, failures, ESS, verdict, status) and only the settings whose values
-differ between the kept runs; it says how many identical settings it hides (the *Runs* tab lists them all).
-"""
+The chart (viser's ``add_uplot``, y: log10 of a probability) puts each kept run at its own x position: its mu_hat as
+a dot in its colour (:func:`pemviz.app.plots.run_colour`), its 95 % interval as an error bar, and the exact answer
+(black) or plain Monte Carlo reference (grey, dashed) across it. A run without failure shows its upper bound where
+its rollouts give one; otherwise the note says why nothing is drawn. Both scales are set from the finite values
+drawn. The table lists the result rows and only the settings that differ between the kept runs."""
 
 from __future__ import annotations
 
@@ -49,10 +40,8 @@ CAP_HALF_WIDTH = 0.12
 BAR_HALF_WIDTH = 0.3
 """Half the width of an exact or reference bar, in x positions."""
 _OFFSETS = np.array([-BAR_HALF_WIDTH, -CAP_HALF_WIDTH, 0.0, 0.0, CAP_HALF_WIDTH, BAR_HALF_WIDTH])
-"""The x offsets drawn at each run's position: the bar's left end, the caps' left end, the centre twice (the bottom
-and the top of the interval's vertical line), the caps' right end and the bar's right end. Every series belongs to
-one run and is nan at the other runs' offsets: uPlot gaps only at null, so one series over several runs would join
-them with a line."""
+"""The x offsets drawn at each run's position (bar, caps, the interval's line twice, caps, bar); every series
+belongs to one run and is nan at the others' offsets, since uPlot gaps only at null."""
 _BAR = slice(0, 6)
 _CAP = slice(1, 5)
 _BOTTOM, _TOP = 2, 3
@@ -65,17 +54,13 @@ class RunPoint:
 
     Attributes:
         record: the run.
-        log10_mu: log10 of its final mu_hat; None without a final estimate or with mu_hat = 0 (no failure).
-        log10_lo, log10_hi: log10 of its 95 % interval's ends; ``log10_lo`` None when the interval reaches 0 (its
-            line is then drawn down to the chart's bottom and the note says so).
-        log10_bound: log10 of the upper bound p < bound of a run without failure whose rollouts bound p (plain Monte
-            Carlo's rule of three); None otherwise.
+        log10_mu: log10 of its final mu_hat; None without a final estimate or with no failure.
+        log10_lo, log10_hi: log10 of its 95 % interval's ends; ``log10_lo`` None when the interval reaches 0.
+        log10_bound: log10 of the upper bound of a run without failure whose rollouts bound p; None otherwise.
         log10_exact: log10 of the exact answer of the run's problem; None where unknown.
-        log10_reference: log10 of the plain Monte Carlo reference of the run's problem, where it has no exact answer.
-        bound_only: the run's weights back no interval (:attr:`pemviz.core.estimate.Estimate.interval_backed`):
-            ``log10_lo`` is its 95 % lower bound, ``log10_hi`` None, and the line runs up to the chart's top.
-        note: why nothing, or only a bound, is drawn for this run ("" when its estimate is drawn).
-    """
+        log10_reference: log10 of the plain Monte Carlo reference, where there is no exact answer.
+        bound_only: the run's weights back no interval: ``log10_lo`` is its 95 % lower bound, ``log10_hi`` None.
+        note: why nothing, or only a bound, is drawn for this run ("" when its estimate is drawn)."""
 
     record: PanelRun
     log10_mu: float | None = None
@@ -184,16 +169,11 @@ def tick_label(p: RunPoint) -> str:
 def fill_estimate_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> list[str]:
     """Draw ``runs`` (the kept runs, in order) on ``plot``; the notes of the runs drawn only in part or not at all.
 
-    x: run k of the list at position k (1-based), ticks labelled by :func:`tick_label`; y: log10 of a probability.
-    Series (a value at the x offsets :data:`_OFFSETS` they draw, nan elsewhere; uPlot leaves nan out): per run with an
-    estimate ``<short label> 95 % low`` and ``... 95 % high`` (the interval's caps), ``... 95 % interval`` (the
-    vertical line between them) and ``... mu_hat`` (a dot at the run's position), or for a run whose weights back no
-    interval ``... 95 % lower bound`` (its cap) and ``... no upper bound`` (a line up to the chart's top) with its
-    ``... mu_hat``; per run without failure whose
-    rollouts bound p, ``<short label> upper bound`` (a dashed cap) and ``... below the bound`` (a dashed line down to
-    the chart's bottom); then, per run whose problem knows one, ``<short label> exact`` (:data:`EXACT`) or ``<short
-    label> reference (plain Monte Carlo)`` (:data:`REFERENCE`), a bar across the run's position.
-    """
+    x: run k at position k (1-based, ticks by :func:`tick_label`); y: log10 of a probability. Per run the series of
+    its interval's caps and line and its mu_hat dot (or its lower bound and a line to the top where its weights back
+    no interval, or its upper bound and a dashed line down where it has no failure), then the exact answer
+    (:data:`EXACT`) or reference (:data:`REFERENCE`) as a bar across it; each series is nan away from the offsets
+    :data:`_OFFSETS` it draws."""
     if not runs:
         return []
     points = [run_point(r) for r in runs]

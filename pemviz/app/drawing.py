@@ -1,10 +1,9 @@
-"""What the panel asks of a scenario's drawing object (:attr:`pemviz.core.problem_view.ProblemView.drawing`): the hooks
-of :class:`PanelDrawing`, which return plain data (:mod:`pemviz.scenarios.panel_data`) that the panel renders with
-viser and its colours. The panel names no scenario: a drawing whose :meth:`~PanelDrawing.panel_scene` is a
-:class:`~pemviz.scenarios.panel_data.LaneScene` is drawn as the ego and one object ahead of it (hooks of
-:class:`LanePanel`), one whose scene is an :class:`~pemviz.scenarios.panel_data.ObjectsScene` as several objects
-around the ego (hooks of :class:`ObjectsPanel`). A problem without a drawing (a toy) draws no scene. Before any
-rollout is shown the panel draws the idle scene of the scenario chosen for the next run (:func:`scenario_drawing`).
+"""What the panel asks of a scenario's drawing object (:attr:`pemviz.core.problem_view.ProblemView.drawing`): the
+hooks of :class:`PanelDrawing`, returning plain data (:mod:`pemviz.scenarios.panel_data`) that the panel renders, so
+it names no scenario. A :class:`~pemviz.scenarios.panel_data.LaneScene` is drawn as the ego and one object ahead
+(:class:`LanePanel`), an :class:`~pemviz.scenarios.panel_data.ObjectsScene` as several objects around the ego
+(:class:`ObjectsPanel`); a toy draws no scene. Before any rollout, the idle scene of the chosen scenario
+(:func:`scenario_drawing`).
 """
 
 from __future__ import annotations
@@ -41,15 +40,14 @@ class LaneExplanation(Protocol):
         p_detect, q_detect: float64 [T] p(detect) under the PEM and q(detect) of the sampler at each step.
         cum_log_weight: float64 [T] the cumulative importance log-weight (nats).
         decisive: int [D] the misses whose flip alone avoids the failure.
-        crashed: the rollout failed; replay_matches: the replay reproduces it (the counterfactual is valid).
-        severity: its outcome (``short``, ``breach_step``: the step the failure margin was first breached or None).
-        controller: the controller's signals, float64 / bool [T] each: ``time_s``, ``accel_mps2``, ``brake_command``,
+        crashed: the rollout failed; replay_matches: the replay reproduces it.
+        severity: its outcome (``short``, ``breach_step``).
+        controller: the controller's signals, [T] each: ``time_s``, ``accel_mps2``, ``brake_command``,
             ``brake_applied``.
         counterfactual: ``minimal_set`` (int [K]), ``smallest``, ``last_saving_step`` (int or None).
-        contact: bool [T], the steps in contact (a collision: those accelerations do not set the chart's range).
+        contact: bool [T], the steps in contact.
         minimal_set_outcome: what detections at the minimal miss set give, in words.
-        sentence: what happened, in words.
-    """
+        sentence: what happened, in words."""
 
     time_s: np.ndarray
     p_detect: np.ndarray

@@ -1,8 +1,6 @@
-"""The *Experiment* tab of a :class:`pemviz.app.session.Session`: the form of the next run, each field with its own
-error line; a preset or a scenario sets the fields it has settings for, and the folder *scenario parameters*
-(:class:`pemviz.app.params_form.ScenarioParamsForm`) holds the chosen scenario's parameters, the folder *method
-settings* (:class:`pemviz.app.params_form.MethodSettingsForm`, in *advanced*) the chosen method's own settings. Whoever
-builds the tab is told of the scenario chosen (the 3D view draws its idle scene)."""
+"""The *Experiment* tab of a :class:`pemviz.app.session.Session`: the next run's form, each field with its own error
+line; a preset or scenario sets its fields, and the folders *scenario parameters* and *method settings*
+(:mod:`pemviz.app.params_form`) hold the chosen scenario's parameters and method's settings."""
 
 from __future__ import annotations
 
@@ -133,12 +131,8 @@ class ExperimentTab:
         self.own.show_errors(form.errors)
 
     def echo(self) -> None:
-        """Send every field's value as the server has it back to the browser, so the form shows what runs.
-
-        viser's browser client sends GUI updates through one 50 ms throttle shared by all inputs and buttons:
-        of several messages inside one window only the last goes out, so a value typed just before pressing
-        Run (or before typing into the next field) can be lost on the way. Echoing makes such a field show
-        the value the run really uses instead of what the browser alone remembers.
+        """Send every field's value as the server has it back to the browser, so the form shows what runs (viser's
+        client throttles GUI updates at 50 ms and can drop a value typed just before Run).
         """
         with self.client.atomic():
             for handle in (

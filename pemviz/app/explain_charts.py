@@ -1,11 +1,8 @@
-"""uPlot figures of *Explain* (viser's ``add_uplot``): what the system under test did along the rollout explained.
-A lane scene's rollout: the controller's brake command, applied brake and acceleration (:func:`fill_controller_plot`).
-A rollout of several objects whose drawing tells a story (e.g. the cut-in): car 0's gap ahead and lateral offset, truth
-against the tracker's estimate, and the ACC's acceleration with the car it follows (:func:`fill_object_plots`). Each
-chart's last series is the marker of the step shown. Colours from :mod:`pemviz.sinks.colours`; every range set from
-the data that exists, by :func:`pemviz.app.plots.robust_range` (:data:`CONTROLLER_RULE`, :data:`TRACK_RULE`): values
-far from the rest are drawn at the edge, ringed, and counted in the caption below the chart. The charts of *Live* are
-:mod:`pemviz.app.charts`'.
+"""uPlot figures of *Explain* (viser's ``add_uplot``): what the system under test did along the rollout explained: a
+lane scene's brake command, applied brake and acceleration (:func:`fill_controller_plot`); for several objects with
+a story, car 0's gap ahead and lateral offset against the tracker's estimate and the ACC's acceleration
+(:func:`fill_object_plots`). Ranges come from :func:`pemviz.app.plots.robust_range` (:data:`CONTROLLER_RULE`,
+:data:`TRACK_RULE`).
 """
 
 from __future__ import annotations
@@ -45,13 +42,9 @@ def controller_plot(gui: viser.GuiApi, order: float | None = None) -> viser.GuiU
 
 def fill_controller_plot(plot: viser.GuiUplotHandle, ex: LaneExplanation, step: int, title: str) -> None:
     """The ego's acceleration (m/s^2), and as rows of dots above it the steps at which the emergency brake was
-    commanded (the object detected within the window) and applied (one step later); a marker at ``step``.
-
-    The y range is :func:`pemviz.app.plots.robust_range` of the acceleration (:data:`CONTROLLER_RULE`) over the steps
-    before contact (``ex.contact``): a step off it is drawn at the edge, ringed, and the title gives its value and
-    time. The one that flattened the chart is the contact step, where the simulator stops the ego within one step
-    (for example a = -v / dt = -5.76 m/s / 0.05 s = -115 m/s^2 at 3.10 s in the braking scenario's default crash), a
-    collision rather than the controller's doing (at most 27.5 m/s^2 there, drawn at its place).
+    commanded and applied; a marker at ``step``. The y range is :func:`pemviz.app.plots.robust_range`
+    (:data:`CONTROLLER_RULE`) over the steps before contact (``ex.contact``), so the contact step, where the
+    simulator stops the ego within one step, is drawn at the edge, ringed, with its value in the title.
     """
     c = ex.controller
     t = c.time_s
@@ -226,25 +219,10 @@ def _fill_track_chart(
 
 def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int, title: str) -> None:
     """Draw object 0 of ``ox`` (:class:`pemviz.app.objects_view.ObjectsExplanation` with a story, e.g. the car that
-    cuts in) in the charts of :func:`object_plots`, with a marker at ``step`` (the 3D scene's step, the last series of
-    each chart):
-
-    - its gap ahead (its rear minus the ego's front bumper, metres) as it truly was (black), where the tracker's
-      confirmed track placed it (violet: the true gap plus the track's error along the road), where the camera
-      measured it when detected (blue dots: plus the measurement's range error) and the steps it was missed (orange
-      dots, on the truth), with the contact line at 0 m (red, dashed) and the failure step (a red dot);
-    - its lateral offset from the centre of the ego's lane (metres, to the right) in the same colours, with the lane's
-      edges at +-half its width (``ox.lane_width_m``; yellow, dashed): the ACC follows a track whose estimated centre
-      lies inside them;
-    - the ACC's acceleration at each decision (m/s^2, applied over the next step; IDM clipped to +-6 m/s^2), with two
-      rows of dots above it: the steps it followed car 0's track (violet; another car's: grey) and the steps car 0's
-      box overlapped the ego's lane (yellow).
-
-    Sources: ``ox``'s positions, detections, measurements, tracks and gaps ahead, and its story (``severity``,
-    ``acc``: the ACC's decisions, ``in_lane``: the steps object 0 overlapped the ego's lane),
-    e.g. :class:`pemviz.scenarios.cut_in.story.CutInStory`. The y ranges are :func:`pemviz.app.plots.robust_range`'s
-    (:data:`TRACK_RULE`, :data:`CONTROLLER_RULE`): a value off them is drawn at the edge and the caption counts it.
-    """
+    cuts in) in the charts of :func:`object_plots`, with a marker at ``step``: its gap ahead (truth, track,
+    measurements, misses, contact line and failure step), its lateral offset from the ego's lane centre with the
+    lane's edges, and the ACC's acceleration with the steps it followed car 0 and car 0 overlapped the ego's lane.
+    The y ranges are :func:`pemviz.app.plots.robust_range`'s (:data:`TRACK_RULE`, :data:`CONTROLLER_RULE`)."""
     st = ox.story
     t = np.asarray(ox.time_s, dtype=np.float64)
     i = int(np.clip(step, 0, t.size - 1))

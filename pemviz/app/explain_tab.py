@@ -1,9 +1,7 @@
-"""The *Explain* tab of a :class:`pemviz.app.session.Session` (plots panel, left): the rollout shown in the 3D scene,
-step by step. A rollout of a lane scene (:class:`pemviz.app.drawing.LanePanel`, e.g. the braking scenario's): its
-severity, what happened in words, the strip charts of its distance, detections and proposal, the controller's
-signals, its decisive misses, minimal miss set and last saving step. A rollout of several objects
-(:class:`pemviz.app.drawing.ObjectsPanel`): the decisive errors, every object's events, the tracker and controller
-charts where its drawing tells a story, and the scene from above."""
+"""The *Explain* tab of a :class:`pemviz.app.session.Session`: the rollout shown in the 3D scene, step by step: for
+a lane scene (:class:`pemviz.app.drawing.LanePanel`) its severity, story, strip charts, controller and decisive
+misses; for several objects (:class:`pemviz.app.drawing.ObjectsPanel`) the decisive errors, every object's events,
+the tracker and controller charts and the scene from above."""
 
 from __future__ import annotations
 

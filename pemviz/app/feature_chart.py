@@ -1,8 +1,6 @@
 """The *Live* chart of what a state-dependent proposal does to a feature (``method = "state"``): the newest stage's
-q(detect) against the PEM's p(detect) over the feature that moved the proposal most from the PEM, per bin of the rows
-the stage drew (:func:`pemviz.core.feature_view.stage_feature_curve`; :attr:`pemviz.app.runs.PanelRun.feature_curves`),
-below the q(detect) per gap bin charts, as the recording's feature view (:mod:`pemviz.sinks.rerun_features`). Hidden
-for a run whose sampler reads no state."""
+q(detect) against the PEM's p(detect) over the feature that moved it most
+(:func:`pemviz.core.feature_view.stage_feature_curve`). Hidden for a run whose sampler reads no state."""
 
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
-"""*Explain a failure* for a scene of several objects (e.g. the cut-in): every object at every step, detected, missed or
-unseen, where each detected one was measured beside the noise PEM's error ellipse, and which object's errors, at
-which steps, decided the failure (:func:`pemviz.core.counterfactuals.counterfactuals`: each miss flipped to an exact
-detection and each measurement error set to zero, one at a time, the rollout replayed). Plain functions of a rollout
-returning HTML with inline SVG; no viser.
+"""*Explain a failure* for a scene of several objects (e.g. the cut-in): every object at every step, detected,
+missed or unseen, where each detected one was measured inside the noise PEM's error ellipse, and which errors
+decided the failure (:func:`pemviz.core.counterfactuals.counterfactuals`). Plain functions of a rollout returning
+HTML with inline SVG; no viser.
 """
 
 from __future__ import annotations
@@ -45,29 +44,22 @@ class ObjectsExplanation:
     """A rollout of a scene of several objects, object by object, and which of its perception errors decided it.
 
     Attributes:
-        lateral_m, ahead_m: float64 [T, M] each object's true position seen from the ego (metres: to the right,
-            ahead).
-        detected, seen: bool [T, M] detected; visible to the camera at all (an unseen object is never detected).
-        measured: float64 [T, M, 2] where each detected object was measured (lateral, ahead; NaN where not
-            detected), or None: the detector does not mislocate.
-        ellipse: float64 [T, M, 2, 2] the noise PEM's (centre offset, half-axis) along lateral and ahead at each
-            object row (metres), or None.
-        tracked: float64 [T, M, 2] where the tracker placed each car it has a confirmed track of (lateral, ahead;
-            NaN where none), or None: the scene has no tracker.
-        followed: bool [T, M] the car the controller followed at the step (all False without a tracker).
-        counterfactuals: every single intervention of a failing rollout (None: it did not fail, or the problem
-            cannot replay).
+        lateral_m, ahead_m: float64 [T, M] each object's true position seen from the ego (metres: right, ahead).
+        detected, seen: bool [T, M] detected; visible to the camera at all.
+        measured: float64 [T, M, 2] where each detected object was measured (lateral, ahead; NaN where not), or
+            None.
+        ellipse: float64 [T, M, 2, 2] the noise PEM's (centre offset, half-axis) along lateral and ahead (metres),
+            or None.
+        tracked: float64 [T, M, 2] the tracker's confirmed positions (NaN where none), or None: no tracker.
+        followed: bool [T, M] the car the controller followed at the step.
+        counterfactuals: every single intervention of a failing rollout (None: it did not fail, or cannot replay).
         names: the objects' names.
         failed: the rollout failed.
         time_s: float64 [T] the time of each step (seconds).
-        gap_ahead: float64 [T, M] each object's gap ahead (its rear minus the ego's front bumper along the road,
-            metres; negative beside or behind), or None: the rows hold no such column (the scene's
-            :attr:`~pemviz.scenarios.panel_data.ObjectsScene.distance_column`).
-        story: what happened, in words, and the severity (the drawing's
-            :meth:`~pemviz.app.drawing.ObjectsPanel.objects_story`), or None: the scene tells none;
-            e.g. :class:`pemviz.scenarios.cut_in.story.CutInStory`.
-        lane_width_m: a lane's width (metres).
-    """
+        gap_ahead: float64 [T, M] each object's gap ahead (metres; negative beside or behind), or None.
+        story: what happened, in words, and the severity (:meth:`~pemviz.app.drawing.ObjectsPanel.objects_story`),
+            or None.
+        lane_width_m: a lane's width (metres)."""
 
     lateral_m: np.ndarray
     ahead_m: np.ndarray
@@ -96,22 +88,19 @@ class ObjectsExplanation:
 
 
 def explain_objects(problem: Problem | None, view, batch, failed: bool) -> ObjectsExplanation:
-    """The :class:`ObjectsExplanation` of rollout 0 of ``batch`` (a batch of one rollout with object rows).
+    """The :class:`ObjectsExplanation` of rollout 0 of ``batch`` (a batch of one rollout with object rows); times in
+    the problem's ``dt_s`` (else the drawing's, else 0.1 s).
 
     Args:
-        problem: the run's :class:`pemviz.core.problems.Problem` (its target gives the error ellipses, its ``branch``
-            replays the counterfactuals); None: neither.
-        view: its :class:`pemviz.core.problem_view.ProblemView` (``objects_xy``, ``noise_xy``, ``drawing``: an
-            :class:`pemviz.app.drawing.ObjectsPanel`, which tells the story and gives the lanes).
+        problem: the run's :class:`pemviz.core.problems.Problem` (error ellipses, counterfactual replays); None:
+            neither.
+        view: its :class:`pemviz.core.problem_view.ProblemView` (its drawing, an
+            :class:`pemviz.app.drawing.ObjectsPanel`, tells the story).
         batch: one rollout, ``objects`` [1, T, M, G] named by ``object_names``.
         failed: whether the rollout failed (only a failure is explained by counterfactuals).
 
-    The times are the problem's ``dt_s`` seconds per step (else the drawing's, else 0.1 s); the story and the severity
-    are told where the drawing tells them (:meth:`pemviz.app.drawing.ObjectsPanel.objects_story`).
-
     Raises:
-        ValueError: the view has no object positions (``objects_xy``) or the batch no object rows.
-    """
+        ValueError: the view has no object positions (``objects_xy``) or the batch no object rows."""
     sc = object_scene(view, batch)
     ellipse = None
     target = getattr(problem, "target", None)
@@ -197,11 +186,10 @@ def _road_svg(
 
 
 def birds_eye_svg(ox: ObjectsExplanation, step: int, width: int = 430, height: int = 170) -> str:
-    """The scene at ``step`` from above: the ego (blue-grey, at the left third), each object where it truly is
-    (green detected, orange missed, grey unseen; a red outline where its error at this step was decisive), for a
-    detected one where it was measured (a blue dot and a line from the truth) inside the noise PEM's ellipse of
-    :data:`ELLIPSE_SCALES` scales, and where the tracker places each car it tracks (a dashed violet box, bold with
-    "ACC follows" under the one the controller followed). The road runs to the right; the ego's right is down."""
+    """The scene at ``step`` from above: the ego, each object where it truly is (green detected, orange missed, grey
+    unseen; red outline where its error was decisive), a detected one's measurement inside the noise PEM's ellipse
+    (:data:`ELLIPSE_SCALES`), and the tracker's boxes (the followed one marked "ACC follows"). The road runs to the
+    right."""
     t = int(np.clip(step, 0, ox.n_steps - 1))
     lo, hi = AHEAD_M
     sx = width / (hi - lo)
@@ -314,18 +302,16 @@ def raster_svg(ox: ObjectsExplanation, step: int, width: int = 430) -> str:
 
 
 def detect_svg(names: tuple[str, ...], p: np.ndarray, q: np.ndarray, step: int, width: int = 430) -> str:
-    """Each object's proposal along the rollout, a band per object in the order of :func:`raster_svg`: q(detect) of
-    the sampler that drew it (blue) and p(detect) of the PEM (grey, dashed) at each step, 0 at the band's foot and 1
-    at its head; a black line at ``step``.
+    """Each object's proposal along the rollout, a band per object in the order of :func:`raster_svg`: q(detect) of the
+    sampler (blue) and p(detect) of the PEM (grey, dashed) at each step, a black line at ``step``.
 
     Args:
         names: the M objects' labels.
-        p: float64 [T, M] each object's p(detect) under the PEM at each step
+        p: float64 [T, M] each object's p(detect) under the PEM
             (:func:`pemviz.core.proposal_view.object_detect_probabilities`).
         q: float64 [T, M] each object's q(detect) under the sampler that drew the rollout.
-        step: the step marked (the 3D scene's step).
-        width: the picture's width (pixels).
-    """
+        step: the step marked.
+        width: the picture's width (pixels)."""
     t_steps, m = p.shape
     left, band = label_width(names), 22
     cw = (width - left - 4) / t_steps

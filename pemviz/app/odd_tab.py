@@ -1,8 +1,6 @@
-"""The *ODD* tab of the plots panel: after a run over an operating design domain (a scenario parameter given a
-distribution in the Experiment tab, ``~uniform(a, b)``), where p_ODD comes from. Per drawn parameter a chart of log10
-p(failure | bin) over the parameter with its 95 % interval's ends (a dashed line where a bin has only a lower bound),
-then a table of every bin (P(bin), p, interval, verdict, share of p_ODD) and the region that carries most of p_ODD
-(:class:`pemviz.core.odd.OddMap`, which the final estimate carries)."""
+"""The *ODD* tab of the plots panel: after a run over an operating design domain, where p_ODD comes from: per drawn
+parameter a chart of log10 p(failure | bin) with its interval, a table of every bin, and the region that carries
+most of p_ODD (:class:`pemviz.core.odd.OddMap`)."""
 
 from __future__ import annotations
 

@@ -1,10 +1,7 @@
-"""The viser server of ``pemviz serve``: one :class:`pemviz.app.session.Session` per browser client.
-
-Each client that connects gets its own form, runs, Stop button, plots and 3D scene (built in
-``client.gui`` / ``client.scene``); a client that leaves has its run stopped. The server holds what
-the sessions share: the recordings folder, the scenario's constants, run numbers (unique across tabs),
-a warm-up run (so that the first Run starts at full speed) and one player thread that steps every
-session's playback and refreshes the status lines of running runs (elapsed time, expected time).
+"""The viser server of ``pemviz serve``: one :class:`pemviz.app.session.Session` per browser client (its own form,
+runs, Stop, plots and 3D scene; a client that leaves has its run stopped). The server holds what the sessions share:
+the recordings folder, the scenario's constants, run numbers, a warm-up run and one player thread that steps every
+session's playback and status line.
 """
 
 from __future__ import annotations
@@ -32,10 +29,9 @@ STATUS_EVERY_S = 0.5
 
 
 def idle_drawing(scenario: str) -> LanePanel:
-    """The drawing object of the lane scene every session builds first: ``scenario``'s at its defaults where it draws a
-    lane scene (:func:`pemviz.app.drawing.lane_panel`), else the first registered scenario's that does. Each session
-    then shows the idle scene of the scenario chosen in its form (:meth:`pemviz.app.scene_view.SceneView
-    .choose_scenario`): this lane scene, another's, several objects or none.
+    """The drawing object of the lane scene every session builds first: ``scenario``'s at its defaults where it
+    draws one (:func:`pemviz.app.drawing.lane_panel`), else the first registered scenario's that does; a session
+    then shows its chosen scenario's idle scene.
 
     Raises:
         ValueError: no registered scenario draws a lane scene.
@@ -52,18 +48,16 @@ class PanelApp:
 
     Args:
         host: interface to bind (``127.0.0.1``: this machine only).
-        port: TCP port (0: any free port; viser tries the next ports when it is taken; see :attr:`port`).
+        port: TCP port (0: any free port; see :attr:`port`).
         recordings_dir: where exports are written (created on the first export).
         config: the form's initial values (default: ``preset``'s settings).
         preset: the preset the form starts with, one of :data:`pemviz.app.runs.PANEL_PRESETS`.
-        pem: the PEM the form starts with (``ExperimentConfig.pem``; None: the shipped default), without ``config``.
-        warm_up: import the simulator and run a tiny experiment in the background, so that the first
-            Run starts at full speed.
+        pem: the PEM the form starts with (None: the shipped default), without ``config``.
+        warm_up: import the simulator and run a tiny experiment in the background.
         verbose: let viser print its banner.
 
     Raises:
-        ValueError: an unknown ``preset``.
-    """
+        ValueError: an unknown ``preset``."""
 
     def __init__(
         self,

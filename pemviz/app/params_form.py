@@ -1,8 +1,6 @@
-"""The folders of the *Experiment* tab that change with a choice: *scenario parameters* (one text field per parameter
-of the chosen scenario) and *method settings* (one per setting of the chosen method's own,
-:attr:`pemviz.methods.Method.settings`). Each field has its own error line and the folder is rebuilt when the choice
-changes (:class:`ChoiceFolder`). The texts are parsed by :func:`pemviz.app.form.parse_form`
-(:func:`pemviz.app.form.parse_params`, :func:`pemviz.app.form.parse_own`)."""
+"""The folders of the *Experiment* tab that change with a choice: *scenario parameters* and *method settings*
+(:attr:`pemviz.methods.Method.settings`), each field with its own error line, rebuilt when the choice changes
+(:class:`ChoiceFolder`); parsed by :func:`pemviz.app.form.parse_form`."""
 
 from __future__ import annotations
 
@@ -25,10 +23,9 @@ Field = tuple[str, str, str, str]
 
 
 class ChoiceFolder:
-    """The fields that belong to one value of a choice (a scenario, a method) inside a folder: :attr:`fields` (name
-    -> text field) and their error lines, for the value :attr:`shown`; rebuilt by :meth:`show` when the choice changes.
-    A subclass says which fields a value has (:meth:`fields_of`), the line shown when it has none (:meth:`empty`; an
-    empty line hides the folder) and the key of a field's error (:meth:`error_key`).
+    """The fields of one value of a choice inside a folder (:attr:`fields`, their error lines, :attr:`shown`),
+    rebuilt by :meth:`show`; a subclass gives :meth:`fields_of`, :meth:`empty` (an empty line hides the folder) and
+    :meth:`error_key`.
 
     Args:
         client: the viser client the folder draws into.
@@ -110,11 +107,9 @@ class ChoiceFolder:
 
 
 class ScenarioParamsForm(ChoiceFolder):
-    """The folder *scenario parameters* (collapsed at first): a field per parameter of the chosen scenario.
-
-    A field's label is the parameter's name and unit (``cut_in_gap_m (m)``, e.g. a cut-in's); its first text is the
-    panel's starting config's value when the config is of that scenario and sets it, else the scenario's default.
-    Only the fields changed from the scenario's defaults go into the run (:func:`pemviz.app.form.parse_params`).
+    """The folder *scenario parameters* (collapsed at first): a field per parameter of the chosen scenario, labelled
+    with its name and unit, first showing the starting config's value or the scenario's default; only the fields
+    changed from the defaults go into the run (:func:`pemviz.app.form.parse_params`).
     """
 
     title = "scenario parameters"
@@ -140,10 +135,9 @@ class ScenarioParamsForm(ChoiceFolder):
 
 
 class MethodSettingsForm(ChoiceFolder):
-    """The folder *method settings* (open, hidden for a method without settings of its own): a field per row of the
-    chosen method's :attr:`~pemviz.methods.Method.settings` (:func:`pemviz.app.form.own_rows`), labelled and hinted by
-    its row as the command line's flag is; its first text is the starting config's value when the config is of that
-    method, else the row's default. Parsed by the row's range (:func:`pemviz.app.form.parse_own`)."""
+    """The folder *method settings* (hidden for a method without settings): a field per row of the chosen method's
+    :attr:`~pemviz.methods.Method.settings` (:func:`pemviz.app.form.own_rows`), labelled as its flag, first showing
+    the starting config's value or the row's default; parsed by :func:`pemviz.app.form.parse_own`."""
 
     title = "method settings"
     expanded = True

@@ -1,11 +1,7 @@
-"""uPlot figures of the panel (viser's ``add_uplot``): proposal curves, per-stage values, the strip chart.
-
-Every figure names its axes, keeps its legend to the series' names (no live values, so no ``--``
-placeholders), leaves room for long tick labels (``-14.75``) and sets its ranges from the data that
-exists, never from what a run planned. Where a few values lie far from the rest (a stage estimated orders of
-magnitude off, an acceleration spike at contact), :func:`robust_range` fits the axis to the rest and the
-figure draws those few at the edge, ringed, and says so in its caption (:mod:`pemviz.app.captions`: titles are a
-few words, the explanation is below the chart). Colours come from :mod:`pemviz.sinks.colours`.
+"""uPlot figures of the panel (viser's ``add_uplot``): proposal curves, per-stage values, the strip chart. Every
+figure names its axes, keeps its legend to the series' names and sets its ranges from the data that exists; values
+far from the rest are drawn at the edge, ringed and counted in the caption (:func:`robust_range`,
+:mod:`pemviz.app.captions`). Colours come from :mod:`pemviz.sinks.colours`.
 """
 
 from __future__ import annotations
@@ -135,25 +131,14 @@ def robust_range(
     limits: tuple[float, float] = (-math.inf, math.inf),
     empty: tuple[float, float] = (-0.05, 1.05),
 ) -> AxisRange:
-    """The y range of a chart fitted to the values that matter, and what it leaves off scale.
+    """The y range of a chart fitted to the values that matter, and what it leaves off scale (the chart's unit).
 
-    The rule, in the chart's unit (log10 probability, m/s^2, nats):
-
-    1. The candidates are the finite ``values`` where ``matters`` is true (every finite value without ``matters``).
-    2. Start from the candidates' median (the lower one of an even count) and take in the nearest remaining
-       candidate, below or above, one at a time. Once more than half of the candidates are in, stop at the first
-       whose gap to those taken is wider than both ``min_gap`` and ``factor`` times their span: it and everything
-       beyond it, on either side, is off scale. A group of values far from the rest leaves the axis only when the
-       rest is a majority; ``min_gap = inf`` never leaves anything out (the range of every candidate).
-    3. The range is [min, max] of the values taken, padded on each side by max(``pad_frac`` * span, ``min_pad``)
-       (0.5 or a tenth of the value where both are 0), widened to cover ``at_least`` and cut to ``limits``; never
-       without width.
-    4. Off scale are all finite values outside the range (those left out in 2, those that do not matter, those
-       beyond ``limits``): a figure draws them at the nearer edge (:meth:`AxisRange.drawn`) and says how many
-       (:meth:`AxisRange.note`). Every value inside the range is drawn at its place.
-
-    Without any candidate the range is ``at_least`` (a single value of it padded as in 3) or ``empty``.
-    """
+    From the median of the finite ``values`` where ``matters`` (all without it), take in the nearest remaining
+    candidate one at a time; once more than half are in, stop at the first whose gap to those taken is wider than
+    both ``min_gap`` and ``factor`` times their span (``min_gap = inf``: take all). The range is their [min, max]
+    padded by max(``pad_frac`` * span, ``min_pad``), widened to ``at_least`` and cut to ``limits``. Values outside
+    it are drawn at the nearer edge (:meth:`AxisRange.drawn`) and counted (:meth:`AxisRange.note`). Without any
+    candidate: ``at_least`` or ``empty``."""
     v = np.asarray(values, dtype=np.float64).ravel()
     ok = np.isfinite(v)
     finite = v[ok]
@@ -352,12 +337,8 @@ def run_series(r: PanelRun) -> up.Series:
 
 
 def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[PanelRun]) -> None:
-    """One series per run over the stages finished so far (x from 0 to the last finished stage).
-
-    ``gamma`` has a unit that depends on the metric (metres for classic, none for AGM): only runs with the
-    newest run's metric are drawn, the title says the unit and the caption how many runs are left out. The y range is
-    :func:`stage_range`'s: log10 mu_hat (log10 probability) fits the stages that agree, a stage orders of magnitude
-    off is drawn at the edge, ringed, and the caption counts it.
+    """One series per run over the stages finished so far. ``gamma``'s unit depends on the metric, so only runs with
+    the newest run's metric are drawn (the caption counts the others); the y range is :func:`stage_range`'s.
     """
     if not runs:
         return
@@ -465,20 +446,19 @@ def fill_strip_plots(
     thresholds: Thresholds | None,
     what: str = "distance and speeds",
 ) -> None:
-    """Draw a rollout with a marker at ``step`` (the 3D scene's step) in each strip chart, with the problem's failure
-    threshold and sampler window (:attr:`pemviz.core.problem_view.ProblemView.thresholds`; None: no such lines).
+    """Draw a rollout with a marker at ``step`` in each strip chart, with the problem's failure threshold and sampler
+    window (None: no such lines).
 
     Args:
-        plots: the strip charts by name (:func:`strip_plots`: ``gap``, ``detect``, ``weight``).
-        lines: the first chart's lines (:meth:`pemviz.app.drawing.LanePanel.strip_series`), the ``main`` one first:
-            the marker follows it; float64 [T] each.
+        plots: the strip charts by name (:func:`strip_plots`).
+        lines: the first chart's lines (:meth:`pemviz.app.drawing.LanePanel.strip_series`), the ``main`` one first;
+            float64 [T] each.
         detected: bool [T] the detections taken.
         ex: the rollout explained (:meth:`pemviz.app.drawing.LanePanel.lane_explanation`).
         step: the step marked.
-        title: the rollout's name (the first chart's caption).
+        title: the rollout's name.
         thresholds: the problem's failure threshold and sampler window, or None.
-        what: the first chart's title (:attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`).
-    """
+        what: the first chart's title."""
     t = ex.time_s
     now = np.full(t.size, np.nan)
     now_i = int(np.clip(step, 0, t.size - 1))

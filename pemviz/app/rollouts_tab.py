@@ -151,10 +151,9 @@ class RolloutsTab:
         return {t.key: float(share[rank]) for rank, t in enumerate(pop.rollouts) if t is not None}
 
     def ordered_rollouts(self, record: PanelRun) -> list[Trajectory]:
-        """The rollouts the Rollouts tab lists, in its order (``sort by``), failures only if ticked: once the run has
-        its final estimate, every failure of it (:attr:`PanelRun.population`) and the kept least-robust rollouts of
-        other stages; before, the kept least-robust rollouts. ``importance weight``: the largest share of p first (the
-        rollouts outside the estimate, which carry none, last, least robust first)."""
+        """The rollouts the tab lists, in its order (``sort by``), failures only if ticked: every failure of the
+        run's final estimate (:attr:`PanelRun.population`) and the other stages' kept least-robust rollouts, or
+        before it the kept least-robust ones; ``importance weight`` puts the largest share of p first."""
         with record.lock:
             kept, pop = list(record.trajectories), record.population
         if pop is not None:

@@ -1,15 +1,10 @@
 """What the viser panel knows about a run, built from the engine's events; no viser here.
 
-:class:`PanelRun` is an engine listener (a :class:`pemviz.sinks.Sink`, ``run(event)``): it keeps the run's plan and
-problem view (from its first event), the stage results, the proposal curves, the final estimate, the least-robust
-rollouts of the whole run (:class:`Trajectory`) and the
-event log for the ``.rrd`` export, and the most likely failure found (the failing rollout with the
-largest log p under the PEM: the log-probability of its detections plus, where the PEM mislocates, the log-density of
-its measurement errors). :func:`keep_runs` decides which runs stay for comparison (pinned and
-finished ones before stopped ones). :func:`object_proposal_view` bins one object's detections among several by its
-distance ahead, and :func:`export_path` / :func:`export_run` write a run into ``recordings/`` without letting a name
-from the browser escape that folder.
-"""
+:class:`PanelRun` is an engine listener that keeps the run's plan, problem view, stage results, proposal curves,
+final estimate, least-robust rollouts (:class:`Trajectory`), event log and most likely failure. :func:`keep_runs`
+decides which runs stay for comparison, :func:`object_proposal_view` bins one object's detections by its distance
+ahead, and :func:`export_path` / :func:`export_run` write a run into ``recordings/`` without letting a name from the
+browser escape that folder."""
 
 from __future__ import annotations
 
@@ -83,16 +78,12 @@ DEFAULT_AXIS = ViewAxis("gap d (m), 0.5 m bins", "the object", None, "below", np
 def object_proposal_view(
     event: RolloutsSampled, axis: ViewAxis, max_rollouts: int = MAX_VIEW_ROLLOUTS
 ) -> ProposalView | None:
-    """q(detect) of the sampler and p(detect) of the PEM for the object ``axis.view_object`` over the states a batch of
-    several objects visited where the sensor can see it (its row's ``axis.visible_column``), binned by its distance
-    ahead (``axis.distance_column``, metres; bins ``axis.edges``), as :func:`pemviz.core.proposal_view.proposal_view`
-    bins a batch of one object a step; the mean q(miss) over every such state below the last edge. The batch keeps
-    each step's log-probabilities summed over its objects, so the detectors are asked for the object's logit at its
-    rows (:func:`pemviz.core.proposal_view.object_detect_probabilities`: call it while ``event.sampler`` is the one
-    that drew the batch); at most ``max_rollouts`` rollouts, evenly spaced.
-
-    Returns None for a batch of one object a step, without the axis' columns, without both detectors, or without a
-    visible state.
+    """q(detect) of the sampler and p(detect) of the PEM for the object ``axis.view_object`` over the states a batch
+    of several objects visited where it is visible (``axis.visible_column``), binned by its distance ahead
+    (``axis.distance_column``, metres; ``axis.edges``), as :func:`pemviz.core.proposal_view.proposal_view`; the
+    detectors are asked for the object's logits (:func:`pemviz.core.proposal_view.object_detect_probabilities`,
+    while ``event.sampler`` is the one that drew the batch) on at most ``max_rollouts`` rollouts. None for a batch
+    of one object a step, without the axis' columns or both detectors, or without a visible state.
     """
     batch = event.batch
     names = tuple(batch.object_names or ())
@@ -141,11 +132,8 @@ _EXPORT_NAME_OK = re.compile(r"[^A-Za-z0-9._-]")
 
 
 def keep_runs(runs: list[PanelRun], new: PanelRun, max_runs: int = MAX_RUNS) -> list[PanelRun]:
-    """The runs kept once ``new`` starts: at most ``max_runs``, oldest first.
-
-    Pinned runs and the running one are never dropped. Room is made by dropping, oldest first, unpinned
-    stopped or failed runs, then unpinned finished runs; with every other run pinned the list grows
-    beyond ``max_runs`` instead.
+    """The runs kept once ``new`` starts: at most ``max_runs``, oldest first; pinned and running runs stay, then
+    unpinned stopped or failed runs are dropped first, then unpinned finished ones.
     """
     kept = list(runs) + [new]
     for statuses in (("cancelled", "failed"), ("finished",)):
@@ -163,22 +151,16 @@ class Trajectory:
 
     Attributes:
         stage: the stage that sampled it (0 = pretraining, K+1 = final batch).
-        index: its number in the stage (:attr:`pemviz.engine.events.RolloutsSampled.rollout_numbers`: its row in the
-            stage's batch, except in a streamed stage, whose batch is a sample of the stage's rollouts).
+        index: its number in the stage (:attr:`pemviz.engine.events.RolloutsSampled.rollout_numbers`).
         robustness: under the run's metric (classic: metres; AGM: [-1, 1]).
         log_weight: importance log-weight log p_PEM - log q over T - 1 steps (nats).
-        crashed: classic robustness < 0 (the safety formula is violated).
+        crashed: classic robustness < 0.
         detected: bool [T], the detector's output at each step (of the first object where there are several).
-        log_p, log_q: float64 [T] log p of each step's events under the PEM and under the detector that sampled it
-            (nats): the log-probability of its detections plus, where the detector mislocates, the log-density of its
-            measurement errors (:attr:`log_p_parts` splits the PEM's sum).
-        batch: the rollout as a batch of one (its observations and, in a scene of several objects, every object's
-            rows, detections and measurement errors, replayed by *Explain*): what the drawing's hooks read.
-        object_p, object_q: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that
-            drew the rollout, float64 [T, M] (:func:`pemviz.core.proposal_view.object_detect_probabilities`); else None.
-        target: the PEM that weighs it (:func:`pemviz.core.counterfactuals.scoring_detector` of the event's target),
-            asked only by :attr:`log_p_parts`; None: not known.
-    """
+        log_p, log_q: float64 [T] log p of each step's events under the PEM and the sampler (nats;
+            :attr:`log_p_parts` splits the PEM's).
+        batch: the rollout as a batch of one, what the drawing's hooks read.
+        object_p, object_q: several objects: p(detect) and q(detect) of each, float64 [T, M]; else None.
+        target: the PEM that weighs it, asked only by :attr:`log_p_parts`; None: not known."""
 
     stage: int
     index: int
@@ -292,10 +274,8 @@ def most_likely_failure(best: Trajectory | None, event: RolloutsSampled) -> Traj
 def least_robust(
     kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJECTORIES, features: FeaturesFn | None = None
 ) -> list[Trajectory]:
-    """Merge a stage's rollouts into the kept list; the ``n`` least robust, least first (``features``: as
-    :func:`trajectory`).
-
-    Ties keep the earlier stage / lower index first (a stable sort on robustness).
+    """Merge a stage's rollouts into the kept list: the ``n`` least robust, least first, ties the earlier stage /
+    lower index first (``features``: as :func:`trajectory`).
     """
     if n <= 0 or event.batch.n == 0:
         return list(kept)
@@ -355,10 +335,8 @@ def population_of(
 
 
 class PanelRun(Sink):
-    """One run as the panel shows it; an engine listener (call it with each event).
-
-    Thread-safe: the engine calls it from the worker thread while the panel reads it from viser's
-    threads; readers take :attr:`lock` or copy the (replaced, never mutated) lists.
+    """One run as the panel shows it; an engine listener (call it with each event), thread-safe: readers take
+    :attr:`lock` or copy the (replaced, never mutated) lists.
     """
 
     def __init__(self, run_id: int, config: ExperimentConfig) -> None:
@@ -531,11 +509,9 @@ class PanelRun(Sink):
 
 
 def sanitize_export_name(name: str) -> str:
-    r"""A recording file name from what a user typed: ``'../x'`` -> ``'x.rrd'``.
-
-    Folders are dropped (only the last path component counts, ``/`` and ``\`` alike), characters
-    other than letters, digits, ``.``, ``_`` and ``-`` become ``_``, leading dots are stripped (no
-    hidden files, no ``..``), and ``.rrd`` is appended unless present.
+    r"""A recording file name from what a user typed: ``'../x'`` -> ``'x.rrd'``: only the last path component counts
+    (``/`` and ``\`` alike), characters other than letters, digits, ``.``, ``_`` and ``-`` become ``_``, leading
+    dots are stripped, and ``.rrd`` is appended unless present.
 
     Raises:
         ValueError: nothing usable is left (e.g. ``''``, ``'..'``, ``'/'``).

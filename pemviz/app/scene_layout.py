@@ -1,9 +1,7 @@
-"""Where the 3D scene of :mod:`pemviz.app.scene_view` puts things, and the nodes it makes once: the camera's
-framing (:func:`camera_pose`, :func:`framing_distance`: both cars and the columns of labels inside the canvas the
-browser shows between the panels), the cars' height and the labels' lateral places and size, the lane scene's road,
-object, zones and ruler (:func:`add_lane_nodes`, :func:`ruler_segments`) and the floor of a scene of several objects
-(:func:`floor_lines`: a road's lane lines and edges, or open ground's grid). Plain numpy and viser's scene API; no
-state of its own."""
+"""Where the 3D scene of :mod:`pemviz.app.scene_view` puts things, and the nodes it makes once: the camera's framing
+(:func:`camera_pose`, :func:`framing_distance`), the cars' height and labels, the lane scene's road, zones and ruler
+(:func:`add_lane_nodes`, :func:`ruler_segments`) and the floor of a scene of several objects (:func:`floor_lines`).
+No state of its own."""
 
 from __future__ import annotations
 
@@ -27,10 +25,8 @@ DEFAULT_ASPECT, DEFAULT_FOV = 0.6, math.radians(75.0)
 canvas between the panels at 1400 x 900)."""
 MIN_DISTANCE_M = 10.0
 ROW_Y_M = {"ruler": -1.6, "right": -2.6, "left": 2.6}
-"""Lateral places (metres; negative: right of the road on screen, positive: left) of the ruler and of the two
-columns of labels beside the road, so that no label covers a car or another label: right, text to the right, the ego's
-(at the ego), the ruler's (e.g. at most 6.2 m ahead of the ego's camera) and the zones' (e.g. 10 m ahead); left, text
-to the left, the breach's alone."""
+"""Lateral places (metres; negative: right of the road on screen) of the ruler and the two label columns, so that no
+label covers a car or another label: right, the ego's, the ruler's and the zones'; left, the breach's alone."""
 FRAMED_Y_M, FRAMED_Z_M = (-8.0, 6.0), (0.0, 3.0)
 """The lateral and vertical extent the camera keeps in view (metres): the road, the cars, the columns of labels."""
 LABEL_SCALE = 0.85
@@ -98,9 +94,9 @@ def ruler_segments(x_from: float, x_to: float) -> np.ndarray:
 def add_lane_nodes(
     scene: viser.SceneApi, p: LaneScene
 ) -> tuple[list, viser.BoxHandle, viser.LineSegmentsHandle, viser.LabelHandle]:
-    """Add the nodes of the lane scene ``p`` at its start to ``scene``: the road, its edges and 10 m ticks, the object
-    and its label, the zones ahead of the ego's sensor (children of ``/ego``, which must exist) with their label, the
-    ruler and its label.
+    """Add the lane scene ``p``'s nodes at its start to ``scene``: road, edges and 10 m ticks, the object and its
+    label, the zones ahead of the ego's sensor (children of ``/ego``, which must exist) with their label, the ruler
+    and its label.
 
     Returns:
         (every node made, in the order made; the object's box; the ruler; the ruler's label).

@@ -1,12 +1,8 @@
-"""The 3D scene of a :class:`pemviz.app.session.Session`: the chosen rollout's cars on the road, played step by step
-in sync with *Explain*, as its drawing object gives them (:mod:`pemviz.app.drawing`). A lane scene: the ego and the
-object ahead, the zones ahead of the ego's sensor, a ruler with the distance in metres from the sensor to the object,
-the detections so far as a trail on the road (green detected, orange missed), a red gate where the failure margin was
-breached, and labels in columns beside the road, clear of the cars; the camera frames both cars inside the canvas the
-browser shows between the panels. A scene of several objects: every car seen from the ego on a road of lanes. Before
-any rollout is shown, the idle scene of the scenario chosen for the next run: its lane scene at the start, its cars at
-their start seen from the ego, or no scene for a scenario that draws none (a toy). Where its nodes go and how the
-camera frames them: :mod:`pemviz.app.scene_layout`."""
+"""The 3D scene of a :class:`pemviz.app.session.Session`: the chosen rollout's cars, played step by step in sync
+with *Explain*, as its drawing object gives them (:mod:`pemviz.app.drawing`). A lane scene shows the ego and the
+object ahead, the sensor's zones, a ruler, the detections as a trail and a gate where the margin was breached; a
+scene of several objects every car seen from the ego. Before any rollout: the idle scene of the chosen scenario.
+Layout: :mod:`pemviz.app.scene_layout`."""
 
 from __future__ import annotations
 
@@ -58,21 +54,17 @@ def _plural(labels: list[str]) -> str:
 
 
 class SceneView:
-    """The 3D scene and its playback: owns the scene's nodes, the playback controls under *Rollouts* (step slider,
-    Play, follow cars, the scene's caption), the rollout shown (:attr:`shown` of :attr:`shown_record`, its cars'
-    positions and the step shown) and whether it plays; the :class:`pemviz.app.explain_tab.ExplainTab` it is given
-    explains that rollout in step with it.
+    """The 3D scene and its playback (step slider, Play, follow cars, caption under *Rollouts*), the rollout shown and
+    whether it plays; the :class:`pemviz.app.explain_tab.ExplainTab` it is given follows it.
 
     Args:
         client: the viser client the scene draws into.
-        drawing: the drawing object of the lane scene drawn first (a :class:`pemviz.app.drawing.LanePanel`: the road,
-            the car sizes, the zones), until :meth:`choose_scenario` or a rollout of another lane scene.
+        drawing: the lane scene's drawing object drawn first (a :class:`pemviz.app.drawing.LanePanel`).
         lock: the session's lock (GUI callbacks run in a thread pool, the run in a worker thread).
         explain: the *Explain* tab that follows the rollout shown.
 
     Raises:
-        ValueError: ``drawing`` draws no lane scene.
-    """
+        ValueError: ``drawing`` draws no lane scene."""
 
     def __init__(
         self, client: viser.ClientHandle, drawing: LanePanel, lock: threading.RLock, explain: ExplainTab
@@ -419,10 +411,9 @@ class SceneView:
                 self.clear(None)
 
     def clear(self, why: str | None) -> None:
-        """Back to the idle scene (no rollout shown) of the scenario chosen for the next run: a lane scene at its
-        constants with its cars at the start, the ego grey; a road of lanes with its cars at their start seen from the
-        ego (grey); no scene for a scenario that draws none. ``why`` says so under the scene and in *Explain* (None:
-        the idle scene's own caption under the scene, *Explain* left as it is)."""
+        """Back to the idle scene of the scenario chosen for the next run (a lane scene at its start, the ego grey;
+        a road of lanes seen from the ego; or none); ``why`` says so under the scene and in *Explain* (None: the
+        idle scene's own caption)."""
         self.shown, self.shown_record, self._shown_x, self.shown_drawing = None, None, None, None
         self._set_playing(False)
         self.shown_step = -1

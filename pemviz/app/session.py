@@ -1,23 +1,10 @@
 """One browser client's panel: its own form, runs, Stop, plots, rollout explanation and 3D scene.
 
-A :class:`Session` is made for each client that connects (viser's ``server.on_client_connect``) and
-builds everything in that client's own ``client.gui`` / ``client.scene``: two tabs never share a form,
-a run or a Stop button. The session is made of parts, each owning its state, which it builds and wires; the
-experiment runs in a worker thread of its run control (:class:`pemviz.app.run_control.RunControl`), which listens
-to the run's events and stops it through the cancel token.
-
-Layout: the control panel (right) holds Run / Stop, the cost of the run, the status line (stage,
-elapsed time, the time left in the stage and in the whole run), the accuracy of the final estimate and the tabs
-*Experiment* (the form;
-each field shows its own error), *Rollouts* (choose a rollout: the most likely failure found and the
-least-robust ones; 3D playback) and *Runs* (kept runs with their settings, pin / unpin, export). The
-plots panel (left) holds *Live* (what each stage's sampler did over the states its rollouts visited, per-stage
-values of every kept run, mu_hat with its interval and the exact answer), *Explain* (the chosen rollout of the run
-chosen under *Runs* step by step, synced with the 3D playback: its severity, what happened in words, the
-controller's signals, its decisive misses, minimal miss set and last saving step) and *Compare* (each kept run's
-final estimate with its 95 % interval on a log10 chart beside the exact answer or reference, the settings that differ
-between the kept runs, and their reference-state proposal curves).
-"""
+A :class:`Session` is made for each client that connects and builds everything in that client's own ``client.gui`` /
+``client.scene``, so two tabs never share a form, a run or a Stop button. Its parts each own their state; the
+experiment runs in a worker thread of :class:`pemviz.app.run_control.RunControl`. The control panel (right) holds
+Run / Stop, the cost, the status line and the tabs *Experiment*, *Rollouts* and *Runs*; the plots panel (left)
+*Live*, *Explain* and *Compare* (docs/panel.md)."""
 
 from __future__ import annotations
 
@@ -43,21 +30,17 @@ __all__ = ["PanelHost", "Session"]
 
 
 class Session:
-    """The panel of one browser client (see the module docstring): builds it and wires its parts, each of which owns
-    its state and its GUI handles: :attr:`control` (:class:`~pemviz.app.run_control.RunControl`: Run / Stop, status,
-    the newest run and its worker), :attr:`form` (:class:`~pemviz.app.experiment_tab.ExperimentTab`),
-    :attr:`rollouts_tab` (:class:`~pemviz.app.rollouts_tab.RolloutsTab`: the run listed and its rollouts),
-    :attr:`runs_tab` (:class:`~pemviz.app.runs_tab.RunsTab`: the kept runs), :attr:`scene`
-    (:class:`~pemviz.app.scene_view.SceneView`: the 3D scene, playback and the rollout shown), :attr:`explain`
-    (:class:`~pemviz.app.explain_tab.ExplainTab`: its explanation) and :attr:`plots_panel`
-    (:class:`~pemviz.app.plots_panel.PlotsPanel`: *Live* and *Compare*). The session's properties read the parts'
-    state, and the form's, lists' and scene's handles are the parts' own, named here too (the tests and benchmarks
-    drive the panel through them).
+    """The panel of one browser client: builds and wires its parts, each owning its state and GUI handles:
+    :attr:`control` (:class:`~pemviz.app.run_control.RunControl`), :attr:`form`
+    (:class:`~pemviz.app.experiment_tab.ExperimentTab`), :attr:`rollouts_tab`
+    (:class:`~pemviz.app.rollouts_tab.RolloutsTab`), :attr:`runs_tab` (:class:`~pemviz.app.runs_tab.RunsTab`),
+    :attr:`scene` (:class:`~pemviz.app.scene_view.SceneView`), :attr:`explain`
+    (:class:`~pemviz.app.explain_tab.ExplainTab`) and :attr:`plots_panel`
+    (:class:`~pemviz.app.plots_panel.PlotsPanel`).
 
     Args:
         app: the server (recordings folder, scenario constants, warm-up).
-        client: the viser client this session draws into.
-    """
+        client: the viser client this session draws into."""
 
     def __init__(self, app: PanelHost, client: viser.ClientHandle) -> None:
         self.app = app
