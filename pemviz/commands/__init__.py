@@ -1,8 +1,6 @@
-"""Sub-commands of the ``pemviz`` command line; each module exposes ``register(subparsers)``.
-
-This module holds what the commands share (and :mod:`pemviz.cli` uses): :class:`UsageError`, :class:`Terminated`,
-the output folder check and the argument helpers; it imports no command. What the studies ``validate`` and ``tables``
-share besides is :mod:`pemviz.commands.study`'s.
+"""Sub-commands of the ``pemviz`` command line; each module exposes ``register(subparsers)``. This module holds what
+they share (:class:`UsageError`, :class:`Terminated`, the output folder check, the argument helpers) and imports no
+command; the studies' shared part is :mod:`pemviz.commands.study`.
 """
 
 from __future__ import annotations
@@ -58,10 +56,9 @@ class UsageError(Exception):
 
 
 def output_folder(path: str | Path, flag: str = "--out") -> Path:
-    """Create the output folder ``path`` (and its parents) if needed and check that files can be written there.
-
-    Every command's ``--out DIR`` goes through here, so they all behave alike: a missing folder is created, an
-    existing one is reused (``validate`` and ``tables`` resume from it).
+    """Create the output folder ``path`` (and its parents) if needed and check that files can be written there;
+    every command's ``--out DIR`` goes through here (an existing folder is reused: ``validate`` and ``tables``
+    resume from it).
 
     Raises:
         UsageError: ``path`` is a file, or the folder cannot be created or written.

@@ -1,13 +1,10 @@
 """``pemviz estimate ROLLOUTS.parquet``: the failure probability from logged rollouts, and a recording.
 
-The rollouts come from anywhere (``pemviz run --save-rollouts``, CARLA, a user's simulator) in the format
-of :mod:`pemviz.io.rollout_format`. The importance weights need log p_PEM and log q of every logged action: from
-the file's ``log_p`` / ``log_q`` columns, or recomputed from a PEM (``--pem``) and from what sampled the
-rollouts (``--proposal``: a proposal checkpoint or ``pem`` / ``naive50`` / ``mixed50``). Without options,
-columns are used when present, else the PEM and proposal the sidecar names. The weights follow the convention the
-sidecar records (``--weights`` overrides it; :mod:`pemviz.core.weights`), the stages are pooled as the sidecar says, and
-the mean importance weight checks that ``log q`` is the density that drew the rollouts. Everything is read and
-checked before the recording is created: bad input writes nothing.
+The rollouts come from anywhere in the format of :mod:`pemviz.io.rollout_format`. log p and log q of every action
+come from the file's columns, or are recomputed from a PEM (``--pem``) and what sampled the rollouts
+(``--proposal``); without options, columns where present, else what the sidecar names. Weights follow the sidecar's
+convention (``--weights`` overrides; :mod:`pemviz.core.weights`) and pooling, and the mean importance weight checks
+``log q``. Everything is checked before the recording is created: bad input writes nothing.
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
-"""``pemviz report RUN``: a safety-case report of a run, one self-contained HTML page and its Markdown twin.
-
-The run's result document holds every number the report shows (:mod:`pemviz.sinks.report`): ``pemviz run --json
-RESULT.json`` writes it where asked, and a run that saves a recording writes it beside the recording (``run.rrd`` ->
-``run.result.json``), so ``pemviz report run.rrd`` reports that run. ``pemviz run --report PAGE.html`` writes the same
-page at the end of a run.
+"""``pemviz report RUN``: a safety-case report of a run, one self-contained HTML page and its Markdown twin, from
+the run's result document (:mod:`pemviz.sinks.report`): ``--json RESULT.json``, or the ``run.result.json`` a
+recording run writes beside ``run.rrd``. ``pemviz run --report PAGE.html`` writes the same page at the end of a run.
 """
 
 from __future__ import annotations

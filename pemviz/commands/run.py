@@ -147,12 +147,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
-    """Build and validate the config; raises ConfigError with a one-line message.
-
-    With neither ``--method`` nor ``--preset``, a scenario runs its own default method and budget
-    (:func:`pemviz.config.scene_defaults`, over an operating design domain too; flags given still override them). The
-    scenario registry, its plugins included, is loaded first (:func:`pemviz.scenarios.registry.load_plugins`: a
-    plugin that cannot be loaded is its one line).
+    """Build and validate the config; raises ConfigError with a one-line message. Without ``--method`` and
+    ``--preset`` a scenario runs its own defaults (:func:`pemviz.config.scene_defaults`; flags still override); the
+    scenario registry and its plugins are loaded first (:func:`pemviz.scenarios.registry.load_plugins`).
 
     Raises:
         ConfigError: a setting, preset or parameter refused; ScenarioPluginError, MethodPluginError: a plugin that
@@ -258,9 +255,8 @@ def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
 def result_lines(
     cfg: ExperimentConfig, problem: Problem, final, why: str | None = None, failures: dict | None = None, severity=None
 ) -> tuple[list[str], dict]:
-    """The console's lines after the table and the result document of a finished run (its ``recording`` None:
-    :func:`write_results` sets it), built before the recording is closed, so that they are made while the recording
-    process writes the file.
+    """The console's lines after the table and the result document of a finished run (``recording`` None:
+    :func:`write_results` sets it), built while the recording process writes the file.
 
     Args:
         cfg: the run's config.
@@ -269,12 +265,11 @@ def result_lines(
         why: the errors that decided the most likely failure (a line), or None.
         failures: the final estimate's failures in groups (:func:`pemviz.sinks.population.grouping_document`), or
             None.
-        severity: their :class:`pemviz.core.severity.FailureSeverity`, for the console's lines (None: none).
+        severity: their :class:`pemviz.core.severity.FailureSeverity` (None: none).
 
     Returns:
-        ``(lines, document)``: the lines as :func:`pemviz.sinks.console.final_lines` says them (and ``why``), and
-        :func:`pemviz.io.result.result_document` of the run (the PEMs' sha256 included).
-    """
+        ``(lines, document)``: :func:`pemviz.sinks.console.final_lines`'s lines (and ``why``) and
+            :func:`pemviz.io.result.result_document` of the run."""
     from pemviz.io.result import result_document
     from pemviz.sinks.console import final_lines
 
@@ -300,10 +295,9 @@ def write_results(
     lines: list[str], doc: dict, recording: str | None, outputs: RunOutputs, saved: Path | None = None
 ) -> None:
     """Write ``--json``, ``--junit`` and ``--report`` (atomically) and say where; with a ``saved`` recording its
-    result document beside it (:func:`pemviz.io.result.result_beside`, what ``pemviz report RUN.rrd`` reads).
-
-    ``lines`` and ``doc``: :func:`result_lines`'; ``recording``: where the recording went (a path or a URL; None:
-    nowhere), set as the document's ``recording``; ``outputs``: the run's files (:func:`plan_outputs`).
+    result document beside it (:func:`pemviz.io.result.result_beside`). ``lines`` and ``doc`` are
+    :func:`result_lines`'; ``recording`` where the recording went (None: nowhere); ``outputs`` the run's files
+    (:func:`plan_outputs`).
 
     Raises:
         OSError, pemviz.core.files.OutputExists: a file that could not be written (nothing partial is left).

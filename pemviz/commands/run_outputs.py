@@ -1,7 +1,6 @@
-"""The files a ``pemviz run`` will write, planned once from its arguments before any work: :func:`plan_outputs` checks
-every path (an existing file without ``--overwrite``, a folder that cannot be written, a wrong suffix, two outputs
-naming one file) and returns a :class:`RunOutputs` that the run hands down: the recording sink, the rollout sink and
-the result writer take their paths from it, and an interrupted run names from it what it did not write. Nothing is
+"""The files a ``pemviz run`` will write, planned once from its arguments before any work: :func:`plan_outputs`
+checks every path (an existing file without ``--overwrite``, an unwritable folder, a wrong suffix, two outputs
+naming one file) and returns the :class:`RunOutputs` the sinks and result writer take their paths from. Nothing is
 created here.
 """
 
@@ -92,16 +91,13 @@ def plan_outputs(
     """Every file the run of ``args`` will write, each checked before any work (nothing is created).
 
     Args:
-        args: ``pemviz run``'s arguments (``save``, ``save_rollouts``, ``json_path``, ``junit_path``, ``report_path``,
-            ``overwrite``).
-        cfg: the run's :class:`pemviz.config.ExperimentConfig` (``--junit`` needs its requirement; a method without
-            importance weights cannot save rollouts).
+        args: ``pemviz run``'s arguments.
+        cfg: the run's :class:`pemviz.config.ExperimentConfig`.
         target: where the recording goes (``save``, ``stdout``, ``connect``, ``serve``, ``no-record``).
         default_recording: the recording's path under ``recordings/`` when ``--save`` names none.
     Raises:
-        UsageError: one line naming the flag and the file: a path that cannot be written, ``--junit`` without
-            ``--require``, ``--save-rollouts`` for a method without importance weights, two outputs naming one file.
-    """
+        UsageError: one line naming the flag and the file: an unwritable path, ``--junit`` without ``--require``,
+            ``--save-rollouts`` for a method without importance weights, two outputs naming one file."""
     overwrite = bool(args.overwrite)
     recording = _recording(args, target, default_recording, overwrite)
     rollouts = None

@@ -1,8 +1,7 @@
-"""Where ``pemviz run`` sends its recording: rerun's standard script flags (``--save``, ``--serve``, ``--connect``,
-``--stdout``, ``--headless``; defined here, so that the parser needs no rerun import) with ``--no-record`` and the ports
-of ``--serve`` (:func:`add_recording_args`), which one of them a run asks for (:func:`recording_target`), the viewer
-that ``--connect`` checks before any work (:func:`probe_viewer`), the sink that ``--serve`` opens (:func:`serve`) and
-the default recording's name (:func:`default_recording_path`). rerun itself is imported only by :func:`serve`.
+"""Where ``pemviz run`` sends its recording: rerun's script flags (``--save``, ``--serve``, ``--connect``,
+``--stdout``, ``--headless``) with ``--no-record`` (:func:`add_recording_args`), the target asked for
+(:func:`recording_target`), the viewer check of ``--connect`` (:func:`probe_viewer`), ``--serve``'s sink
+(:func:`serve`) and the default name (:func:`default_recording_path`). Only :func:`serve` imports rerun.
 """
 
 from __future__ import annotations

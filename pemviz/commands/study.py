@@ -1,7 +1,6 @@
-"""What the study commands ``validate`` and ``tables`` share: their sampler sizes, ``--jobs`` and ``--out``
-(:func:`add_study_arguments`), the config fields given (:func:`base_fields`), their progress lines on stderr
-(:func:`say`), their runs, resumed from the output folder's runs file (:func:`run_study`), and their report files
-(:func:`write_study`). The studies are :mod:`pemviz.studies.validation` and :mod:`pemviz.studies.paper_tables`.
+"""What the study commands ``validate`` and ``tables`` share: sampler sizes, ``--jobs`` and ``--out``
+(:func:`add_study_arguments`), the config fields (:func:`base_fields`), progress lines (:func:`say`), runs resumed
+from the output folder (:func:`run_study`) and report files (:func:`write_study`).
 """
 
 from __future__ import annotations

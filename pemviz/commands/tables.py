@@ -1,19 +1,10 @@
 """``pemviz tables``: the paper's Tables II and III with repetitions, honest error bars and the exact answer.
 
-Table II: MC_100, MC_10000, naive-50_100, naive-50_1000 and adaptive_100 (the paper's
-settings), plus the adaptive sampler under other presets (``--extra``: the authors' code, pemviz's
-improvements). Table III: the adaptive sampler with each robustness metric (classic, AGM, smooth-cumulative).
-Every row: R repetitions (seeds 0..R-1), mu_hat as mean +- standard error std/sqrt(R) (the authors divided
-by R), failures, NLL (mean over failing rollouts, and -log-mean-exp), ESS, the exact p_fail and the ratio.
-
-Writes ``tables.md``, ``tables.csv`` and ``tables.rrd`` into ``--out``: the recording holds every
-repetition's per-stage proposal curve q(detect | d) (``curves/<row>/rep_RR/stage_KK`` on the ``gap_mm``
-timeline) and the paper's Fig. 4: the curves at stage kappa = 3 averaged over repetitions, per metric
-(``fig4/<metric>``; ``fig4/<preset>/<metric>`` for the ``--extra`` presets), beside the PEM's p(detect | d)
-(``fig4/pem``). A :class:`~pemviz.core.sampling.StateProposal`'s curve holds its other inputs at the start state. The
-work is done by :mod:`pemviz.studies.paper_tables` and :mod:`pemviz.studies.validation`; this module is its command
-line.
-"""
+Table II: MC_100, MC_10000, naive-50_100, naive-50_1000 and adaptive_100 (the paper's settings), plus other presets
+(``--extra``); Table III: the adaptive sampler with each robustness metric. Every row: R repetitions (seeds 0..R-1),
+mu_hat as mean +- std/sqrt(R), failures, NLL, ESS, the exact p_fail and the ratio. Writes ``tables.md``,
+``tables.csv`` and ``tables.rrd`` (every repetition's proposal curves and the paper's Fig. 4) into ``--out``; the
+work is :mod:`pemviz.studies.paper_tables`'s and :mod:`pemviz.studies.validation`'s."""
 
 from __future__ import annotations
 

@@ -1,13 +1,10 @@
 """``pemviz validate``: the sampler and the baselines against exact failure probabilities.
 
-Each problem of :data:`pemviz.scenarios.problems.PROBLEMS` has a known answer: the toy braking model in closed form,
-the latched-brake scenario from its deterministic simulator, and the main braking scenario by exact
-enumeration of its detection sequences (:mod:`pemviz.scenarios.braking.truth`). Every method runs on every problem for
-several seeds at the same simulation budget (the adaptive sampler's: pretraining + K x N + N_e, its stages alone with
-no plain Monte Carlo after them), and the
-table reports, per problem and method: the truth, the median and spread of mu_hat, the median relative
-error |mu_hat - truth| / truth, how many seeds are within a factor 2, failures, ESS, simulations, wall time.
-The work is done by :mod:`pemviz.studies.validation`; this module is its command line.
+Every method runs on every problem of :data:`pemviz.scenarios.problems.PROBLEMS` (exact answers:
+:mod:`pemviz.scenarios.braking.truth` and the closed forms) for several seeds at the adaptive sampler's simulation
+budget, with no plain Monte Carlo after it; the table reports per problem and method the truth, the median and
+spread of mu_hat, the median relative error, the seeds within a factor 2, failures, ESS, simulations and wall time
+(:mod:`pemviz.studies.validation`).
 """
 
 from __future__ import annotations
