@@ -1,10 +1,7 @@
-"""Checkers for what a user plugs into pemviz: a simulator and an estimator (as Gymnasium's
-``gymnasium.utils.env_checker.check_env`` checks an environment).
-
-:func:`check_simulator` runs a simulator through the ``Simulator`` protocol of :mod:`pemviz.scenarios` and
-:func:`check_estimator` drives an estimator through the ``Estimator`` interface of :mod:`pemviz.estimators.base` the
-way the engine does. Each returns None when all is well and raises :class:`CheckError` naming the first thing that is
-wrong otherwise. Both are cheap (one or two short runs) and meant for a user's own test suite.
+"""Checkers for what a user plugs into pemviz (as Gymnasium's ``check_env``): :func:`check_simulator` runs a
+simulator through the ``Simulator`` protocol and :func:`check_estimator` drives an estimator through the
+``Estimator`` interface of :mod:`pemviz.estimators.base` as the engine does; each raises :class:`CheckError` naming
+the first thing wrong. Cheap, for a user's own test suite.
 """
 
 from __future__ import annotations
@@ -57,23 +54,18 @@ def _trace(sim: Any, names: tuple[str, ...], detections: np.ndarray, start: int 
 
 
 def check_simulator(make: Callable[[], Any], n_steps: int, *, seed: int = 0) -> None:
-    """Check a simulator against the ``Simulator`` protocol (:mod:`pemviz.scenarios`).
-
-    The rules: ``observation_names`` is a tuple of distinct names (the first column, whatever its name, is the one the
-    problem's window, the proposal's input and the curves read);
-    ``observation()`` is a finite float64 array [F] with F = ``len(observation_names)``; ``step(detected: bool)``
-    advances one step for ``n_steps`` steps; ``reset()`` goes back to the start state; the same detections give the
-    same observations (the simulator is deterministic given the detector's outputs); and a simulator with
-    ``snapshot()`` / ``restore(state)`` continues from a restored state as it did the first time.
+    """Check a simulator against the ``Simulator`` protocol (:mod:`pemviz.scenarios`): distinct ``observation_names``
+    (the first column is the one the window, the proposal and the curves read), a finite float64 ``observation()``
+    [F], ``step(detected: bool)`` for ``n_steps`` steps, ``reset()`` to the start, the same observations for the
+    same detections, and, with ``snapshot()`` / ``restore(state)``, the same continuation from a restored state.
 
     Args:
-        make: a function of no arguments (e.g. the class) that returns a new simulator at its start state.
+        make: a function of no arguments that returns a new simulator at its start state.
         n_steps: the rollout length T the simulator is run for (>= 1).
         seed: seed of the random detection pattern the checks use.
     Raises:
         CheckError: the first rule broken, e.g. ``check_simulator: observation_names must be distinct ...``.
-        ValueError: ``n_steps`` < 1.
-    """
+        ValueError: ``n_steps`` < 1."""
     if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
         raise ValueError(f"check_simulator: n_steps must be an integer >= 1, got {n_steps!r}")
     sim = make()
@@ -201,15 +193,11 @@ def check_estimator(
     max_relative_error: float | None = None,
     max_stages: int = 1000,
 ) -> Estimate:
-    """Check an estimator against the ``Estimator`` interface (:mod:`pemviz.estimators.base`) on ``problem``.
-
-    The estimator is run twice, driven as the engine drives it. The rules: every plan asks for n >= 1 rollouts from a
-    detector; ``observe`` returns one float64 log-weight per rollout (no NaN); ``finish`` returns the stage's
-    :class:`~pemviz.core.estimate.Estimate`; ``next_stage`` ends; ``result`` names only stages it drew; the estimate is
-    a consistent :class:`~pemviz.core.estimate.Estimate` (0 <= failures <= n, interval low <= high, a verdict of
-    :data:`~pemviz.core.estimate.VERDICTS`); and the two runs agree bit for bit (the estimator seeds every stream it
-    draws from). With ``max_relative_error`` and an exact answer on the problem (``problem.exact_log_p``), the estimate
-    must also be that close to it: a statistical check, so give a tolerance the estimator meets at the chosen seed.
+    """Check an estimator against the ``Estimator`` interface (:mod:`pemviz.estimators.base`) on ``problem``, run
+    twice as the engine drives it: plans ask for n >= 1 rollouts, ``observe`` returns one finite log-weight per
+    rollout, ``finish`` and ``result`` give consistent estimates (:class:`~pemviz.core.estimate.Estimate`) of stages
+    it drew, and the two runs agree bit for bit. With ``max_relative_error`` and ``problem.exact_log_p``, the
+    estimate must also be that close (a statistical check: choose a tolerance the estimator meets at the seed).
 
     Args:
         make: ``make(problem) -> estimator``, e.g. ``lambda pb: build_estimator(config, pb)``.

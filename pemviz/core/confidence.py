@@ -61,17 +61,13 @@ def clopper_pearson(n_failures: int, n: int, level: float = CI_LEVEL) -> tuple[f
 
 
 def markov_lower_bound(log_estimates: np.ndarray, alpha: float = 1.0 - CI_LEVEL) -> float:
-    """A lower confidence bound of p at level 1 - ``alpha``, log (nats), from n independent runs of unbiased,
-    non-negative estimators of p (importance sampling with exact weights, splitting), their log estimates
-    ``log_estimates`` float64 [n] (nats): (log alpha + sum of the logs) / n, i.e. alpha^(1/n) times their geometric
-    mean. It needs no variance estimate and holds however heavy the weights' tail: E[prod X_i] = p^n, so
-    P(prod X_i >= t) <= p^n / t (Markov's inequality), and a p below the bound would make the product the runs gave
-    less likely than alpha. -inf when a run gave 0 or there is none. There is no such upper bound: an unbiased
-    estimator may miss most of p in every run.
+    """A lower confidence bound of p at level 1 - ``alpha``, log (nats), from n independent runs of unbiased
+    non-negative estimators of p, their logs ``log_estimates`` float64 [n]: (log alpha + sum of the logs) / n. It
+    holds whatever the weights' tail: E[prod X_i] = p^n, so P(prod X_i >= t) <= p^n / t (Markov's inequality). -inf
+    when a run gave 0 or there is none; no such upper bound exists.
 
     Raises:
-        ValueError: alpha outside (0, 1).
-    """
+        ValueError: alpha outside (0, 1)."""
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"markov_lower_bound: alpha must be in (0, 1), got {alpha}")
     logs = np.asarray(log_estimates, dtype=np.float64)
@@ -146,21 +142,16 @@ class BettingEvidence:
 def betting_lower_bound(log_terms: np.ndarray, alpha: float = 1.0 - CI_LEVEL) -> float:
     """A lower confidence bound of p at level 1 - ``alpha`` from a run's terms X_i = 1[fail_i] w_i, given as logs
     ``log_terms`` float64 [N] (nats, -inf for 0), that holds however heavy the weights' tail: it needs only X_i >= 0
-    and E[X_i | the rollouts before i] = p, which exact importance weights p/q give under any proposal, adapted
-    between stages or not.
+    and E[X_i | the rollouts before i] = p, which exact importance weights give under any proposal.
 
-    The bound is the smallest m that a mixture of bettors fails to reject (testing by betting: Waudby-Smith & Ramdas,
-    "Estimating means of bounded random variables by betting", JRSS B 86(1), 2024, Sec. 4, here for X >= 0 with no
-    upper bound). For each fraction lambda_j in :data:`BET_FRACTIONS`, K_j(m) = prod_i (1 - lambda_j + lambda_j X_i
-    / m) is a non-negative martingale with K_j(p) starting at 1 when m = p (each factor has conditional mean 1 and is
-    >= 1 - lambda_j > 0), and so is their mean K(m). Ville's inequality gives P(sup_n K(p) >= 1 / alpha) <= alpha, so
-    {m : K(m) < 1 / alpha} holds p with probability >= 1 - alpha, at every n at once (a run may stop on its data).
-    K is non-increasing in m, so that set is [bound, inf), found by bisection on log m. There is no such upper bound:
-    an unbiased estimator may miss most of p in every run.
+    Testing by betting (Waudby-Smith & Ramdas, "Estimating means of bounded random variables by betting", JRSS B
+    86(1), 2024, Sec. 4, for X >= 0): for each fraction lambda_j in :data:`BET_FRACTIONS`, K_j(m) = prod_i (1 -
+    lambda_j + lambda_j X_i / m) is a non-negative martingale at m = p, and so is their mean K(m); by Ville's
+    inequality {m : K(m) < 1 / alpha} holds p with probability >= 1 - alpha at every n at once. K is non-increasing
+    in m, so the bound is found by bisection on log m. No such upper bound exists.
 
     Raises:
-        ValueError: ``alpha`` outside (0, 1).
-    """
+        ValueError: ``alpha`` outside (0, 1)."""
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"betting_lower_bound: alpha must be in (0, 1), got {alpha}")
     return BettingEvidence.of(log_terms).lower_bound(alpha)

@@ -1,17 +1,10 @@
 """Which perception errors decided a failure: each error of a failing rollout undone alone, the rollout replayed.
 
-A failing rollout's perception errors are its objects' misses and, where an object was detected, its measurement
-errors. For each one before the failure (later events cannot change it), the rollout is replayed with that event
-alone changed: the miss flipped to a detection measured exactly, or the measurement error set to zero. An event is
-**decisive** when its replay no longer fails. All replays run as one batch through the problem's ``branch``, which
-replays given events exactly (the simulators are deterministic functions of the events); nothing is drawn. Any
-scene, any number of objects; a scenario's own misses-only flips (e.g. the braking scenario's ``counterfactual``)
-agree with it.
-
-Source: counterfactual explanation by single interventions, as in Innes & Ramamoorthy, "Adaptive Splitting of
-Reusable Temporal Monitors for Rare Traffic Violations" (arXiv 2405.15771), which asks which perception errors of a
-violating trace were necessary.
-"""
+For each miss or measurement error before the failure, the rollout is replayed through the problem's ``branch`` with
+that event alone changed (the miss flipped to an exact detection, the error set to zero); an event is **decisive**
+when its replay no longer fails. Nothing is drawn; any scene, any number of objects. Source: counterfactual
+explanation by single interventions, as in Innes & Ramamoorthy, "Adaptive Splitting of Reusable Temporal Monitors
+for Rare Traffic Violations" (arXiv 2405.15771)."""
 
 from __future__ import annotations
 
@@ -185,12 +178,10 @@ class LikelyFailure:
 
 
 def failure_log_p(batch: RolloutBatch, failed: np.ndarray) -> np.ndarray:
-    """The log p under the PEM (the target) of each failing rollout, float64 [N] (nats), -inf where ``failed`` [N]
-    is False: the sum of ``log p_target(a_t | s_t)`` over the rollout's first T - 1 steps, the steps its importance
-    weight multiplies (:meth:`pemviz.core.rollouts.RolloutBatch.log_likelihood`; the last action changes nothing). The
-    one log p by which the console, the panel and the recording choose the most likely failure. Where the PEM also
-    mislocates, it adds the log-probability of the detections and the log-density of the measurement errors, so it is
-    a log-likelihood, not the log of a probability (it can be positive): they state its two parts
+    """The log p under the PEM of each failing rollout, float64 [N] (nats), -inf where ``failed`` [N] is False: the
+    sum of ``log p_target(a_t | s_t)`` over the first T - 1 steps
+    (:meth:`pemviz.core.rollouts.RolloutBatch.log_likelihood`), by which the console, panel and recording choose the
+    most likely failure; with measurement errors a log-likelihood that can be positive
     (:func:`failure_log_p_parts`).
 
     Raises:
@@ -220,32 +211,22 @@ def failure_log_p_parts(
     batch: RolloutBatch, target: object | None, n_factors: int | None = None
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Each rollout's log p under the PEM (:func:`failure_log_p`, over the first ``n_factors`` steps, default T - 1)
-    split by the kind of event it sums: (the log-probability of its detections, float64 [N], nats, <= 0; the
-    log-density of its detected objects' measurement errors, float64 [N], nats, or None for a batch without errors).
+    split by the kind of event it sums: the log-probability of its detections (<= 0) and the log-density of its
+    detected objects' measurement errors.
 
-    Where the PEM also mislocates (``batch.noise`` [N, T, M, D], a :class:`pemviz.core.detectors.NoisyDetector`
-    target, e.g. the cut-in's noise PEM), a step's log p adds each object's ``log p(a | x)`` (a probability: <= 0)
-    and, where detected, ``log p(e | x)``, the density of its error in metres (:func:`pemviz.core.detectors.draw_step`).
-    The sum is a log-likelihood with respect to counting measure times Lebesgue measure, not the log of a probability:
-    a density exceeds 1 wherever its scale is below 1 m, so its log, and the sum, can be positive (Cover & Thomas,
-    "Elements of Information Theory", 2nd ed., 2006, Sec. 8.1), and its value depends on the unit of the errors.
-    The batch keeps only the sum per step (:attr:`RolloutBatch.log_p`), so both parts are recomputed here from the
-    rollout's object rows, detections and errors under ``target`` (its PEM: :func:`scoring_detector`), which asks
-    the detector nothing it keeps and changes no draw (:func:`pemviz.core.event_probs.batch_log_probs`). The two
-    add up to :func:`failure_log_p` up to rounding (about 1e-12 relative). A batch without errors (``noise`` None,
-    e.g. the braking scenario) holds nothing but detections: its log p is the first part as it is, and ``target`` is
-    not asked.
+    The second is a density in metres, so it and the sum can be positive (Cover & Thomas, "Elements of Information
+    Theory", 2nd ed., 2006, Sec. 8.1). Both are recomputed from the rollout's object rows, detections and errors
+    under ``target`` (:func:`scoring_detector`, :func:`pemviz.core.event_probs.batch_log_probs`) and add up to
+    :func:`failure_log_p` to about 1e-12 relative; a batch without errors is not asked.
 
     Args:
         batch: N rollouts (detected bool [N, T, M]; object rows [N, T, M, G]; noise [N, T, M, D] or None).
-        target: the PEM the rollouts are weighed under (a problem's ``target``, or an event's); only read when the
-            batch has errors.
+        target: the PEM the rollouts are weighed under; only read when the batch has errors.
         n_factors: the steps summed (default T - 1, as :meth:`RolloutBatch.log_likelihood`).
     Returns:
         (log-probability of the detections [N], log-density of the measurement errors [N] or None), nats.
     Raises:
-        ValueError: a batch with errors and no ``target``.
-    """
+        ValueError: a batch with errors and no ``target``."""
     k = batch.n_steps - 1 if n_factors is None else int(n_factors)
     if batch.noise is None:
         return batch.log_likelihood(k), None

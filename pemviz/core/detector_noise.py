@@ -1,7 +1,7 @@
 """Detectors' measurement errors: the location-scale families a detected object's error is drawn from, their
-quantiles and log densities in closed form, and the helpers that draw and score the errors of a detector's error model
-(:class:`~pemviz.core.detectors.NoisyDetector`), through the wrappers (:class:`ErrorModelOf`) that keep the wrapped
-detector's model. :mod:`pemviz.core.detectors` imports every public name here too.
+quantiles and log densities in closed form, and the helpers that draw and score the errors of a
+:class:`~pemviz.core.detectors.NoisyDetector` (through :class:`ErrorModelOf` wrappers). Re-exported by
+:mod:`pemviz.core.detectors`.
 """
 
 from __future__ import annotations
@@ -26,11 +26,9 @@ def _check_family(family: str) -> None:
 
 
 def standard_quantile(family: str, df: np.ndarray | None, u: np.ndarray) -> np.ndarray:
-    """F^-1(u) of the standard ``family`` (Student-t with ``df`` degrees of freedom, broadcast against ``u``), float64,
-    in closed form with scipy.special (what ``scipy.stats``' frozen distributions compute, without their ~0.6 ms of
-    construction per call; a test checks them against ``scipy.stats``). Student-t quantiles with df >= 1 (a scalar,
-    or one per column of ``u``) come from :func:`pemviz.core.t_quantile.student_t_quantile`, within 2e-12 of
-    ``scipy.special.stdtrit`` (relative) and about ten times faster; other df from ``stdtrit``.
+    """F^-1(u) of the standard ``family`` (Student-t with ``df`` degrees of freedom, broadcast against ``u``),
+    float64, in closed form with scipy.special (tested against ``scipy.stats``); Student-t quantiles with df >= 1
+    from :func:`pemviz.core.t_quantile.student_t_quantile`, others from ``stdtrit``.
 
     Raises:
         ValueError: an unknown family.
@@ -115,19 +113,17 @@ def noise_names_of(detector: object) -> tuple[str, ...]:
 
 
 def draw_noise(detector: Any, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The measurement errors of the rows ``hit`` drawn from ``detector``'s error model
-    (:class:`~pemviz.core.detectors.NoisyDetector`) and their log density: ``e = noise_from_uniforms(rows[hit], u)``
-    and ``noise_log_prob(rows[hit], e)``, or, bit for bit the same, ``detector.noise_draw(rows, u, hit)`` where the
-    detector has it (one evaluation of its error model, e.g. :meth:`pemviz.pem.perception.SalientDetector.noise_draw`).
+    """The measurement errors of the rows ``hit`` drawn from ``detector``'s error model and their log density:
+    ``noise_from_uniforms`` then ``noise_log_prob``, or bit for bit the same in one evaluation,
+    ``detector.noise_draw(rows, u, hit)`` where it has it.
 
     Args:
-        detector: the detector whose error model draws (a :class:`~pemviz.core.detectors.NoisyDetector`).
+        detector: a :class:`~pemviz.core.detectors.NoisyDetector`.
         rows: float64 [R, G] object rows.
         u: float64 [H, D] uniforms in (0, 1) of the H rows of ``hit``, in order.
         hit: bool [R].
     Returns:
-        (errors float64 [H, D], log density float64 [H] in nats).
-    """
+        (errors float64 [H, D], log density float64 [H] in nats)."""
     combined = getattr(detector, "noise_draw", None)
     if combined is not None:
         errors, log_density = combined(rows, u, hit)

@@ -1,11 +1,7 @@
-"""Detectors: what the scenario asks each step about each object. Each gives the logit of p(detect | object row).
-
-A detector maps object rows (float64 [R, G], one row per object of a rollout at a step, columns named by the
-scenario, the window's column first: e.g. the braking scenario's one object row is its observation, gap first) to
-``logit p(detect)`` float64 [R]. Working with logits keeps every log-probability exact: ``log p(detect) =
-log_expit(logit)``, ``log p(miss) = log_expit(-logit)`` (``scipy.special.log_expit``). A detector that also mislocates
-(:class:`NoisyDetector`) gives the density of a detected object's measurement error; :func:`draw_step` draws one
-step's detections and errors and their log-probabilities, the one home of that arithmetic for every simulator.
+"""Detectors: what the scenario asks each step about each object: ``logit p(detect)`` float64 [R] of object rows
+float64 [R, G] (the window's column first), so every log-probability is exact (``log_expit(+-logit)``). A
+:class:`NoisyDetector` also gives the density of a detected object's measurement error; :func:`draw_step` draws one
+step's events and their log-probabilities for every simulator.
 """
 
 from __future__ import annotations
@@ -40,15 +36,11 @@ class Detector(Protocol):
 
 @runtime_checkable
 class NoisyDetector(Detector, Protocol):
-    """A detector that also mislocates what it detects: a detected object's measurement error (float64 [D] per row,
-    ``noise_names``, e.g. range and lateral error in metres) has a location-scale density given the row.
-
-    ``noise_params(rows [R, G]) -> (loc [R, D], log_scale [R, D])`` of a standard family ``noise_family`` (one of
-    :data:`NOISE_FAMILIES`; ``noise_df`` [D], the Student-t's degrees of freedom, else None), each error component
-    independent; ``noise_from_uniforms(rows, u [R, D])`` draws the errors by inverse CDF from uniforms in (0, 1) (a
-    fixed number of draws per row, so that chunks of rollouts can jump to their draws) and ``noise_log_prob(rows,
-    noise [R, D])`` is their log density, float64 [R] (nats): :func:`noise_quantile` and :func:`noise_log_density` of
-    those parameters.
+    """A detector that also mislocates what it detects: a detected object's error (float64 [D] per row,
+    ``noise_names``, e.g. metres) has a location-scale density given the row: ``noise_params(rows) -> (loc [R, D],
+    log_scale [R, D])`` of the family ``noise_family`` (:data:`NOISE_FAMILIES`, ``noise_df`` for Student-t),
+    independent components; ``noise_from_uniforms(rows, u [R, D])`` draws by inverse CDF and ``noise_log_prob(rows,
+    noise) -> [R]`` is the log density (nats).
     """
 
     noise_names: tuple[str, ...]
@@ -189,21 +181,16 @@ def defensive_logit(q_logit: np.ndarray, eps: float) -> np.ndarray:
 class StageSamplers:
     """The detectors one proposal gives a cross-entropy stage, evaluated together, once per step.
 
-    The proposal draws only where a detection can matter, ``floor_m <= gap < radius_m`` (a problem's window, above
-    the gap where the outcome is already decided), the target everywhere else: :attr:`plain` is that, and
-    :attr:`defensive` the same with the per-step defensive mixture inside (:func:`defensive_logit`, ``eps`` > 0; with
-    ``eps`` = 0 it is :attr:`plain`). A stage drawn as a mixture over whole rollouts asks its sampler, then its target
-    (:attr:`target`, e.g. inside a :class:`ScoredTarget` that also asks every component) about the same observations
-    at each step: all of them share one evaluation of the target on every row and of the proposal on the window's
-    rows, kept for the last observations asked about (compared by value). Call :meth:`forget` once the proposal
-    changed (a fit). Returned logits are read-only arrays.
+    The proposal draws only inside the window ``floor_m <= gap < radius_m``, the target elsewhere: :attr:`plain`;
+    :attr:`defensive` adds the per-step defensive mixture (:func:`defensive_logit`, ``eps`` > 0). All share one
+    evaluation of the target and of the proposal per step, cached for the last observations asked about; call
+    :meth:`forget` after a fit. Returned logits are read-only.
 
     Args:
-        proposal: q, asked only about the window's rows (a network costs per row).
+        proposal: q, asked only about the window's rows.
         target: the target detector p (the PEM), asked about every row.
         radius_m, floor_m: the window on the gap (metres); the defaults, infinite, make it everywhere.
-        eps: the defensive share (0: none).
-    """
+        eps: the defensive share (0: none)."""
 
     def __init__(
         self,
@@ -423,16 +410,10 @@ def step_uniforms(
 ) -> np.ndarray:
     """The uniforms a simulator compares with ``sampler``'s detection probabilities at one step: ``u`` (float64 [n],
     i.i.d. U(0, 1)) as drawn, or for an :class:`ArrayRQMC` sampler the Array-RQMC uniforms of the chains ranked by
-    ``q_logit`` (float64 [n], the sampler's logits at this step, to float32), then by the first column of their rows
-    ``obs`` [n, G] (the window's gap; :func:`pemviz.core.rng.ranking_key`) and then by the rows, within each fixed block
-    of ``block`` rows (:func:`pemviz.core.rng.array_rqmc_uniforms`: the rows of :data:`pemviz.core.rng.RQMC_BLOCK`
-    rollouts; the n rows start at a block boundary).
-
-    Only the chains inside the sampler's window are coupled when it has one (``window_rows(obs)``, e.g. a
-    cross-entropy stage's sampler: where a detection can matter): they are ranked among themselves and shifted by
-    their first chain's uniform, and the others keep their i.i.d. uniforms. Each chain's uniform stays U(0, 1) given
-    the past: which chains are coupled, and their ranks, are decided by their states.
-    """
+    ``q_logit`` (to float32), then the first column of ``obs`` [n, G], then the rows
+    (:func:`pemviz.core.rng.ranking_key`, :func:`pemviz.core.rng.array_rqmc_uniforms`), within each block of
+    ``block`` rows. Only the chains inside the sampler's window (``window_rows(obs)``) are coupled; the others keep
+    their i.i.d. uniforms. Each chain's uniform stays U(0, 1) given the past."""
     if not getattr(sampler, "array_rqmc", False) or u.size <= 1:
         return u
     window_rows = getattr(getattr(sampler, "detector", None), "window_rows", None)
@@ -475,39 +456,30 @@ def draw_step(
     n_objects: int = 1,
     state: np.ndarray | None = None,
 ) -> StepDraw:
-    """Draw one step's perception events for R object rows from ``sampler``, scored under ``target``: the arithmetic
-    every simulator's rollouts share (Innes & Ramamoorthy 2022, Algorithm 1: detect iff u <= q(detect | s), as the
-    authors' code draws; the importance weight's factor p / q of each event).
+    """Draw one step's perception events for R object rows from ``sampler``, scored under ``target`` (Innes &
+    Ramamoorthy 2022, Algorithm 1: detect iff u <= q(detect | s)).
 
-    A row is detected iff ``log u <= log_expit(logit q)`` (exact in log space). With errors (the target is a
-    :class:`NoisyDetector`), a detected row's error is drawn by inverse CDF from its other uniforms under the
-    sampler's error model (the target's when the sampler has none) and both densities add its log density (one
-    evaluation of the error model for the draw and its density where the detector has ``noise_draw``, and one density
-    for both when the sampler's error model is the target's: :func:`draw_noise`, :func:`error_model_of`); a missed
-    row's error is 0 and adds nothing.
+    A row is detected iff ``log u <= log_expit(logit q)``. With errors (a :class:`NoisyDetector` target), a detected
+    row's error is drawn by inverse CDF from its other uniforms under the sampler's error model (else the target's)
+    and both densities add its log density (:func:`draw_noise`, :func:`error_model_of`); a missed row's error is 0.
 
     Args:
         sampler: the detector the events are drawn from (q).
         target: the detector they are scored under (p, the PEM).
-        rows: float64 [R, G] object rows (the rows of consecutive rollouts, each rollout's objects together).
-        u: float64 [R, 1 + D] uniforms in [0, 1): column 0 decides the detection (Array-RQMC re-ranks it for an
-            :class:`ArrayRQMC` sampler, inside the sampler's window where it has one: :func:`step_uniforms`), columns
-            1..D the errors.
-        block: rows asked about at a time and coupled by Array-RQMC together (the rows of one
-            :data:`pemviz.core.rng.RQMC_BLOCK` of rollouts).
-        n_objects: M, the rows of one rollout (consecutive). Array-RQMC couples single-object rollouts only: one
-            lattice over several objects of a rollout would make their detections depend on each other (their
-            uniforms differ by multiples of the lattice's generator), so rollouts of M > 1 objects draw i.i.d.
-        forced: optional (detected bool [R], noise [R, D] or None, given bool [R]): the rows where ``given`` take
-            these events instead of drawing them (a replayed prefix).
-        state: optional float64 [R, H], the step's state features of each row (:mod:`pemviz.core.features`): a
-            detector that reads them (:func:`reads_state`) is asked about the rows with these H columns appended,
-            any other about ``rows`` alone.
+        rows: float64 [R, G] object rows (each rollout's objects together).
+        u: float64 [R, 1 + D] uniforms in [0, 1): column 0 the detection (re-ranked for an :class:`ArrayRQMC`
+            sampler, :func:`step_uniforms`), columns 1..D the errors.
+        block: rows coupled by Array-RQMC together (one :data:`pemviz.core.rng.RQMC_BLOCK` of rollouts).
+        n_objects: M, the rows of one rollout; rollouts of M > 1 objects draw i.i.d. (Array-RQMC couples
+            single-object rollouts only).
+        forced: optional (detected bool [R], noise [R, D] or None, given bool [R]): events taken where ``given`` (a
+            replayed prefix).
+        state: optional float64 [R, H] state features (:mod:`pemviz.core.features`), appended for a detector that
+            reads them (:func:`reads_state`).
     Returns:
         :class:`StepDraw`.
     Raises:
-        ValueError: ``u`` without 1 + D columns for the target's D error components.
-    """
+        ValueError: ``u`` without 1 + D columns for the target's D error components."""
     rows, u = np.asarray(rows, dtype=np.float64).view(), np.asarray(u, dtype=np.float64)
     rows.flags.writeable = False  # a new read-only view: the detectors asked about it in turn may keep their answers
     rows_p = rows  # the target's rows, and the sampler's (with the state features where it reads them)

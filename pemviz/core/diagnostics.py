@@ -1,8 +1,6 @@
-"""Diagnostics of importance weights: the effective sample size and the Pareto k-hat of their tail.
-
-Both take log-weights (natural logs, float64) so that they work whatever the weights' scale, also far below
-float64's range. They are pemviz's own rather than ``arviz.psislw``'s: arviz rounds the tail size up and divides
-it by a relative efficiency, which would move k-hat and with it every verdict pemviz prints.
+"""Diagnostics of importance weights from log-weights: the effective sample size and the Pareto k-hat of their tail.
+pemviz's own rather than ``arviz.psislw``'s, whose tail size and relative efficiency would move k-hat and every
+verdict.
 """
 
 from __future__ import annotations
@@ -14,12 +12,9 @@ from scipy.special import softmax
 
 
 def effective_sample_size(log_weights: np.ndarray) -> float:
-    """Kish's effective sample size (sum w)^2 / sum w^2 of weights given as natural logs, float64 [S] (S >= 1).
-
-    Computed from the weights relative to the largest, so finite whatever the scale of the logs (Kong, Liu & Wong,
-    "Sequential imputations and Bayesian missing data problems", JASA 89(425), 1994; Owen, "Monte Carlo theory,
-    methods and examples", 2013, Sec. 9.3). Returns a value in [1, S]; 0 when every weight is 0 (-inf: no sample
-    counts); nan when a weight is nan or +inf.
+    """Kish's effective sample size (sum w)^2 / sum w^2 of weights given as natural logs, float64 [S] (S >= 1),
+    computed relative to the largest (Kong, Liu & Wong, JASA 89(425), 1994; Owen 2013, Sec. 9.3): in [1, S]; 0 when
+    every weight is 0; nan when a weight is nan or +inf.
     """
     lw = np.asarray(log_weights, dtype=np.float64)
     if lw.size and np.all(lw == -np.inf):
@@ -31,16 +26,11 @@ def effective_sample_size(log_weights: np.ndarray) -> float:
 def pareto_khat(log_values: np.ndarray) -> float:
     """Pareto k-hat of the upper tail of a sample of non-negative values given as natural logs, [S].
 
-    The generalized Pareto distribution is fitted (:func:`fit_generalized_pareto`: Zhang & Stephens 2009, with the
-    weakly informative prior of PSIS) to the exceedances of the M = min(S / 5, 3 sqrt(S))
-    largest values over the next one, as in Vehtari et al., "Pareto Smoothed Importance Sampling", JMLR 2024,
-    Sec. 3. Values of -inf (zeros, e.g. rollouts that did not fail) may be present: when fewer than M + 1
-    values are positive, the tail is taken from the positive values alone (S = their number). Exceedances below
-    1e-9 of the largest value are ties (sums of log-probabilities differ in their last bits), and so are
-    exceedances within 1e-9 of each other. Returns 0 for a flat or discrete tail (fewer than 5 distinct
-    exceedances: e.g. every failure weight equal, or pooled stages that each give all their failures one
-    weight: a bounded tail, with finite variance) and nan for fewer than 25 positive values (M < 5).
-    """
+    The generalized Pareto distribution (:func:`fit_generalized_pareto`) is fitted to the exceedances of the M =
+    min(S / 5, 3 sqrt(S)) largest values over the next one (Vehtari et al., "Pareto Smoothed Importance Sampling",
+    JMLR 2024, Sec. 3); -inf values (zeros) may be present, and the tail is then taken from the positive values
+    alone. Exceedances within 1e-9 (relative) are ties. Returns 0 for a flat or discrete tail (fewer than 5 distinct
+    exceedances) and nan for fewer than 25 positive values."""
     lv = np.asarray(log_values, dtype=np.float64)
     m = int(min(lv.size / 5.0, 3.0 * math.sqrt(lv.size)))
     if m < lv.size:  # only the M + 1 largest are needed, sorted: a partition, then a sort of those
@@ -63,16 +53,11 @@ def pareto_khat(log_values: np.ndarray) -> float:
 def fit_generalized_pareto(x: np.ndarray) -> tuple[float, float]:
     """(k, sigma) of a generalized Pareto distribution fitted to positive exceedances ``x``, float64 [M], by the
     empirical Bayes estimate of Zhang & Stephens, "A new and efficient estimation method for the generalized Pareto
-    distribution", Technometrics 51(3), 2009, with the weakly informative prior on k of Vehtari et al., "Pareto
-    Smoothed Importance Sampling", JMLR 2024 (k shrunk toward 0.5 as by 10 pseudo-observations).
-
-    ``pyro.ops.stats.fit_generalized_pareto`` (the tests' oracle) in numpy, with the candidates' weights as a softmax
-    (no overflow where a candidate's likelihood dwarfs another's): the estimate is asked for at every stage, and
-    importing pyro for it took ~0.2 s of each run.
+    distribution", Technometrics 51(3), 2009, with the weakly informative prior on k of Vehtari et al. (JMLR 2024):
+    ``pyro.ops.stats.fit_generalized_pareto`` (the tests' oracle) in numpy, the candidates' weights as a softmax.
 
     Raises:
-        ValueError: ``x`` not 1-D with at least one value.
-    """
+        ValueError: ``x`` not 1-D with at least one value."""
     x = np.sort(np.asarray(x, dtype=np.float64))
     if x.ndim != 1 or x.size < 1:
         raise ValueError(f"fit_generalized_pareto: x must be 1-D with at least one value, got shape {x.shape}")

@@ -1,10 +1,7 @@
-"""What the recording and the panel ask of a scenario's drawing object (:attr:`pemviz.core.problems.Problem.drawing`):
-the scene-neutral words of a rollout's outcome. Each scenario's package implements the drawing (its scene, its
-outcome words, its explanation); the sinks and the panel call it and name no scene themselves, as a Gymnasium
-environment's ``render`` draws itself for any wrapper.
-
-Plain protocols, no I/O: the recording's hooks are :class:`pemviz.sinks.drawing.RecordingDrawing`, the panel's
-:class:`pemviz.app.drawing.PanelDrawing`; a drawing object implements both and this one.
+"""What the recording and the panel ask of a scenario's drawing object
+(:attr:`pemviz.core.problems.Problem.drawing`): the scene-neutral words of a rollout's outcome. Each scenario's
+package implements it, with the recording's hooks (:class:`pemviz.sinks.drawing.RecordingDrawing`) and the panel's
+(:class:`pemviz.app.drawing.PanelDrawing`); plain protocols, no I/O.
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
-"""The importance-sampling estimate of a failure probability: mu_hat, its interval and a verdict.
-
-Innes & Ramamoorthy (2022), eq. 6: mu_hat = (1/N) sum_i 1[fail_i] prod_t p(a_t | s_t) / q(a_t | s_t), computed in
-float64 log-space. :func:`estimate` gives an :class:`Estimate`; its diagnostics (ESS, Pareto k-hat) come from
-:mod:`pemviz.core.diagnostics`, its interval and lower bound from :mod:`pemviz.core.confidence`.
-:func:`format_probability` and :func:`relative_error` print and compare probabilities given as natural logs, exact also
-far below float64's range.
+"""The importance-sampling estimate of a failure probability: mu_hat, its interval and a verdict (Innes &
+Ramamoorthy 2022, eq. 6, in float64 log space). :func:`estimate` gives an :class:`Estimate` with diagnostics from
+:mod:`pemviz.core.diagnostics` and interval and lower bound from :mod:`pemviz.core.confidence`;
+:func:`format_probability` and :func:`relative_error` work on natural logs, exact far below float64's range.
 """
 
 from __future__ import annotations
@@ -26,20 +23,15 @@ MIN_FAILURES = 10
 """Fewer failing rollouts than this: the estimate rests on too few weights (verdict ``doubtful``)."""
 
 MIN_ESS_RELIABLE = 2 * MIN_FAILURES
-"""Under importance sampling, an ESS of the failure weights below this is never ``reliable`` (``doubtful``): the ESS
-below which a heavy k-hat already makes an estimate ``unreliable``; with fewer effective failures, k-hat reads the
-tail of a handful of weights and can pass a proposal that misses part of the failure mass. E.g. on braking, runs that
-target contact said ``reliable`` at ESS 10-14 and k-hat 0.44-0.66 while 2-4 times below the exact answer and outside
-their intervals; e.g. the default run's 1 m exceedance point, right in 20 of 20 seeds at ESS 15-27, keeps its point
-at ESS 20 and above and says "not reached" below it."""
+"""Under importance sampling, an ESS of the failure weights below this is never ``reliable`` (``doubtful``): with
+fewer effective failures k-hat reads the tail of a handful of weights and can pass a proposal that misses part of
+the failure mass (docs/validation.md)."""
 
 
 def distinct_failures(log_weight: np.ndarray, log_p_total: np.ndarray) -> int:
-    """The distinct failing rollouts among ``log_weight`` [F] and ``log_p_total`` [F] (nats) of the failures: the
-    distinct (log w, log p) pairs. Repeats of one rollout carry the same pair, bit for bit; a proposal that has
-    collapsed onto a few paths draws them again and again, and their ESS counts every repeat although the
-    estimate then knows only those paths' probability (Rubinstein & Kroese, "The Cross-Entropy Method", 2004,
-    Sec. 3.5: degenerate CE solutions)."""
+    """The distinct failing rollouts among ``log_weight`` [F] and ``log_p_total`` [F] (nats): the distinct (log w,
+    log p) pairs; a proposal collapsed onto a few paths repeats them (Rubinstein & Kroese, "The Cross-Entropy
+    Method", 2004, Sec. 3.5)."""
     if log_weight.size == 0:
         return 0
     return int(np.unique(np.stack([log_weight, log_p_total]), axis=1).shape[1])
@@ -69,18 +61,16 @@ class Estimate:
         n: rollouts used.
         n_failures: rollouts that failed (crash: classic robustness < 0).
         log_mu_hat: log of mu_hat = (1/N) sum_i 1[fail_i] w_i (nats; -inf with no failure).
-        nll_mean: mean over failures of -sum_{t < t_fail} log p_PEM(a_t | s_t): the actions before the failure
-            step t_fail, the same steps for every sampler (nats; nan with no failure).
+        nll_mean: mean over failures of -sum_{t < t_fail} log p_PEM(a_t | s_t) (nats; nan with no failure).
         nll_lme: -log-mean-exp over failures of the same sums (nats; nan with no failure).
         ess: effective sample size of the failure weights, (sum w)^2 / sum w^2 (0 with no failure).
         log_ci: the :data:`~pemviz.core.confidence.CI_LEVEL` confidence interval of mu_hat as natural logs (lo, hi)
-            (see :func:`estimate`).
+            (:func:`estimate`).
         khat: Pareto k-hat of the tail of the importance-weighted failure indicator (nan with too few failures).
-        log_mean_weight: log of the mean importance weight over all N rollouts (nats): an unbiased estimate of
-            log 1 = 0 when the weights come from the proposal that really drew the rollouts.
+        log_mean_weight: log of the mean importance weight over all N rollouts (nats): about 0 when the weights
+            belong to the proposal that drew the rollouts.
         verdict: one of :data:`VERDICTS`.
-        reason: one line saying why.
-    """
+        reason: one line saying why."""
 
     n: int
     n_failures: int
@@ -107,10 +97,9 @@ class Estimate:
 
     def lower_bound(self, alpha: float = 1.0 - CI_LEVEL) -> float:
         """A lower confidence bound of p at level 1 - ``alpha`` that holds whatever the weights' tail, as a natural
-        log (-inf: none). Plain Monte Carlo: the one-sided Clopper-Pearson bound ``B^-1(alpha; k, n - k + 1)``.
-        Importance sampling: :func:`pemviz.core.confidence.betting_lower_bound` of the run's terms (exact weights
-        suffice). A run that keeps only unbiased run-level estimates (splitting):
-        :func:`pemviz.core.confidence.markov_lower_bound` of them.
+        log (-inf: none): the one-sided Clopper-Pearson bound for plain Monte Carlo,
+        :func:`pemviz.core.confidence.betting_lower_bound` of the run's terms under importance sampling,
+        :func:`pemviz.core.confidence.markov_lower_bound` of run-level estimates (splitting).
 
         Raises:
             ValueError: ``alpha`` outside (0, 1).
@@ -218,11 +207,9 @@ class Estimate:
         return dataclasses.replace(self, verdict=cap[0], reason=cap[1])
 
     def summary(self, exact_log_p: float | None = None, reference: Reference | None = None) -> str:
-        """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, the exact answer if known, else the
-        reference answer if one is given (:meth:`Reference.comparison`).
-
-        e.g. ``mu_hat = 1.795e-15, 95 % CI [1.3e-15, 2.5e-15], ESS 10.2, k-hat 0.41: reliable (96 failures);
-        exact 1.984e-15 (relative error 0.095, inside the interval)``.
+        """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, and the exact answer or reference
+        (:meth:`Reference.comparison`), e.g. ``mu_hat = 1.795e-15, 95 % CI [1.3e-15, 2.5e-15], ESS 10.2, k-hat 0.41:
+        reliable (96 failures); exact 1.984e-15 (relative error 0.095, inside the interval)``.
         """
         khat = "-" if math.isnan(self.khat) else f"{self.khat:.2f}"
         if self.n_failures == 0:  # no point estimate: the bound, if the rollouts give one
@@ -330,31 +317,23 @@ def estimate(
 
     Innes & Ramamoorthy (2022), eq. 6: mu_hat = (1/N) sum_i 1[fail_i] prod_t p(a_t | s_t) / q(a_t | s_t).
 
-    The interval: with weights all equal to 1 (plain Monte Carlo under the PEM) the Clopper-Pearson interval of
-    the failure count (:func:`pemviz.core.confidence.clopper_pearson`), and with 0 failures the one-sided
-    rule-of-three bound p < 3 / N; under importance sampling the log-scale t interval of the mean of 1[fail_i] w_i
-    (see :func:`pemviz.core.confidence.log_mean_interval`) cut at 1 (p is a probability: e.g. p = 1 where every
-    rollout starts inside the failure set), and with 0 failures the interval [0, 1]: 0 failures under a proposal
-    bound nothing.
-    The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, with Pareto k-hat above
-    :data:`KHAT_UNRELIABLE` and an ESS below :data:`MIN_ESS_RELIABLE` (above it: ``doubtful``), or when the mean
-    importance weight exceeds :data:`MAX_MEAN_WEIGHT` (the weights do not belong to the proposal that drew the
-    rollouts); ``doubtful`` with fewer than :data:`MIN_FAILURES` failures, an ESS below it (below
-    :data:`MIN_ESS_RELIABLE` under importance sampling), or k-hat above the sample-size threshold min(1 - 1 / log10
-    S, 0.7) of Vehtari et al. (2024); ``doubtful`` too when the failures are fewer than :data:`MIN_FAILURES`
-    distinct rollouts (:func:`distinct_failures`: a collapsed proposal; a failure event of so few paths is rare),
-    ``unreliable`` when a weight is nan; else ``reliable``.
+    The interval: with all weights 1 (plain Monte Carlo) the Clopper-Pearson interval of the failure count
+    (:func:`pemviz.core.confidence.clopper_pearson`; 0 failures: p < 3 / N); under importance sampling the log-scale
+    t interval of the mean of 1[fail_i] w_i (:func:`pemviz.core.confidence.log_mean_interval`) cut at 1, and [0, 1]
+    with 0 failures. The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, a nan weight, k-hat above
+    :data:`KHAT_UNRELIABLE` with an ESS below :data:`MIN_ESS_RELIABLE`, or a mean importance weight above
+    :data:`MAX_MEAN_WEIGHT`; ``doubtful`` with fewer than :data:`MIN_FAILURES` failures or distinct failing rollouts
+    (:func:`distinct_failures`), a low ESS, or k-hat above min(1 - 1 / log10 S, 0.7) (Vehtari et al. 2024); else
+    ``reliable``.
 
     Args:
         log_weight: float64 [N] importance log-weights sum_t (log p - log q) (nats).
         failed: bool [N] failure indicator.
         log_p_total: float64 [N] sum_t log p_PEM(a_t | s_t) over the steps before the failure (nats), for the NLL.
-        own_log_weight: float64 [N] each rollout's own log p/q (nats) where ``log_weight`` carries pooling shifts (the
-            stages' lambda_k N / n_k): the lower bound bets on the own terms, whose conditional mean is p
-            (:func:`pemviz.core.confidence.betting_lower_bound`); None: ``log_weight`` itself.
+        own_log_weight: float64 [N] each rollout's own log p/q (nats) where ``log_weight`` carries pooling shifts,
+            for the lower bound (:func:`pemviz.core.confidence.betting_lower_bound`); None: ``log_weight`` itself.
     Raises:
-        ValueError: if the arrays do not have one entry per rollout, or N = 0.
-    """
+        ValueError: if the arrays do not have one entry per rollout, or N = 0."""
     from scipy.special import logsumexp
 
     log_weight = np.asarray(log_weight, dtype=np.float64)

@@ -1,11 +1,8 @@
 """What a detector's perception events cost, the two kinds apart: the log-probability of each detection or miss
-(nats, <= 0) and the log-density of each detected object's measurement error (nats, the errors in metres: a density,
-so its log can be positive; Cover & Thomas, *Elements of Information Theory*, 2nd ed., 2006, Sec. 8.1). Per object
-and step, p(a, e | x) = p_PEM(a | x) p_noise(e | x)^a (Innes & Ramamoorthy 2022, Sec. IV-A, with the noise PEM's
-density of a detected object's error); a rollout's ``log p`` (:attr:`pemviz.core.rollouts.RolloutBatch.log_p`) is
-their sum over its steps' objects. :func:`event_log_probs` gives them for object rows, :func:`batch_log_probs` for a
-batch's steps; :func:`pemviz.core.counterfactuals.failure_log_p_parts` for a failing rollout's steps before its
-failure.
+(nats, <= 0) and the log-density of each detected object's error (nats; a density in metres, so it can be positive:
+Cover & Thomas, *Elements of Information Theory*, 2006, Sec. 8.1). A rollout's ``log p`` is their sum
+(:attr:`pemviz.core.rollouts.RolloutBatch.log_p`). :func:`event_log_probs` gives them for object rows,
+:func:`batch_log_probs` for a batch.
 """
 
 from __future__ import annotations
@@ -41,19 +38,17 @@ def event_log_probs(
     detector: Any, rows: np.ndarray, detected: np.ndarray, noise: np.ndarray | None = None
 ) -> EventLogProbs:
     """The log-probability of each detection or miss and the log-density of each detected object's error under
-    ``detector``, apart (:class:`EventLogProbs`; sum over the objects' axis for a step's).
+    ``detector``, apart (:class:`EventLogProbs`).
 
     Args:
-        detector: any detector (``detect_logit``; with ``noise_log_prob`` when it mislocates, e.g.
-            :func:`pemviz.stack.detector.camera_detector`'s).
-        rows: float64 ``S + [G]`` object rows (e.g. ``[N, M, G]``: one step of N rollouts of M objects).
+        detector: any detector (``detect_logit``; with ``noise_log_prob`` when it mislocates).
+        rows: float64 ``S + [G]`` object rows (e.g. ``[N, M, G]``).
         detected: bool ``S``.
         noise: float64 ``S + [D]`` the errors (metres; read where detected), or None: the detector only detects.
     Returns:
         :class:`EventLogProbs` of shape ``S``.
     Raises:
-        ValueError: shapes that do not fit, or errors given to a detector without an error model.
-    """
+        ValueError: shapes that do not fit, or errors given to a detector without an error model."""
     rows = np.array(rows, dtype=np.float64)  # a copy: nothing a detector does to it reaches the caller's rows
     detected = np.asarray(detected, dtype=bool)
     shape = rows.shape[:-1]

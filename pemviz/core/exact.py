@@ -1,25 +1,17 @@
 """Order-free arithmetic: results that cannot depend on the CPU, its vector unit, the BLAS kernel or the batch.
 
-A sampler draws ``detect iff u <= q``, so a last-bit change of q flips a draw, and a fit trained on the rollouts
-follows it. The proposal network's products and fits therefore use arithmetic whose every result is fixed by the
-IEEE 754 standard alone:
+A sampler draws ``detect iff u <= q``, so a last-bit change of q flips a draw; the proposal network's products and
+fits use arithmetic fixed by IEEE 754 alone:
 
-- **Matrix products on grids** (:func:`matmul`): each row of the left operand and each column of the right one is
-  rounded to an integer multiple of a power of two (block floating point; Wilkinson, "Rounding Errors in Algebraic
-  Processes", 1963) with so few significant bits that every product and every partial sum of the float64 product of
-  the integers is an integer below 2^53, hence exact. An exact sum has no order: any BLAS kernel, any blocking, any
-  number of rows and any CPU give the same bits, and a row's result depends on that row alone. Rounding to
-  ``bits`` bits of the row's (column's) largest magnitude keeps about float32's precision (24 bits for an inner
-  dimension of 32).
-- **Elementwise arithmetic** in float64 numpy ufuncs of one operation each (``+ - * /``, sqrt, max, rint, ldexp),
-  which IEEE 754 rounds correctly on every vector unit: no fused multiply-add, no reduction.
-- **Transcendentals** (:func:`exp`, :func:`log1p`, :func:`softplus`, :func:`sigmoid`, :func:`tanh`) written from
-  those operations (Cody & Waite range reduction and fixed polynomials; Muller, "Elementary Functions", 2016),
-  instead of libm's or the vector libraries' (SVML, SLEEF), whose last bits differ between CPUs.
-- **Sums** (:func:`exact_sum`) of values rounded to a grid: integers below 2^53, exact in any order.
+- **matrix products on grids** (:func:`matmul`): rows and columns rounded to integer multiples of a power of two
+  (block floating point; Wilkinson, "Rounding Errors in Algebraic Processes", 1963) so that every partial sum is an
+  integer below 2^53, exact in any order; about float32's precision;
+- **elementwise arithmetic** in float64 ufuncs of one correctly rounded operation each;
+- **transcendentals** (:func:`exp`, :func:`log1p`, :func:`softplus`, :func:`sigmoid`, :func:`tanh`) from those
+  operations (Cody & Waite range reduction; Muller, "Elementary Functions", 2016), not libm's;
+- **sums** (:func:`exact_sum`) of values on a grid.
 
-Every function takes and returns float64 numpy arrays.
-"""
+Every function takes and returns float64 numpy arrays."""
 
 from __future__ import annotations
 
@@ -64,19 +56,14 @@ def on_grid(x: np.ndarray, bits: int, axis: int | None, nonneg: bool = False) ->
 
 
 def times_power_of_two(x: np.ndarray, n: np.ndarray, m: np.ndarray | None = None) -> np.ndarray:
-    """``x * 2^(n + m)`` correctly rounded, the bits of ``np.ldexp(x, n + m)``, float64 [...] (a new array).
-
-    Multiplies by the powers of two themselves (``2^n`` then ``2^m``) where each is a normal float64 and the
-    intermediate ``x * 2^n`` cannot leave the normal range (``x`` integer-valued below 2^53 in magnitude, as every
-    grid's integers, when ``m`` is given): each product is then exact or rounded once, as :func:`numpy.ldexp` rounds,
-    and takes one multiply per element where ``ldexp`` takes several (4-8 times faster on [8192, 32]). Else
-    ``np.ldexp``.
+    """``x * 2^(n + m)`` correctly rounded, the bits of ``np.ldexp(x, n + m)``, float64 [...] (a new array): one
+    multiply per element by the powers of two where each is normal and ``x * 2^n`` cannot leave the normal range,
+    else ``np.ldexp``.
 
     Args:
         x: float64 [...].
         n: int array broadcastable to ``x``.
-        m: int array broadcastable to ``x``, or None (0).
-    """
+        m: int array broadcastable to ``x``, or None (0)."""
     lo, hi = (int(n.min()), int(n.max())) if n.size else (0, 0)
     if m is None:
         if -1022 <= lo and hi <= 1023:
@@ -107,22 +94,18 @@ def to_grid(x: np.ndarray, bits: int, nonneg: bool = False) -> tuple[np.ndarray,
 def matmul(
     a: np.ndarray, b: np.ndarray | None, b_grid: tuple[np.ndarray, np.ndarray] | None = None, nonneg: bool = False
 ) -> np.ndarray:
-    """``a @ b`` of ``a`` rounded per row and ``b`` per column to :func:`grid_bits` (k) bits, computed exactly.
-
-    The result is the exact product of the rounded operands, rounded once to float64 by the power-of-two scaling:
-    row i depends on ``a[i]`` and ``b`` alone, and on no kernel, order, batch or CPU.
+    """``a @ b`` of ``a`` rounded per row and ``b`` per column to :func:`grid_bits` (k) bits, computed exactly and
+    rounded once to float64: row i depends on ``a[i]`` and ``b`` alone, on no kernel, order, batch or CPU.
 
     Args:
         a: float64 [m, k].
         b: float64 [k, n] (ignored, and may be None, when ``b_grid`` is given).
-        b_grid: ``b`` already on its grid (:func:`on_grid` with ``grid_bits(k)`` bits and ``axis`` 0), e.g. a
-            network's weights rounded once.
+        b_grid: ``b`` already on its grid (:func:`on_grid`, ``grid_bits(k)`` bits, ``axis`` 0).
         nonneg: ``a`` >= 0 (e.g. after a ReLU).
     Returns:
         float64 [m, n].
     Raises:
-        ValueError: neither ``b`` nor ``b_grid``.
-    """
+        ValueError: neither ``b`` nor ``b_grid``."""
     bits = grid_bits(a.shape[1])
     ai, ea = on_grid(a, bits, 1, nonneg)
     if b_grid is None:
@@ -150,14 +133,9 @@ def matmul_t(
     nonneg: bool = False,
     own: bool = False,
 ) -> np.ndarray:
-    """:func:`matmul` transposed: ``(a @ b).T`` float64 [n, m] of ``at = a.T`` [k, m], with the bits of
-    ``matmul(a, None, b_grid, nonneg)``, in fewer passes over the data (a row of ``a`` is a column here: its largest
-    magnitude is an elementwise maximum over k rows, not a reduction along a short axis).
-
-    The product of ``at``'s integers with ``bt`` (:func:`scaled_grid` of ``b_grid``: column j's integers times
-    ``2^eb_j``) is exact, every partial sum an integer multiple of ``2^eb_j`` below ``2^(53 + eb_j)``; one multiply by
-    each row's ``2^ea`` then rounds it once, as :func:`matmul`'s scaling of the integer product by ``2^(ea + eb)``
-    does. Where a power of two of ``a``'s grid leaves the normal range, or ``bt`` is None, :func:`matmul` itself.
+    """:func:`matmul` transposed: ``(a @ b).T`` float64 [n, m] of ``at = a.T`` [k, m], with the bits of ``matmul(a,
+    None, b_grid, nonneg)`` in fewer passes (:func:`matmul` itself where a power of two leaves the normal range, or
+    ``bt`` is None).
 
     Args:
         at: float64 [k, m].
@@ -166,8 +144,7 @@ def matmul_t(
         nonneg: ``at`` >= 0.
         own: ``at`` may be overwritten.
     Returns:
-        float64 [n, m].
-    """
+        float64 [n, m]."""
     largest = (at if nonneg else np.abs(at)).max(axis=0) if at.shape[0] else np.zeros(at.shape[1])
     shift = grid_bits(at.shape[0]) - np.frexp(largest)[1]
     if bt is None or not shift.size or not (-1022 <= int(shift.min()) and int(shift.max()) <= 1022):

@@ -29,18 +29,15 @@ def fit_exact(
     plateau_epochs: int,
 ) -> list[float]:
     """Full-batch Adam on the weighted log-likelihood ``-sum(C * log q) / per`` (:data:`Objective`, a tensor C), in
-    place, in exact order-free arithmetic (:mod:`pemviz.core.exact`): the same parameters, bit for bit, on every CPU.
+    place, in exact order-free arithmetic (:mod:`pemviz.core.exact`): the same parameters, bit for bit, on every
+    CPU.
 
-    Forward and backward passes are written out (Rumelhart, Hinton & Williams 1986): every operand of a matrix
-    product rounded once to a power-of-two grid of ``grid_bits(max(M, 32))`` bits of its largest entry
-    (:func:`pemviz.core.exact.to_grid`; 21 bits for M = 2,000), so that the products over the 32 units and over the
-    M inputs, and each bias gradient, are exact sums of integers; the log-softmax of the two outputs as
-    ``log q(miss) = -softplus(d)``, ``log q(detect) = -softplus(-d)`` with d = z_detect - z_miss and its derivative
-    ``d loss / d d = ((C_miss + C_detect) sigmoid(d) - C_detect) / per``, and Adam (Kingma & Ba 2015, Algorithm 1,
-    torch's defaults: betas (0.9, 0.999), eps 1e-8) in elementwise float64. Precision is about float32's. The
-    weighted counts C / per are first rounded to a grid of :data:`COUNT_BITS` bits of the largest, so that counts
-    that differ in their last bits (float64 weights computed by another CPU's libm) give the same fit unless one of
-    M x 2 counts lies within an ulp of a rounding boundary (probability about 2^-29 each).
+    Forward and backward passes are written out (Rumelhart, Hinton & Williams 1986), every matrix operand rounded
+    once to a power-of-two grid of ``grid_bits(max(M, 32))`` bits (:func:`pemviz.core.exact.to_grid`) so that
+    products and bias gradients are exact integer sums; the two outputs' log-softmax as ``-softplus(+-d)``, d =
+    z_detect - z_miss; Adam (Kingma & Ba 2015, Algorithm 1, torch's defaults) in elementwise float64. Precision is
+    about float32's. The counts C / per are first rounded to :data:`COUNT_BITS` bits of the largest, so that counts
+    differing in their last bits give the same fit.
 
     Args:
         proposal: the :class:`pemviz.core.sampling.Proposal` fitted, in place.
@@ -55,8 +52,7 @@ def fit_exact(
         plateau_epochs: the epochs over which the loss must fall by ``tolerance``
             (:data:`pemviz.core.fit_settings.PLATEAU_EPOCHS`).
     Returns:
-        the loss per epoch (nats, divided by ``per``).
-    """
+        the loss per epoch (nats, divided by ``per``)."""
     h = np.ascontiguousarray(proposal.input_array(inputs))
     c = np.asarray(counts, dtype=np.float64)
     params = proposal.parameter_arrays()

@@ -1,21 +1,11 @@
 """What a state-dependent proposal does to a feature: the feature that moved q(detect) most away from the PEM, and
 q(detect) against the PEM's p(detect) over it, per bin of the rows a stage drew.
 
-A proposal that reads the state the stack acts on (:mod:`pemviz.core.features`; ``method = "state"``) has no curve
-q(detect | gap) that says what it learned: it may leave the gap to the PEM and move q along the tracker's misses or the
-predicted time to collision. :func:`feature_effects` measures, for every column of the rows with their features, how
-far the proposal's log-odds shift from the PEM, ``s = logit q(detect) - logit p_PEM(detect)``, changes across one
-standard deviation of that column over the rows (its finite difference over one sd, centred: for the generalised linear
-model :class:`pemviz.estimators.state_glm.StateGLM` exactly ``|w_j| sd_j / scale_j``, for a network the mean of
-``|ds/dx_j| sd_j`` at that resolution): a sensitivity measure of a fitted model that needs neither its form nor a
-reference state (cf. the sigma-normalised derivatives of Saltelli et al., "Global Sensitivity Analysis: The Primer",
-Wiley 2008, ch. 1). :func:`feature_curve` takes the column with the largest and bins the rows by it: per bin the mean
-q(detect) and the mean p_PEM(detect), each from its logit in log space. Marginalising over the states a stage's
-rollouts visited is how the cross-entropy method's fitted density is compared with the target on the states that
-matter (Rubinstein & Kroese, "The Cross-Entropy Method", Springer 2004, ch. 3), as :mod:`pemviz.core.proposal_view`
-does per gap bin.
-:func:`stage_feature_curve` is that for a stage's rollouts, their features replayed. No I/O.
-"""
+:func:`feature_effects` measures, for every column of the rows with their features, how far the shift ``s = logit
+q(detect) - logit p_PEM(detect)`` changes across one standard deviation of that column (a centred finite difference:
+cf. the sigma-normalised derivatives of Saltelli et al., "Global Sensitivity Analysis: The Primer", Wiley 2008, ch.
+1). :func:`feature_curve` bins the rows by the column with the largest effect: per bin the mean q(detect) and
+p_PEM(detect). :func:`stage_feature_curve` is that for a stage's rollouts, their features replayed. No I/O."""
 
 from __future__ import annotations
 
@@ -60,14 +50,11 @@ class FeatureCurve:
     Attributes:
         name: the feature's name (a column of :attr:`names`), e.g. ``object misses``.
         column: its column in the rows.
-        names: the C names of the rows' columns (the rows' own, then ``object ...`` and ``ego ...`` features).
-        effects: float64 [C] each column's effect (nats): the mean |change of logit q - logit p| across one standard
-            deviation of the column (:func:`feature_effects`); 0 for a constant column.
-        x: float64 [B] the mean of the feature in each bin (the feature's unit), increasing.
-        q_detect: float64 [B] the mean q(detect) of the bin's rows.
-        p_detect: float64 [B] the mean p_PEM(detect) of the bin's rows.
-        n_rows: int [B] the rows in each bin (none empty).
-    """
+        names: the C names of the rows' columns.
+        effects: float64 [C] each column's effect (nats, :func:`feature_effects`); 0 for a constant column.
+        x: float64 [B] the mean of the feature in each bin (its unit), increasing.
+        q_detect, p_detect: float64 [B] the mean q(detect) and p_PEM(detect) of the bin's rows.
+        n_rows: int [B] the rows in each bin (none empty)."""
 
     name: str
     column: int
@@ -91,21 +78,18 @@ def evenly_spaced(n: int, most: int) -> np.ndarray:
 
 
 def feature_effects(proposal: Any, target: Any, rows: np.ndarray, own_columns: int) -> np.ndarray:
-    """How far each column moves the proposal's log-odds shift from the PEM over ``rows``, float64 [C] (nats).
-
-    With ``s(x) = logit q(detect | x) - logit p(detect | x[:own_columns])`` and sd_j the column's standard deviation
-    over the rows, column j's effect is the mean over the rows of ``|s(x + sd_j e_j / 2) - s(x - sd_j e_j / 2)|``
-    (rows where either is not finite, e.g. an object moved out of the camera's sight, left out; 0 for a constant
-    column). At most :data:`MAX_EFFECT_ROWS` rows, evenly spaced, are used.
+    """How far each column moves the proposal's log-odds shift from the PEM over ``rows``, float64 [C] (nats): with
+    ``s(x) = logit q(detect | x) - logit p(detect | x[:own_columns])``, column j's effect is the mean of ``|s(x +
+    sd_j e_j / 2) - s(x - sd_j e_j / 2)|`` over at most :data:`MAX_EFFECT_ROWS` rows (non-finite ones left out; 0
+    for a constant column).
 
     Args:
         proposal: a detector over the rows with their features (``detect_logit(rows [N, C]) -> float64 [N]``).
-        target: the PEM, asked about the rows' own columns (``detect_logit(rows [N, own_columns])``).
+        target: the PEM, asked about the rows' own columns.
         rows: float64 [N, C] object rows with their state features after their own ``own_columns`` columns.
         own_columns: the rows' own columns (what the PEM reads), 1 <= own_columns <= C.
     Raises:
-        ValueError: rows not 2-D, or ``own_columns`` outside 1..C.
-    """
+        ValueError: rows not 2-D, or ``own_columns`` outside 1..C."""
     x = np.asarray(rows, dtype=np.float64)
     if x.ndim != 2 or not 1 <= own_columns <= x.shape[1]:
         raise ValueError(f"feature_effects: rows [N, C] with 1 <= own_columns <= C, got {x.shape} and {own_columns}")
@@ -154,17 +138,14 @@ def feature_curve(
         proposal: the sampler's proposal, as :func:`feature_effects`.
         target: the PEM, as :func:`feature_effects`.
         own_columns: as :func:`feature_effects`.
-        rows: float64 [N, C] the object rows a stage drew with their state features (e.g.
-            :func:`pemviz.core.features.with_state`'s, flattened over rollouts, steps and objects); rows with a value
-            that is not finite or where the PEM's logit is not (an object out of sight: p = q = 0) are left out.
+        rows: float64 [N, C] the object rows a stage drew with their state features; rows with a non-finite value or
+            PEM logit are left out.
         names: the C columns' names.
         n_bins: at most this many bins (:func:`_bins`), >= 1.
     Returns:
-        the :class:`FeatureCurve` (the feature: the largest :func:`feature_effects`, the first of equals), or None: no
-        row left, or no column moves q (every effect below :data:`EFFECT_FLOOR`).
+        the :class:`FeatureCurve`, or None: no row left, or no effect above :data:`EFFECT_FLOOR`.
     Raises:
-        ValueError: ``names`` not one per column, ``n_bins`` < 1, or as :func:`feature_effects`.
-    """
+        ValueError: ``names`` not one per column, ``n_bins`` < 1, or as :func:`feature_effects`."""
     x = np.asarray(rows, dtype=np.float64)
     if x.ndim != 2 or len(names) != x.shape[1] or n_bins < 1:
         raise ValueError(
@@ -203,11 +184,10 @@ def stage_feature_curve(
     features: FeaturesFn | None,
     max_rollouts: int = MAX_ROLLOUTS,
 ) -> FeatureCurve | None:
-    """:func:`feature_curve` of the proposal that drew ``batch`` (:func:`state_proposal_of` its ``sampler``; call it
-    while that is the one that drew: an estimator refits in place after the stage) over the object rows of at most
-    ``max_rollouts`` of its rollouts (evenly spaced), their state features replayed by ``features``
-    (:attr:`pemviz.core.problems.Problem.features`); ``target`` is the PEM. None: the sampler reads no state, the
-    problem replays no features, or :func:`feature_curve`'s None."""
+    """:func:`feature_curve` of the proposal that drew ``batch`` (call it before an estimator refits in place) over
+    the object rows of at most ``max_rollouts`` of its rollouts, their features replayed by ``features``
+    (:attr:`pemviz.core.problems.Problem.features`); None: the sampler reads no state, no features, or
+    :func:`feature_curve`'s None."""
     proposal = state_proposal_of(sampler)
     if proposal is None or features is None or batch.n == 0:
         return None

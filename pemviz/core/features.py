@@ -1,18 +1,11 @@
 """The state the stack acts on, per step, as named numeric features: what a state-dependent proposal may read.
 
-A batched simulator may report, besides its signals and its object rows, the state its controller acts on
-(:class:`FeatureSimulator`, optional like :class:`pemviz.core.rollouts.Snapshotting`): ``state_features()`` returns
-float64 ``[n, F]`` for the ego (``feature_names``) and float64 ``[n, M, G]`` for each object (``object_feature_names``)
-at the current step, before the step's perception (the time of ``observation()`` and ``objects()``). A scene on the
-library's tracker gets the tracker's state of each object from :func:`pemviz.stack.tracker.features`.
-
-The features are not kept in a :class:`pemviz.core.rollouts.RolloutBatch` (they change no number of a run): a
-rollout's state is a function of the events before it, so :func:`replay_features` rebuilds them for any batch by
-stepping the simulator through the batch's events, and a problem built by
-:func:`pemviz.core.problems.rollout_functions` carries that replay as :attr:`pemviz.core.problems.Problem.features`.
-:func:`check_features` is :func:`pemviz.testing.check_scenario`'s check of them: the right shapes, finite, the same
-replayed twice and the same at any chunk size.
-"""
+A batched simulator may report the state its controller acts on (:class:`FeatureSimulator`, optional):
+``state_features()`` returns float64 ``[n, F]`` for the ego (``feature_names``) and ``[n, M, G]`` per object
+(``object_feature_names``) before the step's perception; a scene on the library's tracker gets them from
+:func:`pemviz.stack.tracker.features`. They are not kept in a :class:`pemviz.core.rollouts.RolloutBatch`:
+:func:`replay_features` rebuilds them from the events (:attr:`pemviz.core.problems.Problem.features`), and
+:func:`check_features` checks them (shapes, finite, the same replayed twice and at any chunk size)."""
 
 from __future__ import annotations
 

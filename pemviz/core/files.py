@@ -1,9 +1,6 @@
-"""The files the lower layers write and read themselves: atomic writes, tagged checkpoints, the repository's folder.
-
-A model saved by the core (a proposal checkpoint, :func:`pemviz.core.sampling.save_proposal`) or by
-:mod:`pemviz.pem.store` is written through :func:`atomic_write` (never a half-written file) and read back through
-:func:`load_tagged` (its format tag and version checked); the checks of output paths made before a run's work are
-:mod:`pemviz.io.files`'s.
+"""The files the lower layers write and read themselves: :func:`atomic_write` (never a half-written file) and
+:func:`load_tagged` (format tag and version checked), for proposal checkpoints and PEMs; output-path checks before a
+run are :mod:`pemviz.io.files`'s.
 """
 
 from __future__ import annotations
@@ -45,21 +42,18 @@ def _commit(tmp: str, target: Path, overwrite: bool) -> None:
 
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None], *, overwrite: bool = True) -> Path:
-    """``write(tmp)`` into a temporary file of a unique name beside ``path``, then move it onto ``path``.
-
-    The temporary file is removed whatever happens (an exception, Ctrl-C, SIGTERM, a full disk), so a failure
-    leaves neither a partial ``path`` nor a stray file, and an existing ``path`` is untouched until the new file
-    is complete. Two writers to one path never share a temporary file. Returns ``path``.
+    """``write(tmp)`` into a temporary file of a unique name beside ``path``, then move it onto ``path``; the temporary
+    file is removed whatever happens, so a failure leaves no partial file and an existing ``path`` untouched.
+    Returns ``path``.
 
     Args:
         path: the file written.
-        write: writes the whole file at the path it is given (the temporary file's).
+        write: writes the whole file at the path it is given.
         overwrite: replace an existing ``path``; when False, :class:`OutputExists` if one exists at the end.
     Raises:
-        OSError: the folder is missing or not writable, the disk is full, the file is too large;
-            whatever ``write`` raises.
-        OutputExists: ``overwrite`` is False and ``path`` exists.
-    """
+        OSError: the folder is missing or not writable, the disk is full, the file is too large; whatever ``write``
+            raises.
+        OutputExists: ``overwrite`` is False and ``path`` exists."""
     target = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     os.close(fd)
@@ -114,14 +108,12 @@ def load_tagged(
         version: the expected ``payload["version"]``.
         what: how messages name the file (``PEM``, ``proposal checkpoint``).
         error: the exception type raised for an unreadable or foreign file.
-        as_numpy: tensors as numpy arrays, read without importing torch for the files pemviz writes
-            (:func:`pemviz.core.torch_payload.load_payload`, which falls back to torch for any other file); else
-            ``torch.load(path, weights_only=True)``'s tensors.
-        allowed: what a file that cannot be read is told to give instead (default: ``a {what} file is the
-            torch.save archive pemviz writes``).
+        as_numpy: tensors as numpy arrays, read without torch where possible
+            (:func:`pemviz.core.torch_payload.load_payload`); else ``torch.load(path, weights_only=True)``'s
+            tensors.
+        allowed: what a file that cannot be read is told to give instead.
     Raises:
-        ``error``: damaged file, missing tag, or another format version.
-    """
+        ``error``: damaged file, missing tag, or another format version."""
     try:
         if as_numpy:
             from pemviz.core.torch_payload import load_payload

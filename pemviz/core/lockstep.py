@@ -1,13 +1,9 @@
-"""The one rollout runner: every simulator's rollouts drawn, scored and stepped through :func:`run_batched`.
-
-:func:`run_batched` asks, each step, the sampling detector and the target (PEM) about every object row of a batch
-(:class:`pemviz.core.rollouts.BatchedSimulator`), draws the events (:func:`pemviz.core.detectors.draw_step`) and steps
-the simulator; :func:`simulate` runs N black-box simulators in lockstep through it (:class:`Lockstep`), and the
-batched twins (e.g. :mod:`pemviz.scenarios.braking.batched`, the toys) run through it too, so every simulator draws
-the same events from the same uniforms. :func:`iter_rollouts` / :func:`simulate_rollouts` stream or gather a batched
-simulator's rollouts in chunks (:func:`uniform_chunks`: the same rollouts, bit for bit, for any chunk size),
-:func:`branch` / :func:`branch_rollouts` continue rollouts from given steps of earlier ones. Re-exported by
-:mod:`pemviz.scenarios`.
+"""The one rollout runner: every simulator's rollouts drawn, scored and stepped through :func:`run_batched`, which
+asks the sampler and the target about every object row each step, draws the events
+(:func:`pemviz.core.detectors.draw_step`) and steps the simulator. :func:`simulate` runs N black-box simulators in
+lockstep (:class:`Lockstep`); :func:`iter_rollouts` / :func:`simulate_rollouts` stream or gather a batched
+simulator's rollouts, the same bits for any chunk size (:func:`uniform_chunks`); :func:`branch` /
+:func:`branch_rollouts` continue rollouts from given steps.
 """
 
 from __future__ import annotations
@@ -78,7 +74,9 @@ def run_batched(
     keep_rows: bool = True,
 ) -> RolloutBatch:
     """Simulate the ``n`` rollouts of ``sim`` for ``n_steps`` steps, each object's events drawn from ``sampler`` and
-    scored under ``target`` (:func:`pemviz.core.detectors.draw_step`): the rollout runner of every simulator.
+    scored under ``target`` (:func:`pemviz.core.detectors.draw_step`): the rollout runner of every simulator. A
+    detector that reads state features (:func:`pemviz.core.detectors.reads_state`) is asked about each row with the
+    step's features appended.
 
     Args:
         sim: n rollouts at their start, a :class:`BatchedSimulator`.
@@ -86,22 +84,13 @@ def run_batched(
         n_steps: T, the steps simulated.
         sampler: the detector the events are drawn from (q).
         target: the detector they are scored under (p, the PEM).
-        uniforms: per step, float64 [n K] in [0, 1), rollout by rollout, K = :func:`draws_per_rollout` (object by
-            object: its detection's uniform, then its D errors'); e.g. ``rng.random(n K)`` per step.
+        uniforms: per step, float64 [n K] in [0, 1), rollout by rollout, K = :func:`draws_per_rollout`.
         forced: optional (detected bool [n, T, M], noise [n, T, M, D] or None, until int [n]): rollout i takes these
-            events at its steps before ``until[i]`` (a replayed prefix).
-        keep_rows: False: a simulator with object rows does not keep them (``objects`` None; the caller attaches a
-            :attr:`RolloutBatch.replay`): float64 [n, T, M, G] is most of a multi-object batch's memory.
-
-    A sampler (or target) that reads the state features (:func:`pemviz.core.detectors.reads_state`) of a simulator
-    that reports them (:func:`pemviz.core.features.reports_features`) is asked about each object row with the step's
-    features appended, [its object features (``object_feature_names``), the ego's (``feature_names``)], read once
-    per step before the step's perception; every other detector about the rows alone, and the batch keeps the rows
-    alone.
+            events before ``until[i]`` (a replayed prefix).
+        keep_rows: False: the object rows are not kept (``objects`` None; the caller attaches a
+            :attr:`RolloutBatch.replay`).
     Returns:
-        :class:`RolloutBatch` [n, T] (``objects`` when the simulator reports object rows and ``keep_rows``, ``noise``
-        when the target mislocates).
-    """
+        :class:`RolloutBatch` [n, T]."""
     names = tuple(sim.observation_names)
     scene = sim if reports_objects(sim) else None  # None: one object per rollout, its observation
     m = n_objects_of(sim)
@@ -190,12 +179,9 @@ def uniform_chunks(
     rng: np.random.Generator, n: int, n_steps: int, chunk_size: int, per_rollout: int = 1
 ) -> Iterator[tuple[int, int, Iterator[np.ndarray]]]:
     """``(start, stop, per-step uniforms [(stop - start) K])`` for each chunk of rollouts, K = ``per_rollout``: the
-    numbers one ``rng.random(n K)`` per step gives rollouts ``start .. stop - 1``, whatever the chunks.
-
-    With one chunk or a generator that cannot jump, the draws come from ``rng`` itself in order (the chunks then draw
-    one after the other). With a PCG64 / PCG64DXSM generator each chunk reads its slice ``[t n K + start K, t n K +
-    stop K)`` of the serial stream from a copy of ``rng``'s state (``bit_generator.advance``), and ``rng`` is finally
-    advanced past all ``n K T`` draws, where the serial run leaves it.
+    numbers one ``rng.random(n K)`` per step gives rollouts ``start .. stop - 1``, whatever the chunks (a PCG64 /
+    PCG64DXSM generator jumps to each chunk's slice with ``bit_generator.advance`` and ends where the serial run
+    leaves it; another draws chunk after chunk).
     """
     bounds = [(a, min(a + chunk_size, n)) for a in range(0, n, chunk_size)]
     k = int(per_rollout)
@@ -236,12 +222,11 @@ def iter_rollouts(
     chunk_size: int = DEFAULT_CHUNK_SIZE,
     keep_rows: bool = True,
 ) -> Iterator[RolloutBatch]:
-    """Stream ``n`` rollouts of a batched simulator as :class:`RolloutBatch` chunks of at most ``chunk_size`` rollouts
-    (:func:`run_batched` on ``make(m)``, m rollouts at their start), the rollouts of ``rng.random(n K)`` per step
-    (:func:`uniform_chunks`): the same rollouts, bit for bit, for any chunk size. An Array-RQMC sampler's rollouts are
-    simulated one fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` at a time (its rollouts are coupled) and handed out
-    in chunks of ``chunk_size``. With ``keep_rows=False`` a simulator's object rows are not kept: a chunk rebuilds
-    the rows it is asked for by replay (:attr:`RolloutBatch.replay`, :func:`replay_rows`).
+    """Stream ``n`` rollouts of a batched simulator as :class:`RolloutBatch` chunks of at most ``chunk_size``
+    rollouts (:func:`run_batched` on ``make(m)``), the same rollouts bit for bit for any chunk size
+    (:func:`uniform_chunks`); an Array-RQMC sampler's are simulated one block of :data:`pemviz.core.rng.RQMC_BLOCK`
+    at a time. With ``keep_rows=False`` object rows are rebuilt by replay when asked for
+    (:attr:`RolloutBatch.replay`, :func:`replay_rows`).
 
     Raises:
         ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
@@ -326,30 +311,25 @@ def simulate(
     uniforms: np.ndarray | None = None,
 ) -> RolloutBatch:
     """Run ``n`` rollouts in lockstep (:class:`Lockstep`, :func:`run_batched`), each object's events drawn from
-    ``sampler``, scored under ``target``.
-
-    A detection happens iff ``u <= q(detect | s)`` with ``u ~ U(0, 1)`` from ``rng`` (one ``rng.random(n K)`` per
-    step, K = :func:`draws_per_rollout`: one ``rng.random(n)`` for a single-object scenario), as in the authors' code.
-    The detectors are asked about one fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts at a time, and an
-    Array-RQMC sampler couples the rollouts of each block (``uniforms`` must then start at a block boundary of the
-    batch), so that chunks of whole blocks simulated elsewhere give the same bits.
+    ``sampler``, scored under ``target``: a detection iff ``u <= q(detect | s)``, ``u`` from one ``rng.random(n K)``
+    per step (K = :func:`draws_per_rollout`), as in the authors' code. Detectors are asked one block of
+    :data:`pemviz.core.rng.RQMC_BLOCK` rollouts at a time, so chunks of whole blocks simulated elsewhere give the
+    same bits.
 
     Args:
         make_simulator: builds a fresh simulator at its start state.
         n: number of rollouts (>= 1).
-        sampler: the detector that draws the events (proposal q, the PEM, a constant ...).
+        sampler: the detector that draws the events.
         target: the PEM whose probabilities weight the rollouts (may be ``sampler`` itself).
-        rng: numpy Generator; the same seed gives the same batch (unused, may be None, with ``uniforms``).
+        rng: numpy Generator (unused, may be None, with ``uniforms``).
         n_steps: T, steps per rollout.
-        uniforms: optional float64 [T, n K] pre-drawn u's, row t used at step t instead of ``rng.random(n K)``.
-            ``rng.random((T, n K))`` holds exactly the numbers of T calls ``rng.random(n K)``, so a column slice
-            ``[:, a K:b K]`` of it reproduces rollouts a..b-1 of the serial run elsewhere (pemviz.engine.executors).
+        uniforms: optional float64 [T, n K] pre-drawn u's, row t used at step t; a column slice ``[:, a K:b K]`` of
+            ``rng.random((T, n K))`` reproduces rollouts a..b-1.
     Returns:
         :class:`RolloutBatch` with arrays [n, T].
     Raises:
         ValueError: ``n < 1``, ``uniforms`` not of shape [T, n K] with values in [0, 1), or neither ``rng`` nor
-            ``uniforms``.
-    """
+            ``uniforms``."""
     if n < 1:
         raise ValueError(f"simulate: n must be >= 1, got {n}")
     sim = Lockstep([make_simulator() for _ in range(n)])
@@ -379,13 +359,9 @@ def branch(
     target: Detector,
     rng: np.random.Generator,
 ) -> RolloutBatch:
-    """Continue rollouts from given steps of earlier ones, events drawn from ``target``: K new rollouts.
-
-    New rollout i takes rollout ``parent[i]`` of ``parents``'s events at its steps ``0..at[i] - 1`` (a replay: the
-    scenario is deterministic given its perception, so it passes through the parent's states) and draws them from
-    ``target`` from step ``at[i]`` on (``log_q = log_p``), in lockstep (:func:`run_batched`): one ``rng.random(K)``
-    per step 0..T - 1 for single-object rollouts (replayed rows ignore theirs), as the vectorised twins
-    (:func:`branch_rollouts`) draw.
+    """Continue rollouts from given steps of earlier ones, events drawn from ``target``: K new rollouts. New rollout i
+    replays rollout ``parent[i]``'s events at its steps ``0..at[i] - 1`` and draws from ``target`` from ``at[i]`` on
+    (``log_q = log_p``), one ``rng.random(K)`` per step as :func:`branch_rollouts` draws.
 
     Args:
         make_simulator: builds a fresh simulator at its start state.
@@ -397,8 +373,7 @@ def branch(
     Returns:
         :class:`RolloutBatch` [K, T].
     Raises:
-        ValueError: ``parent`` / ``at`` out of range.
-    """
+        ValueError: ``parent`` / ``at`` out of range."""
     return branch_rollouts(lambda k: Lockstep([make_simulator() for _ in range(k)]), parents, parent, at, target, rng)
 
 

@@ -1,19 +1,13 @@
 """An operating design domain (ODD): scenario parameters drawn from distributions instead of fixed values, and the
-failure probability over it, p_ODD = E_theta[p(theta)] (ISO 21448 breaks a validation target down over the ODD;
-Zhao et al., IEEE T-ITS 2017, sample a scene's initial conditions from naturalistic statistics). No I/O, no
+failure probability over it, p_ODD = E_theta[p(theta)] (ISO 21448; Zhao et al., IEEE T-ITS 2017). No I/O, no
 scenario.
 
-A parameter's distribution is written ``uniform(a, b)``, ``normal(mu, sd)`` or ``choice(a, b, c)`` (equal weights) /
-``choice(a: w_a, b: w_b)`` (weights, normalised) and parsed by :func:`parse_distribution`; an :class:`ODD` is the
-parameters' joint law, independent parameters. Every draw is an inverse-CDF transform of uniforms
-(:meth:`Distribution.ppf`: scipy.stats' ``ppf`` for the continuous laws), so that a rollout's parameters are a fixed
-function of its uniforms and a seed gives the same parameters whatever the chunking.
-
-The map of where the failures come from splits each parameter into bins of equal probability
-(:meth:`Distribution.bins`: quantile edges; a choice's values) and estimates p(failure | theta in bin) from the
-importance weights of the rollouts drawn there (:func:`bin_log_weights`): the bin's weights divided by its known
-probability, so that each bin's estimate is unbiased and carries the estimate's own interval, ESS and verdict.
-"""
+A parameter's distribution is ``uniform(a, b)``, ``normal(mu, sd)``, ``choice(a, b, c)`` or ``choice(a: w_a, b:
+w_b)`` (:func:`parse_distribution`); an :class:`ODD` is their independent joint law. Every draw is an inverse-CDF
+transform of uniforms (:meth:`Distribution.ppf`), so a seed gives the same parameters whatever the chunking. The
+failure map splits each parameter into bins of equal probability (:meth:`Distribution.bins`) and estimates p(failure
+| theta in bin) from the weights of the rollouts drawn there (:func:`bin_log_weights`), with its own interval, ESS
+and verdict."""
 
 from __future__ import annotations
 
@@ -197,10 +191,9 @@ class ODD:
 
 
 def bin_log_weights(values: np.ndarray, log_w: np.ndarray, edges: np.ndarray, probs: np.ndarray, b: int) -> np.ndarray:
-    """The log importance weights [N] (nats) that estimate p(failure | theta in bin ``b``) as the plain mean of
-    ``w 1[fail]`` over all N rollouts: ``log w - log P(bin)`` for a rollout whose parameter ``values`` [N] fall in the
-    bin (``edges[b] <= v < edges[b + 1]``; the last bin closed), ``-inf`` for the others. Unbiased, as
-    E[w 1[fail] 1[theta in bin]] = P(fail, theta in bin) (the map of :mod:`pemviz.core.odd`).
+    """The log importance weights [N] (nats) that estimate p(failure | theta in bin ``b``) as the plain mean of ``w
+    1[fail]``: ``log w - log P(bin)`` for a rollout whose ``values`` [N] fall in the bin, ``-inf`` for the others;
+    unbiased, as E[w 1[fail] 1[theta in bin]] = P(fail, theta in bin).
     """
     values = np.asarray(values, dtype=np.float64)
     last = b == len(probs) - 1
@@ -236,12 +229,10 @@ def odd_map(
     odd: ODD, values: np.ndarray, log_w: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray, k: int = 5
 ) -> list[MapBin]:
     """The map of where p_ODD comes from, one parameter at a time: for each parameter of ``odd``, its bins
-    (:meth:`Distribution.bins`, ``k`` of equal probability for a continuous law) with p(failure | bin) estimated from
-    rollouts with parameters ``values`` [N, D], log importance weights ``log_w`` [N] (nats), failures ``failed`` [N]
-    (:func:`bin_log_weights`, :func:`pemviz.core.estimate.estimate`: each bin's interval, ESS and verdict). Where every
-    weight is 1 (plain Monte Carlo, the parameters drawn from the ODD itself), a bin's estimate is instead the failure
-    rate of the rollouts that fell in it, with its Clopper-Pearson interval: given their number n_b its failures are
-    Binomial(n_b, p(failure | bin)), so the interval holds whatever n_b came out.
+    (:meth:`Distribution.bins`, ``k`` of equal probability) with p(failure | bin) estimated from rollouts with
+    parameters ``values`` [N, D], log-weights ``log_w`` [N] (nats) and failures ``failed`` [N]
+    (:func:`bin_log_weights`, :func:`pemviz.core.estimate.estimate`); with every weight 1 (plain Monte Carlo) the
+    failure rate of the bin's rollouts with its Clopper-Pearson interval.
 
     Raises:
         ValueError: arrays of other lengths.

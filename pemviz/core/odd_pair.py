@@ -1,10 +1,7 @@
-"""The map of where p_ODD comes from over a pair of parameters: a heat map of p(failure | theta_1 in bin a, theta_2 in
-bin b) for the first two parameters of an ODD, each split into its map bins (:meth:`pemviz.core.odd.Distribution.bins`).
-
-The parameters are drawn independently, so a cell's probability is P(a) P(b), and the cell's estimate is the bin
-estimate of :func:`pemviz.core.odd.bin_log_weights` on the cell: the mean over all N rollouts of ``w 1[fail] 1[theta in
-cell] / P(cell)``, unbiased (with every weight 1, plain Monte Carlo, the failure rate of the rollouts in the cell with
-its Clopper-Pearson interval, as the one-parameter map). Log-space throughout (nats).
+"""The map of where p_ODD comes from over a pair of parameters: a heat map of p(failure | theta_1 in bin a, theta_2
+in bin b) for the first two parameters of an ODD (:meth:`pemviz.core.odd.Distribution.bins`); independent parameters
+make a cell's probability P(a) P(b), and its estimate is :func:`pemviz.core.odd.bin_log_weights` on the cell,
+unbiased. Log-space throughout (nats).
 """
 
 from __future__ import annotations

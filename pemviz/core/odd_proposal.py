@@ -1,21 +1,13 @@
 """A proposal over an operating design domain's parameters, q(theta), for importance sampling over the ODD jointly with
 the perception's events. No I/O, no scenario.
 
-Where p(failure | theta) spans many orders of magnitude over the ODD, p_ODD = E_theta[p(theta)] lies in a small
-corner of it: drawing theta from the ODD itself puts a few rollouts there, whatever the perception's proposal does
-with them. :class:`ParameterProposal` draws theta from a piecewise-constant density over the cells of a grid of the
-ODD (each continuous parameter cut into bins of equal probability, a choice's values one bin each), within a cell from
-the ODD's own law there, so that a rollout's parameter weight is the ratio of two cell probabilities,
-P_ODD(cell) / q(cell), bounded by defensive mixing with the ODD (``defensive``). The cross-entropy method fits the
-cells' probabilities to the elite rollouts (Rubinstein & Kroese, "The cross-entropy method", 2004, ch. 3: the
-optimal discrete update is the elites' weighted frequencies), as Zhao et al. (IEEE T-ITS 2017) importance-sample a
-scene's initial conditions (e.g. a cut-in's).
-
-A rollout's parameters are drawn from its D uniforms by the chain rule (each parameter's bin from its conditional
-given the bins before it, by inverse CDF; the rest of the uniform places it inside its bin), so they are a fixed
-function of the uniforms and a seed gives the same rollouts at any chunk size. The parameter weight enters a
-rollout's importance weight as a term of its first step's log q (:func:`parameter_log_ratio`).
-"""
+:class:`ParameterProposal` draws theta from a piecewise-constant density over the cells of a grid of the ODD
+(continuous parameters cut into bins of equal probability, a choice's values one bin each), within a cell from the
+ODD's own law, so a rollout's parameter weight is P_ODD(cell) / q(cell), bounded by defensive mixing
+(``defensive``). Cross-entropy fits the cells' probabilities to the elites (Rubinstein & Kroese 2004, ch. 3), as
+Zhao et al. (IEEE T-ITS 2017) sample a scene's initial conditions. Parameters are a fixed function of a rollout's D
+uniforms (chain rule, inverse CDF), so a seed gives the same rollouts at any chunk size; the weight enters the first
+step's log q (:func:`parameter_log_ratio`)."""
 
 from __future__ import annotations
 
@@ -129,11 +121,10 @@ class ParameterProposal:
         return out
 
     def refit(self, values: np.ndarray, log_w: np.ndarray, rate: float, defensive: float) -> ParameterProposal:
-        """The cross-entropy update: the cells' weighted frequencies among elite rollouts with parameters ``values``
-        [K, D] and log-weights ``log_w`` [K] (nats, smoothed as the perception's fit smooths them), moved from this
-        proposal by ``rate`` in (0, 1] (q' = (1 - rate) q + rate q_elites) and mixed with the ODD at share
-        ``defensive`` in (0, 1) (q'' = (1 - defensive) q' + defensive P_ODD, so every parameter weight is at most
-        1 / defensive: Hesterberg, Technometrics 1995). No elite: unchanged.
+        """The cross-entropy update: the cells' weighted frequencies among elites with parameters ``values`` [K, D]
+        and log-weights ``log_w`` [K] (nats), q' = (1 - rate) q + rate q_elites, mixed with the ODD at share
+        ``defensive`` so every parameter weight is at most 1 / defensive (Hesterberg, Technometrics 1995). No elite:
+        unchanged.
 
         Raises:
             ValueError: ``rate`` or ``defensive`` out of range, or arrays of other lengths.

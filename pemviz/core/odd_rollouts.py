@@ -1,19 +1,13 @@
 """Rollouts over an operating design domain: each rollout's scenario parameters drawn from the :class:`ODD` before its
 events, carried in its observations, and the same rollouts for any chunk size.
 
-:func:`odd_rollout_functions` is :func:`pemviz.core.problems.rollout_functions` for a batched simulator that takes a
-parameter vector per rollout, ``make(n, values [n, D]) -> BatchedSimulator``. A stage of N rollouts first draws its
-N x D parameter uniforms from the stage's generator (before any event's uniform), maps them through the ODD's inverse
-CDFs (:meth:`pemviz.core.odd.ODD.draw`), then runs the rollouts chunk by chunk as :func:`pemviz.core.lockstep.
-iter_rollouts` does, each chunk's simulator made with its rollouts' parameters. The parameters are appended to each
-step's observation as constant columns named after them (:class:`WithParameters`), so a batch, a rollout file and a
-branch know every rollout's parameters. A sampler with a proposal over the parameters
-(:func:`pemviz.core.odd_proposal.parameter_proposal_of`) draws them from it, and its batch holds log q(theta) -
-log p_ODD(theta) of each rollout (:attr:`pemviz.core.rollouts.RolloutBatch.log_q_params`), a term of its importance
-weight; any other
-sampler (the target among them) draws them from the ODD itself, their weight 1. Either way the estimate of any
-estimator is an estimate of p_ODD = E_theta[p(theta)].
-"""
+:func:`odd_rollout_functions` is :func:`pemviz.core.problems.rollout_functions` for a batched simulator made as
+``make(n, values [n, D])``. A stage first draws its N x D parameter uniforms (before any event's), maps them through
+the ODD's inverse CDFs (:meth:`pemviz.core.odd.ODD.draw`) or a sampler's own parameter proposal
+(:func:`pemviz.core.odd_proposal.parameter_proposal_of`, its log q(theta) - log p_ODD(theta) in
+:attr:`pemviz.core.rollouts.RolloutBatch.log_q_params`), and runs the rollouts chunk by chunk, the parameters
+appended to each step's observation (:class:`WithParameters`). Every estimate is then one of p_ODD =
+E_theta[p(theta)]."""
 
 from __future__ import annotations
 
@@ -138,11 +132,9 @@ ODD_VERDICT_CAP = (
 
 
 def problem_over_odd(base: Problem, make: MakeWith, odd: ODD, n_steps: int, **changes: Any) -> Problem:
-    """``base`` (a scenario's problem at one set of parameters) over ``odd``: its rollouts from
-    :func:`odd_rollout_functions` (``make``, ``n_steps``), without what holds at one set of parameters only (the exact
-    answer and exact severities, the plain Monte Carlo reference, the look-ahead, the tilted proposal), the adaptive
-    sampler's verdict capped (:data:`ODD_VERDICT_CAP`); ``changes`` replace any field besides (a closed form over the
-    ODD as ``exact_log_p``, a description)."""
+    """``base`` over ``odd``: its rollouts from :func:`odd_rollout_functions` (``make``, ``n_steps``), without what
+    holds at one set of parameters only (exact answers, reference, look-ahead, tilt), the adaptive verdict capped
+    (:data:`ODD_VERDICT_CAP`); ``changes`` replace any field besides."""
     simulate, stream, branch = odd_rollout_functions(make, odd, n_steps)
     cleared: dict[str, Any] = dict(
         exact_log_p=None,

@@ -1,8 +1,6 @@
-"""A run's plan: the stages an estimator will run, their names and sizes, stated before the first batch.
-
-The estimator states it (:meth:`pemviz.estimators.base.Estimator.plan`); the engine hands it to every listener with
-:class:`pemviz.engine.events.RunStarted`, so the console, the recording and the panel read the stages, their labels and
-the simulation count from here instead of working them out from the settings. No numpy, no torch.
+"""A run's plan: the stages an estimator will run, their names and sizes, stated before the first batch
+(:meth:`pemviz.estimators.base.Estimator.plan`) and handed to every listener with
+:class:`pemviz.engine.events.RunStarted`. No numpy, no torch.
 """
 
 from __future__ import annotations

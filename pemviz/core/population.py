@@ -1,15 +1,9 @@
 """The failure population of an importance-sampling estimate: which failing rollouts carry its probability.
 
-mu_hat = (1/N) sum_i 1[fail_i] w_i over the N rollouts the estimate uses (pooled over stages with lambda_k: each
-rollout of stage k then counts w_i lambda_k N / n_k). The share of p that failure i carries is its term over the sum of
-the failures' terms, its self-normalised importance weight among the failures (Owen, "Monte Carlo theory, methods and
-examples", 2013, Sec. 9.2): shares are positive and add up to 1, and the failures sorted by share are the ones a
-safety engineer reads first. Failures that share their decisive events (a key the scene gives: e.g. for the braking
-scenario, the last step at which one detection still saved the rollout) form groups whose shares are the sums of their
-members'.
-
-No I/O, no scene: keys come from the caller. Units: nats for every log; shares are fractions of mu_hat.
-"""
+The share of p that failure i carries is its term of mu_hat = (1/N) sum_i 1[fail_i] w_i (pooled: w_i lambda_k N /
+n_k) over the failures' sum, its self-normalised weight among the failures (Owen, "Monte Carlo theory, methods and
+examples", 2013, Sec. 9.2); shares add up to 1. Failures that share their decisive events (a key the caller gives)
+form groups whose shares add. No I/O, no scene; logs in nats, shares fractions of mu_hat."""
 
 from __future__ import annotations
 
@@ -40,13 +34,12 @@ class FailureShares:
 
     Attributes:
         stage: int [F] the stage that drew each failure.
-        index: int [F] its rollout number in that stage (0 .. n_k - 1, in the order the stage drew them).
+        index: int [F] its rollout number in that stage.
         log_share: float64 [F] log of its share of mu_hat (nats, <= 0; the shares add up to 1), non-increasing.
-        log_weight: float64 [F] its importance log-weight as the estimate counts it (nats; with the stage's pooling
-            constant log(lambda_k N / n_k) added where the estimate pools stages).
-        log_p: float64 [F] log p_PEM of its events before the failure (nats): the log-probability of its detections
-            plus, where the PEM mislocates, the log-density of its measurement errors (a log-likelihood).
-    """
+        log_weight: float64 [F] its importance log-weight as the estimate counts it (nats, pooling constant
+            included).
+        log_p: float64 [F] log p_PEM of its events before the failure (nats; a log-likelihood with measurement
+            errors)."""
 
     stage: np.ndarray
     index: np.ndarray
@@ -131,10 +124,8 @@ class FailureGroup:
 
 
 def failure_groups(shares: FailureShares, keys: Sequence[Hashable], labels: dict | None = None) -> list[FailureGroup]:
-    """Groups of the failures by ``keys`` (one per failure, in ``shares`` order), the largest share first.
-
-    Each group's share is the logsumexp of its members' log shares, exponentiated: the shares add up to 1 up to
-    rounding (about 1e-15 per group).
+    """Groups of the failures by ``keys`` (one per failure, in ``shares`` order), the largest share first; each
+    group's share is the exponentiated logsumexp of its members' log shares.
 
     Args:
         shares: the failures (:func:`failure_shares`).

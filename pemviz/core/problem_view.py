@@ -1,8 +1,6 @@
-"""What a sink sees of a problem: the problem's view (:class:`ProblemView`: its name, description, signals with their
-units, the failure threshold and the sampler window to draw, the scene's constants, where the objects and their errors
-are in the object rows) and the scene of a batch's first rollout of several objects read through it
-(:func:`object_scene`). Plain data, no simulator and no scenario: :mod:`pemviz.core.problems` imports every name here
-too.
+"""What a sink sees of a problem (:class:`ProblemView`: name, description, signals and units, thresholds, scene
+constants, where objects and errors are in the rows) and the scene of a batch's first rollout of several objects
+(:func:`object_scene`). Plain data; re-exported by :mod:`pemviz.core.problems`.
 """
 
 from __future__ import annotations
@@ -57,25 +55,19 @@ class ProblemView:
 
     Attributes:
         name: short label.
-        description: one line saying what is simulated (e.g. the braking scenario's ``automated braking ...``).
+        description: one line saying what is simulated.
         signals: the safety formula's signals with their observation columns and units.
-        thresholds: the failure threshold and the sampler window to draw beside the rollouts, or None (none known).
-        objects_xy: the object-row columns of each object's position seen from the ego (metres: to the right,
-            ahead), to draw a scene of several objects from its rollouts' rows; None: none.
-        noise_xy: the measurement-error components along those two directions (indexes into the noise, metres),
-            to draw where each detected object was measured; None: no errors, or none along them.
-        n_steps: T, the steps of a rollout (:attr:`pemviz.core.problems.Problem.n_steps`; None: not known).
-        drawing: the scenario's drawing object (:attr:`pemviz.core.problems.Problem.drawing`): what the recording
-            and the panel draw of its rollouts (its scene, its outcome words, its explanation), from the scenario's
-            own package; None: the problem has no scene of its own, and sinks draw only its signals.
-        look_ahead_s: seconds per rollout that the problem's look-ahead adds to a stage, about
-            (:attr:`pemviz.core.problems.Problem.look_ahead_s`): time estimates add it; 0: none.
+        thresholds: the failure threshold and the sampler window to draw, or None.
+        objects_xy: the object-row columns of each object's position seen from the ego (metres: right, ahead); None:
+            none.
+        noise_xy: the measurement-error components along those two directions (metres); None: none.
+        n_steps: T, the steps of a rollout (None: not known).
+        drawing: the scenario's drawing object (:attr:`pemviz.core.problems.Problem.drawing`); None: only the
+            signals are drawn.
+        look_ahead_s: seconds per rollout the problem's look-ahead adds to a stage, about; 0: none.
         object_labels: what each object m is called (:meth:`object_label`); empty: ``object m``.
-        odd_names: the scenario parameters drawn per rollout over an operating design domain
-            (:attr:`pemviz.core.problems.Problem.odd`); empty: none (the final estimate then carries no map).
-        committor: whether the problem has a learned committor that splitting can rank its particles by
-            (``--ams-score committor``: a scenario's tilt, :attr:`pemviz.core.problems.Problem.tilt`).
-    """
+        odd_names: the scenario parameters drawn per rollout over an ODD; empty: none.
+        committor: whether splitting can rank particles by a learned committor (``--ams-score committor``)."""
 
     name: str
     description: str
@@ -110,14 +102,11 @@ class ObjectScene:
     """Rollout 0 of a batch of several objects, as a scene seen from the ego (:func:`object_scene`).
 
     Attributes:
-        lateral_m, ahead_m: float64 [T, M] each object's true position (metres: to the right, ahead).
+        lateral_m, ahead_m: float64 [T, M] each object's true position (metres: right, ahead).
         detected, seen: bool [T, M] detected; visible to the camera at all.
-        measured: float64 [T, M, 2] where each detected object was measured (lateral, ahead; NaN where not detected),
-            or None: no measurement errors along those directions.
-        tracked: float64 [T, M, 2] where the tracker placed each object it has a confirmed track of (lateral, ahead;
-            NaN where none), or None: the rows hold no tracker.
-        followed: bool [T, M] the object the controller followed at the step (all False without that column).
-    """
+        measured: float64 [T, M, 2] each detected object's measured position (NaN where not detected), or None.
+        tracked: float64 [T, M, 2] each confirmed track's position (NaN where none), or None: no tracker.
+        followed: bool [T, M] the object the controller followed at the step."""
 
     lateral_m: np.ndarray
     ahead_m: np.ndarray

@@ -1,17 +1,11 @@
 """Problems: what the sampler needs to know about a scenario, independent of which scenario it is.
 
-A :class:`Problem` bundles a black-box simulation (``simulate(n, sampler, target, rng)``), the target
-detector whose probabilities weight the rollouts (the PEM), the safety requirement as an STL formula
-over named signals, and the proposal's input scale. The failure event is always classic robustness
-of the formula below 0 (e.g. for the braking scenario's spec: the gap drops below 2 m); the chosen metric only ranks
-rollouts and sets the adaptive thresholds (Innes & Ramamoorthy (2022), Sec. IV).
-
-This module holds the scene-neutral parts: :class:`Problem` with its function types (:data:`SimulateFn`,
-:data:`BranchFn`, :data:`StreamFn`), a problem's functions for any batched simulator (:func:`rollout_functions`) and a
-PEM with a shifted logit (:class:`ShiftedPEM`). A problem states its own signals, ranges and units: the core defaults
-to no scenario's. The built-in scenarios' problems (the named ``PROBLEMS`` of ``build_problem``, a run's
-``problem_for``) and their signals are in :mod:`pemviz.scenarios.problems` and the scenarios' own modules.
-"""
+A :class:`Problem` bundles a black-box simulation (``simulate(n, sampler, target, rng)``), the target detector whose
+probabilities weight the rollouts (the PEM), the safety requirement as an STL formula over named signals, and the
+proposal's input scale. The failure event is always classic robustness below 0; the chosen metric only ranks
+rollouts and sets the adaptive thresholds (Innes & Ramamoorthy (2022), Sec. IV). Here: :class:`Problem` and its
+function types, a problem's functions for any batched simulator (:func:`rollout_functions`) and a PEM with a shifted
+logit (:class:`ShiftedPEM`); the built-in scenarios' problems are in :mod:`pemviz.scenarios.problems`."""
 
 from __future__ import annotations
 
@@ -52,13 +46,9 @@ arguments, in chunks of at most ``chunk_size`` rollouts (the rollouts do not dep
 
 
 class TiltSampler(Protocol):
-    """A scenario's own importance sampler (``method = "tilt"``, :class:`pemviz.estimators.tilt.CommittorTilt`): each
-    step's events drawn in proportion to p(event) times an approximate probability of failure after it.
-
-    ``solve()`` prepares it once a run and returns the rollout-steps it simulated, or None when it was prepared before
-    (by an earlier run of the same scene and PEMs, reused); ``draw(n, rng)`` returns ``n``
-    rollouts (a :class:`RolloutBatch` whose ``log_q`` is the proposal's, so that log p - log q is each step's log
-    importance weight) and the rollout-steps its look-aheads simulated besides."""
+    """A scenario's own importance sampler (``method = "tilt"``, :class:`pemviz.estimators.tilt.CommittorTilt`):
+    ``solve()`` prepares it once a run and returns the rollout-steps it simulated (None: reused), ``draw(n, rng)``
+    returns ``n`` rollouts (``log_q`` the proposal's) and the rollout-steps its look-aheads simulated."""
 
     def solve(self) -> int | None: ...
 
@@ -74,66 +64,51 @@ class Problem:
         simulate: draws rollouts (see :data:`SimulateFn`).
         target: the detector the failure probability is defined under (the PEM).
         formula: the safety requirement; failure = classic robustness < 0.
-        signals: STL signal name -> observation column of the rollouts, for every signal of the formula (required:
-            the core assumes no scenario's columns); a signal whose column a batch lacks makes :meth:`robustness` raise
-            ValueError.
-        signal_ranges: per-signal (lo, hi) for AGM's predicate normalisation (default none: a problem run under the
-            ``agm`` metric states them).
-        h_scale: the proposal's input is ``obs[:, 0] / h_scale`` (e.g. the braking scenario's gap / 12 m).
+        signals: STL signal name -> observation column, for every signal of the formula (a missing column makes
+            :meth:`robustness` raise ValueError).
+        signal_ranges: per-signal (lo, hi) for AGM's predicate normalisation (default none).
+        h_scale: the proposal's input is ``obs[:, 0] / h_scale``.
         curve_grid: values of ``obs[:, 0]`` where proposal and target curves are reported [G].
-        window: where the detector can change the outcome: ``obs[:, 0] < window`` (e.g. the braking scenario's 10 m).
-            The proposal replaces the target only there (``proposal_window``) and the mixed-50 baseline detects
-            with 50 % there; the default, infinity, is everywhere.
-        decided_below: where the outcome is already decided: ``obs[:, 0] < decided_below`` (e.g. the braking
-            scenario's 2 m crash gap: the safety formula is violated for good). With ``skip_decided`` the proposal
-            gives way to the target there too; the default, minus infinity, is nowhere.
+        window: where the detector can change the outcome, ``obs[:, 0] < window``: the proposal replaces the target
+            only there (default infinity: everywhere).
+        decided_below: where the outcome is already decided, ``obs[:, 0] < decided_below``; with ``skip_decided``
+            the proposal gives way to the target there (default minus infinity: nowhere).
         stream: optional, the same rollouts as ``simulate`` as chunks of bounded memory (None: cannot).
-        branch: optional, continues rollouts from one of their steps (:data:`BranchFn`; None: the simulator has
-            no snapshot/restore), for adaptive multilevel splitting (``method = "ams"``).
-        exact_log_p: natural log of the exact failure probability when it is known (closed form, enumeration),
-            else None; shown beside every estimate.
-        reference: where no exact answer is known, a plain Monte Carlo reference of the same failure probability
-            under the same PEMs (:class:`pemviz.core.estimate.Reference`), else None; shown beside every estimate.
-        dt_s: seconds per step, for a rollout file's sidecar and the impact speed of a failure (None: not known, e.g.
-            the toys, whose steps are units of travel).
+        branch: optional, continues rollouts from one of their steps (:data:`BranchFn`), for ``method = "ams"``.
+        exact_log_p: natural log of the exact failure probability when known, else None; shown beside every
+            estimate.
+        reference: else a plain Monte Carlo reference under the same PEMs (:class:`pemviz.core.estimate.Reference`),
+            or None.
+        dt_s: seconds per step (None: not known, e.g. the toys).
         description: one line saying what is simulated (for sinks and tables).
-        units: STL signal name -> unit, for sinks (default none: every unit blank).
+        units: STL signal name -> unit, for sinks (default none).
         thresholds: the failure threshold and sampler window that sinks draw (None: none).
         objects_xy, noise_xy: where sinks find each object's position and its measurement error
             (:class:`ProblemView`); None: not drawn.
-        n_objects: the objects the detector sees each step (M; 1: one object a step), known before any rollout so
-            that a sampler that fits one object a step is refused at once.
-        curve_rows: the object rows at which the target's curve is drawn, ``curve_rows(grid [G]) -> [G, cols]`` with
-            ``grid`` in the first column (None: the first object's row at the start of a rollout drawn by the target,
-            moved to each value of the grid: :meth:`target_curve`).
+        n_objects: M, the objects the detector sees each step, known before any rollout.
+        curve_rows: ``curve_rows(grid [G]) -> [G, cols]``, the object rows at which the target's curve is drawn
+            (None: :meth:`target_curve`'s default).
         severity: the signal and levels of the run's exceedance curve (:class:`pemviz.core.severity.SeverityScale`;
             None: no curve).
         severity_exact: level -> the exact log P(failure and min s < level) (nats), where known.
-        alternatives: other targets the rollouts are re-weighted under (PEM ensemble members, shifted PEMs:
-            :class:`pemviz.core.reweight.AlternativeTarget`); alternatives_source: where the members come from.
-        n_steps: T, the steps of a rollout (None: not known, e.g. a rollout file's problem): the one horizon the
-            memory check, the cost model and the sinks read.
-        drawing: the scenario's drawing object (what the recording and the panel draw of its rollouts, from the
-            scenario's own package; :class:`ProblemView`), or None: only the signals are drawn.
-        verdict_cap: (verdict, reason): the best verdict the adaptive sampler's estimate may claim on this problem,
-            whatever its weights show, where the scenario knows that the sampler's proposal misses part of the
-            failures (:meth:`pemviz.core.estimate.Estimate.at_most`); None: no cap.
-        look_ahead: where the scenario can compute the failure probability exactly from a state on
-            (:data:`LookAheadFn`), the estimators' estimates weigh each rollout up to that state and multiply by it:
-            unbiased, with the variance of the steps after it removed (conditional Monte Carlo: Asmussen & Glynn,
-            Stochastic Simulation, Springer 2007, V.4); None: the failure indicator itself.
-        look_ahead_s: the seconds per rollout the look-ahead takes, about, for time estimates (0: none).
-        tilt: the scenario's own importance sampler, made once a run (``tilt() ->`` :class:`TiltSampler`), for
-            ``method = "tilt"``; None: the scenario has none.
-        object_labels: what the console, the panel and the recording call each of the M objects, e.g.
-            ``("pedestrian A", "pedestrian B")`` (:meth:`ProblemView.object_label`); empty: ``object 0``, ``object 1``.
-        odd: the operating design domain its rollouts draw their scenario parameters from
-            (:class:`pemviz.core.odd.ODD`, :mod:`pemviz.core.odd_rollouts`: each rollout's parameters are observation
-            columns), or None: the parameters are fixed.
-        features: the state features of a batch's rollouts (:data:`pemviz.core.features.FeaturesFn`: ``features(batch,
-            chunk_size) -> StateFeatures | None``, None where its simulator reports none); None: taken from
-            ``simulate`` where :func:`rollout_functions` made it (the replay of its simulator), else none.
-    """
+        alternatives: other targets the rollouts are re-weighted under
+            (:class:`pemviz.core.reweight.AlternativeTarget`); alternatives_source: where they come from.
+        n_steps: T, the steps of a rollout (None: not known, e.g. a rollout file's problem).
+        drawing: the scenario's drawing object (:class:`ProblemView`), or None: only the signals are drawn.
+        verdict_cap: (verdict, reason): the best verdict the adaptive sampler may claim where its proposal is known
+            to miss part of the failures (:meth:`pemviz.core.estimate.Estimate.at_most`); None: no cap.
+        look_ahead: the exact failure probability from a state on (:data:`LookAheadFn`), multiplied into each
+            rollout's weight up to that state: conditional Monte Carlo (Asmussen & Glynn, Stochastic Simulation,
+            Springer 2007, V.4); None: the failure indicator.
+        look_ahead_s: the seconds per rollout the look-ahead takes, about (0: none).
+        tilt: the scenario's own importance sampler (``tilt() ->`` :class:`TiltSampler`) for ``method = "tilt"``;
+            None: none.
+        object_labels: what each of the M objects is called (:meth:`ProblemView.object_label`); empty: ``object 0``,
+            ...
+        odd: the operating design domain its rollouts draw their parameters from (:class:`pemviz.core.odd.ODD`), or
+            None.
+        features: the state features of a batch's rollouts (:data:`pemviz.core.features.FeaturesFn`); None: taken
+            from ``simulate`` where :func:`rollout_functions` made it, else none."""
 
     name: str
     simulate: SimulateFn
@@ -214,10 +189,9 @@ class Problem:
         return (self.robustness(batch, "classic") if classic is None else np.asarray(classic)) < 0.0
 
     def target_curve(self) -> np.ndarray:
-        """p_target(detect | h) on :attr:`curve_grid`, float64 [G]: the target's detection probability of the rows of
-        :attr:`curve_rows`, or, without them, of the first object's row at step 0 of one rollout drawn by the target
-        (seed 0; its observation row where the scene has no object rows) with its first column set to each value
-        of the grid.
+        """p_target(detect | h) on :attr:`curve_grid`, float64 [G], at the rows of :attr:`curve_rows`, or else the
+        first object's row at step 0 of one rollout drawn by the target (seed 0) with its first column set to each
+        grid value.
 
         Raises:
             ValueError: the target cannot read those rows (one line naming ``curve_rows``, which gives rows it can).
@@ -241,15 +215,10 @@ class Problem:
 
 
 def rollout_functions(make: Callable[[int], BatchedSimulator], n_steps: int) -> tuple[SimulateFn, StreamFn, BranchFn]:
-    """A :class:`Problem`'s ``simulate``, ``stream`` and ``branch`` for a batched simulator ``make(n)`` (n rollouts at
-    their start) of ``n_steps`` steps, all through the one runner (:func:`pemviz.core.lockstep.simulate_rollouts`,
-    :func:`~pemviz.core.lockstep.iter_rollouts`, :func:`~pemviz.core.lockstep.branch_rollouts`). ``simulate`` carries
-    the replay of the simulator's state features (:func:`pemviz.core.features.feature_replay`), which a
-    :class:`Problem` built on it takes as its :attr:`Problem.features`.
-
-    The rollouts are simulated on one BLAS thread (``threadpoolctl``): pemviz's PEM products are exact
-    (:class:`pemviz.pem.network.GridMLP`), so threads change no bit of them, but a second thread only slows these small
-    products down under load, and a PEM of one's own in float64 products would round by the thread count."""
+    """A :class:`Problem`'s ``simulate``, ``stream`` and ``branch`` for a batched simulator ``make(n)`` of
+    ``n_steps`` steps, through the one runner (:mod:`pemviz.core.lockstep`), ``simulate`` carrying the replay of the
+    state features (:func:`pemviz.core.features.feature_replay`). Simulated on one BLAS thread (``threadpoolctl``):
+    a PEM of one's own in float64 products would otherwise round by the thread count."""
     from threadpoolctl import threadpool_limits
 
     def run(n: int, sampler: Detector, target: Detector, rng: np.random.Generator) -> RolloutBatch:

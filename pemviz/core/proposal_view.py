@@ -1,21 +1,11 @@
 """What a sampler really did: q(detect) over the states its rollouts visited, per bin of the first observation column
 (the window's, e.g. the braking scenario's gap), beside the PEM's.
 
-A proposal that sees more than that column (the default ``state`` proposal sees every column of the observation)
-has no single curve q(detect | column): a curve that varies the column and holds the other inputs at one reference
-state (:meth:`pemviz.core.sampling.StateProposal.curve`) can sit near 1 everywhere while the sampler misses the object
-most of the time in the states it actually reaches. Here the states are those of a stage's rollouts and q is read back
-from the log-probability each rollout's detector gave the action it took (``RolloutBatch.log_q``), so the view
-needs neither the network nor a reference state, and holds for any sampler (a mixture's rollouts each with the
-detector that drew them, the PEM's own rollouts with q = p). Per bin: the mean and the quantiles of q(detect)
-and the quantiles of the log-odds of a miss, ``log q(miss) / q(detect)`` (nats), where probabilities near 0 or 1
-differ by orders of magnitude that a 0-1 axis cannot show. The same for the PEM, from ``RolloutBatch.log_p`` at
-the same states.
-
-Marginalising a state-dependent proposal over the visited states is how Rubinstein & Kroese ("The Cross-Entropy
-Method", Springer 2004, Ch. 3) compare a fitted importance density with the optimal one: on the states that matter.
-No I/O.
-"""
+A reference-state curve of a state proposal (:meth:`pemviz.core.sampling.StateProposal.curve`) can sit near 1 while
+the sampler misses in the states it reaches. Here q is read back from each rollout's ``log_q`` at the states of a
+stage's rollouts, for any sampler: per bin the mean and quantiles of q(detect) and of the log-odds of a miss (nats),
+and the same for the PEM from ``log_p``. Marginalising over the visited states is how Rubinstein & Kroese ("The
+Cross-Entropy Method", Springer 2004, Ch. 3) compare a fitted density with the optimal one. No I/O."""
 
 from __future__ import annotations
 
@@ -84,15 +74,11 @@ def object_detect_probabilities(
     target: Detector | None,
     features: FeaturesFn | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """Each object's p(detect) under ``target`` (the PEM) and q(detect) under ``sampler`` along rollout ``i`` of a
-    batch of several objects: float64 (p [T, M], q [T, M]), the detectors' logits at the rollout's object rows
-    passed through the logistic function (an object the camera cannot see, logit -inf, has 0); None for a batch of
-    one object a step (its log-probabilities are already per object) or without both detectors. The
-    log-probabilities a batch keeps sum a step's objects, so these are asked of the detectors themselves: call it
-    while ``sampler`` is the one that drew the batch (an estimator refits its proposal in place after each stage).
-    A detector that reads the state features (:func:`pemviz.core.detectors.reads_state`, e.g. ``method = "state"``'s
-    proposal) is asked about the rows with the rollout's features, replayed by ``features``
-    (:attr:`pemviz.core.problems.Problem.features`), as the simulation asked it; None where they cannot be.
+    """Each object's p(detect) under ``target`` and q(detect) under ``sampler`` along rollout ``i`` of a batch of
+    several objects, float64 (p [T, M], q [T, M]), from the detectors' logits at its object rows (0 where out of
+    sight); None for one object a step or without both detectors. Call it while ``sampler`` is the one that drew the
+    batch; a state-reading detector gets the rows with the features replayed by ``features``, None where they cannot
+    be.
 
     Raises:
         ValueError: ``i`` outside the batch.
@@ -132,18 +118,17 @@ class ProposalView:
     """q(detect) of the sampler and p(detect) of the PEM over one batch's visited states, per gap bin.
 
     Attributes:
-        edges_m: float64 [B + 1] the bins' edges (metres); a state is in bin b when edges[b] <= gap < edges[b + 1].
+        edges_m: float64 [B + 1] the bins' edges (metres), bin b holding edges[b] <= gap < edges[b + 1].
         centres_m: float64 [B] the bins' centres (metres).
         n_states: int [B] visited states (rollouts x steps) in each bin.
-        q_mean, q_lo, q_hi: float64 [B] mean, :data:`QUANTILES` of q(detect) over the bin's states (nan: empty).
+        q_mean, q_lo, q_hi: float64 [B] mean and :data:`QUANTILES` of q(detect) (nan: empty).
         p_mean, p_lo, p_hi: float64 [B] the same of p_PEM(detect).
-        q_log_odds, q_log_odds_lo, q_log_odds_hi: float64 [B] median and :data:`QUANTILES` of
-            log q(miss) / q(detect) (nats).
+        q_log_odds, q_log_odds_lo, q_log_odds_hi: float64 [B] median and :data:`QUANTILES` of log q(miss) /
+            q(detect) (nats).
         p_log_odds, p_log_odds_lo, p_log_odds_hi: float64 [B] the same of the PEM.
-        window_m: the gap below which :attr:`q_miss_window` and :attr:`p_miss_window` are taken (metres).
-        q_miss_window, p_miss_window: the mean of q(miss) and of p_PEM(miss) over every visited state with a gap
-            below ``window_m`` (nan: none).
-    """
+        window_m: the gap below which the window means are taken (metres).
+        q_miss_window, p_miss_window: the mean q(miss) and p_PEM(miss) over the states below ``window_m`` (nan:
+            none)."""
 
     edges_m: np.ndarray
     centres_m: np.ndarray

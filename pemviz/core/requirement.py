@@ -1,19 +1,11 @@
 """A requirement on a failure probability, ``p < 1e-9``, decided by a sequential test that keeps its error rate.
 
-A safety gate asks whether p lies below a threshold with 95 % confidence. The run samples in batches and looks at its
-estimate after each; checking a fixed 95 % interval at every look would raise the chance of a wrong decision with
-the number of looks. Here look j uses the interval at level ``1 - alpha_j`` with the alpha-spending sequence
-``alpha_j = alpha * 6 / (pi^2 j^2)``, whose sum over every look is ``alpha`` (a union bound over the looks:
-Bonferroni's inequality; an alpha-spending rule in the sense of Lan & DeMets, "Discrete sequential boundaries for
-clinical trials", Biometrika 70(3), 1983): whatever the number of looks, the chance that any of the intervals misses p,
-and so of a wrong "met" or "violated", is at most ``alpha`` (each interval's own coverage assumed: exact for plain
-Monte Carlo's Clopper-Pearson interval, asymptotic for importance sampling's log-scale t interval). An
-importance-sampling estimate whose verdict is not ``reliable`` backs no interval: its lower bound at the look's level,
-which holds whatever the weights' tail (:meth:`pemviz.core.estimate.Estimate.lower_bound`), can show a violation of
-``p < t`` (or meet ``p >= t``), and nothing else.
-
-The module is pure: no I/O, no scenario; numpy and scipy are imported where an interval is computed.
-"""
+The run looks at its estimate after each batch; look j uses the interval at level ``1 - alpha_j`` with ``alpha_j =
+alpha * 6 / (pi^2 j^2)``, whose sum over every look is ``alpha`` (a union bound; an alpha-spending rule in the sense
+of Lan & DeMets, "Discrete sequential boundaries for clinical trials", Biometrika 70(3), 1983), so the chance of a
+wrong "met" or "violated" over any number of looks is at most ``alpha`` (given each interval's coverage). An
+estimate whose verdict is not ``reliable`` decides only by its lower bound
+(:meth:`pemviz.core.estimate.Estimate.lower_bound`). No I/O, no scenario."""
 
 from __future__ import annotations
 
@@ -98,12 +90,9 @@ def alpha_at_look(look: int, alpha: float = ALPHA) -> float:
 
 
 def interval_at_level(est: Estimate, level: float, plain_mc: bool) -> tuple[float, float]:
-    """The interval of ``est`` at confidence ``level`` instead of its own :data:`CI_LEVEL`, as natural logs (lo, hi).
-
-    Plain Monte Carlo: the Clopper-Pearson interval of ``est.n_failures`` in ``est.n`` at ``level`` (also with no
-    failure). Importance sampling: the log-scale t interval of :func:`pemviz.core.estimate.estimate` widened by the
-    ratio of the Student-t quantiles, ``t_{N-1}((1 + level) / 2) / t_{N-1}((1 + CI_LEVEL) / 2)`` (the same standard
-    error); with no failure, (-inf, 0): it bounds nothing.
+    """The interval of ``est`` at confidence ``level`` instead of its own :data:`CI_LEVEL`, as natural logs (lo,
+    hi): Clopper-Pearson for plain Monte Carlo; under importance sampling the log-scale t interval widened by
+    ``t_{N-1}((1 + level) / 2) / t_{N-1}((1 + CI_LEVEL) / 2)``; with no failure, (-inf, 0).
 
     Args:
         est: an estimate of :func:`pemviz.core.estimate.estimate`.
@@ -145,10 +134,9 @@ class Decision:
 
 def decide(est: Estimate, req: Requirement, look: int, plain_mc: bool, alpha: float = ALPHA) -> Decision:
     """Look ``look`` at ``est``: ``met`` when the interval at level ``1 - alpha_look`` (:func:`alpha_at_look`,
-    :func:`interval_at_level`) lies wholly on the requirement's side of the threshold, ``violated`` when wholly on the
-    other, else ``undecided``. Under importance sampling an interval whose verdict is not ``reliable`` decides
-    nothing (its coverage is not backed by its diagnostics): its lower bound at that level decides alone, and only
-    against ``p < t`` or for ``p >= t``; plain Monte Carlo's exact interval always may.
+    :func:`interval_at_level`) lies wholly on the requirement's side of the threshold, ``violated`` when wholly on
+    the other, else ``undecided``; an importance-sampling estimate whose verdict is not ``reliable`` decides only by
+    its lower bound.
     """
     level = 1.0 - alpha_at_look(look, alpha)
     t = req.log_threshold

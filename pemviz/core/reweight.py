@@ -1,17 +1,12 @@
 """p under other PEMs from the same rollouts: re-weighting by the likelihood ratio of the detections.
 
-Rollouts drawn once from a proposal q estimate p under any target p_k whose support they cover: the importance weight
-of a rollout under p_k is p_k(tau) / q(tau) = w(tau) p_k(tau) / p(tau), and only the detection terms differ when p_k
-is another detection PEM (the dynamics and the measurement errors are the same). So
+Under another detection PEM p_k only the detection terms of a rollout's weight differ:
 
     log w_k = log w + sum_{t, m} [log sigma(s_tm l^k_tm) - log sigma(s_tm l_tm)],
 
-over the steps that enter the weight, with l the nominal PEM's logit of object m at step t, l^k the other PEM's and
-s = +1 for a detection, -1 for a miss (Innes & Ramamoorthy 2022, eq. 6, with the target swapped; the same identity
-underlies re-weighting for sensitivity analysis, e.g. Owen, "Monte Carlo theory, methods and examples", 2013,
-Ch. 9). An object the camera cannot see (logit -inf under every PEM) adds nothing. Every term is float64 in
-log space (``log_expit``). The core knows no scenario: the engine passes detectors and batches.
-"""
+over the steps that enter the weight, l the nominal PEM's logit of object m at step t, l^k the other's, s = +1 for a
+detection, -1 for a miss (Innes & Ramamoorthy 2022, eq. 6, with the target swapped; Owen, "Monte Carlo theory,
+methods and examples", 2013, Ch. 9). An object out of sight adds nothing. Float64 log space throughout; no scenario."""
 
 from __future__ import annotations
 

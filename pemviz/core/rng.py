@@ -1,10 +1,7 @@
-"""Jumps along a PCG64 stream: where the k-th float64 draw of a generator is, without drawing the ones before it.
-
-Chunks of rollouts (in this process, e.g. :mod:`pemviz.scenarios.braking.batched`, or in workers,
-:mod:`pemviz.engine.executors`) read their slice of the uniforms one ``rng.random(n)`` per step would give, so the
-rollouts do not depend on how they are split. ``Generator.random`` takes one 64-bit output per float64, and PCG64 /
-PCG64DXSM can ``advance`` by any number of outputs in O(log n) (O'Neill 2014, "PCG: a family of simple fast
-space-efficient statistically good algorithms for random number generation"); other bit generators cannot jump.
+"""Jumps along a PCG64 stream: where the k-th float64 draw of a generator is, without drawing the ones before it, so
+chunks of rollouts read their slice of the serial uniforms (PCG64 / PCG64DXSM ``advance`` in O(log n): O'Neill 2014,
+"PCG: a family of simple fast space-efficient statistically good algorithms for random number generation"); other
+bit generators cannot jump.
 """
 
 from __future__ import annotations
@@ -58,16 +55,10 @@ GOLDEN = 0.6180339887498949
 
 def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray, then: np.ndarray | None = None) -> np.ndarray:
     """One step's uniforms for ``n`` chains simulated together, by Array-RQMC (L'Ecuyer, Lecot & Tuffin, "A
-    randomized quasi-Monte Carlo simulation method for Markov chains", Operations Research 56(4), 2008).
-
-    The chains are ranked by ``key`` (lexicographically by its columns, the first column first, then by the columns of
-    ``then``; chains of equal keys keep their order), and the chain of rank r gets ``(r * GOLDEN + u[0]) mod 1``: the
-    second coordinate of point r of the two-dimensional golden-ratio lattice ``{(r / n, r * GOLDEN)}``, randomly
-    shifted. Given everything before this step, ``u[0]`` is uniform and independent of the ranks, so every chain's
-    uniform is exactly U(0, 1) and every chain follows its sampler exactly (a mean over chains keeps its
-    expectation); jointly, chains of nearby keys get evenly spread uniforms. With the sampler's detect logit and then
-    the state as the key, chains of similar detection probability detect in nearly their expected number, instead of
-    binomially many.
+    randomized quasi-Monte Carlo simulation method for Markov chains", Operations Research 56(4), 2008): the chains
+    are ranked by ``key`` (then ``then``), and rank r gets ``(r * GOLDEN + u[0]) mod 1``, a randomly shifted
+    golden-ratio lattice. ``u[0]`` is uniform and independent of the ranks, so every chain's uniform is exactly U(0,
+    1); chains of nearby keys get evenly spread uniforms.
 
     Args:
         u: float64 [n], i.i.d. U(0, 1) draws of this step; only ``u[0]`` is used (the others are drawn so that the

@@ -1,18 +1,11 @@
 """The black-box simulator protocols and the rollouts they give, scene-neutral.
 
-A :class:`Simulator` reports, at each step, its scene's signals (``observation()``, float64 [F]) and the rows of its M
-objects (``objects()``, float64 [M, G]: each object's salient variables and relative state, the window's column
-first), and is stepped with each object's detection and, for a detector that mislocates, its measurement error
-(``step(detected [M], noise [M, D])``). A single-object simulator needs neither ``objects`` nor the error: its one
-object row is its observation and ``step(detected: bool)`` takes the detection (e.g. the braking scenario, the toys).
-A :class:`BatchedSimulator` is the same for n rollouts at once (a leading [n]).
-
-Optional capability (:class:`Snapshotting`): ``snapshot()`` returns the simulator's whole state at the
-current step and ``restore(state)`` puts it back (checked by :func:`pemviz.core.checks.check_simulator`).
-
-:class:`RolloutBatch` holds N rollouts with the log-probabilities of every step's perception under the target (PEM)
-and the sampling detector; :mod:`pemviz.core.lockstep` simulates them.
-"""
+A :class:`Simulator` reports at each step its signals (``observation()``, float64 [F]) and its M objects' rows
+(``objects()``, float64 [M, G], the window's column first), and is stepped with each object's detection and
+measurement error (``step(detected [M], noise [M, D])``); a single-object simulator's row is its observation and
+``step(detected: bool)`` takes the detection. A :class:`BatchedSimulator` is the same for n rollouts at once.
+Optional: :class:`Snapshotting` (``snapshot()`` / ``restore(state)``). :class:`RolloutBatch` holds N rollouts with
+their log-probabilities; :mod:`pemviz.core.lockstep` simulates them."""
 
 from __future__ import annotations
 
@@ -128,27 +121,18 @@ class RolloutBatch:
     Attributes:
         observations: float64 [N, T, F] the scene's signals at each step (``observation_names``).
         detected: bool [N, T, M] each object's detection taken (given as [N, T]: one object per step).
-        log_p: float64 [N, T] log p_target(events_t | s_t) (nats): the step's M objects' detections (and measurement
-            errors) together, target = the PEM.
+        log_p: float64 [N, T] log p_target(events_t | s_t) (nats), the M objects' events together.
         log_q: float64 [N, T] the same under the detector that sampled (nats).
         observation_names: names of the F columns.
-        log_q_parts: None, or float64 [N, K, T] log q_k(events_t | s_t) (nats) under each of K other detectors, e.g.
-            the components of a mixture over rollouts, as an estimator asked them while the rollouts were drawn.
-        objects: float64 [N, T, M, G] each object's row (``object_names``), or None: one object (M = 1) whose row is
-            the observation.
+        log_q_parts: None, or float64 [N, K, T] log q_k(events_t | s_t) (nats) under K other detectors.
+        objects: float64 [N, T, M, G] each object's row (``object_names``), or None: its row is the observation.
         object_names: the G names of the object rows (None: ``observation_names``).
-        noise: float64 [N, T, M, D] the measurement errors of the detected objects (0 where missed), or None (D = 0).
+        noise: float64 [N, T, M, D] the detected objects' measurement errors (0 where missed), or None.
         noise_names: the D names of the errors (e.g. ``("range_err_m", "lateral_err_m")``).
-        log_q_params: None, or float64 [N]: over an operating design domain whose parameters the sampler drew from a
-            proposal of its own (:mod:`pemviz.core.odd_proposal`), log q(theta) - log p_ODD(theta) of each rollout
-            (nats), a term of its log q before any step; None: drawn from the ODD itself (0).
-        replay: None, or a function ``(detected [K, T, M], noise [K, T, M, D] | None) -> objects [K, T, M, G]``
-            that rebuilds the object rows of rollouts by replaying their events (:func:`replay_rows`). A batch
-            simulated without its object rows (``objects`` None, ``replay`` given: :func:`run_batched` with
-            ``keep_rows=False``) rebuilds them when ``objects`` is first read, for the rollouts it holds then: select
-            the few rollouts whose rows are wanted first (:meth:`select`, :meth:`object_rows_of`). The rows are bit for
-            bit those of the simulation (a state is a function of the events before it).
-    """
+        log_q_params: None, or float64 [N] log q(theta) - log p_ODD(theta) (nats) of ODD parameters drawn from a
+            proposal (:mod:`pemviz.core.odd_proposal`).
+        replay: None, or ``(detected, noise) -> objects`` rebuilding the object rows of a batch simulated without
+            them when ``objects`` is first read (:func:`replay_rows`; :meth:`select` first)."""
 
     observations: np.ndarray
     detected: np.ndarray
@@ -246,10 +230,8 @@ class RolloutBatch:
 
     def log_weight(self, n_factors: int | None = None) -> np.ndarray:
         """Importance log-weights ``sum_t log p - log q`` over the first ``n_factors`` steps (less
-        :attr:`log_q_params`), float64 [N].
-
-        The last action of a rollout affects nothing (Innes & Ramamoorthy (2022), Algorithm 1), so the default is
-        T - 1 factors.
+        :attr:`log_q_params`), float64 [N]; default T - 1 factors, as the last action affects nothing (Innes &
+        Ramamoorthy (2022), Algorithm 1).
         """
         k = self.n_steps - 1 if n_factors is None else n_factors
         log_w = (self.log_p[:, :k] - self.log_q[:, :k]).sum(axis=1)

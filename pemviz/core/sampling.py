@@ -1,10 +1,6 @@
-"""Adaptive importance sampling of detector outputs (Innes & Ramamoorthy 2022, Algorithm 1).
-
-The proposal q_phi(detect | h(s)), h(s) = gap / 12, is a small network trained by the cross-entropy
-method: each stage keeps the rollouts whose robustness is at or below the stage threshold gamma_kappa
-(the elites) and maximises their weighted log-likelihood under q_phi, with importance weights raised to
-the smoothing power alpha. The failure probability is then estimated with importance weights
-``prod_t p_PEM(a_t | s_t) / q(a_t | s_t)`` in float64 log-space (:mod:`pemviz.core.estimate`).
+"""Adaptive importance sampling of detector outputs (Innes & Ramamoorthy 2022, Algorithm 1): the proposal networks
+q_phi(detect | h(s)) and their cross-entropy fits to each stage's elites (robustness at or below gamma_kappa),
+importance weights raised to the smoothing power alpha.
 """
 
 from __future__ import annotations
@@ -45,17 +41,11 @@ class Proposal:
     """q_phi(a | d): Linear(1,32)-ReLU-Linear(32,32)-ReLU-Linear(32,2)-LogSoftmax, float64 (Innes & Ramamoorthy 2022,
     Algorithm 1; the authors' ``FFPolicy``).
 
-    ``forward(values [M]) -> [M, 2]`` log-probabilities (nats) of (miss, detect) at proposal inputs (the first
-    observation column); the network sees ``h(s) = values / h_scale``.
-
-    Its parameters live in numpy (float64, torch's layout: weight [out, in], bias [out]) until something needs them
-    in torch (:attr:`net`: an L-BFGS or float32 / float64 fit, a measurement-error head, a checkpoint): then they move,
-    for good, into a torch module (:class:`pemviz.core.torch_fits.ProposalModule`). Sampling
-    (:meth:`detect_logit`), the exact fits (:func:`pemviz.core.exact_fit.fit_exact`) and :meth:`curve` read either
-    home, so a run whose fits are exact never imports torch (about 1 s). Made while torch is imported, a proposal
-    starts in torch with torch's default initialisation, as an ``nn.Module`` does; made before, it draws that
-    initialisation when it first moves there without weights of its own (:meth:`initialise`).
-    """
+    ``forward(values [M]) -> [M, 2]`` log-probabilities (nats) of (miss, detect); the network sees ``h(s) = values /
+    h_scale``. Its parameters live in numpy (float64, torch's layout) until something needs them in torch
+    (:attr:`net`), then move for good into a :class:`pemviz.core.torch_fits.ProposalModule`; sampling
+    (:meth:`detect_logit`), the exact fits and :meth:`curve` read either, so a run whose fits are exact never
+    imports torch."""
 
     def __init__(self, h_scale: float = GAP_SCALE_M) -> None:
         self.h_scale = float(h_scale)
@@ -187,16 +177,12 @@ class Proposal:
         return np.asarray(values, dtype=np.float64).reshape(-1, self.n_inputs) / self.input_scales()
 
     def detect_logit(self, obs: np.ndarray) -> np.ndarray:
-        """Detector interface: logit q(detect | obs) = log q(detect) - log q(miss), float64 [N] for observations
-        [N, F] (nats).
+        """Detector interface: logit q(detect | obs) = log q(detect) - log q(miss), float64 [N] for observations [N, F]
+        (nats).
 
-        The network of :meth:`forward` in exact, order-free arithmetic (:mod:`pemviz.core.exact`): each layer's
-        product on power-of-two grids of about float32's precision (the input scales folded into the first layer's
-        weights, the two output units into one, ``(w_detect - w_miss) . a + (b_detect - b_miss)``: the log-softmax
-        cancels in the difference), so within ~1e-6 of ``forward``'s ``log q[:, 1] - log q[:, 0]``, and the same bits
-        for a row whatever rows it is asked about with, whatever the CPU. Sampling and every importance weight use
-        this logit, so each rollout is weighed by the density it was drawn from.
-        """
+        The network of :meth:`forward` in exact, order-free arithmetic (:mod:`pemviz.core.exact`): within ~1e-6 of
+        ``forward``'s, and the same bits for a row whatever rows come with it, whatever the CPU. Sampling and every
+        importance weight use this logit."""
         obs = np.asarray(obs, dtype=np.float64)
         columns = self.input_columns()
         x = obs if columns == list(range(obs.shape[1])) else obs[:, columns]
@@ -323,11 +309,9 @@ _MIX = np.uint64(0x9E3779B97F4A7C15)
 
 def _distinct_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(one row of each distinct row of ``x`` float64 [n, k] by its bits, int [m]; the distinct row of each row, int
-    [n]) where at most 3/4 of the rows are distinct, else None. Rows are keyed by one uint64 hash of their bits (the
-    columns mixed by :data:`_MIX`, Fibonacci hashing's multiplier, whose high bits depend on every bit), whose low
-    ``ceil(log2 n)`` bits are replaced by the row's number, and the keys sorted once (a sort of the values, about 3
-    times faster than an argsort of them); a key's high bits that two different rows share are found by comparing
-    every row with its group's first row, and then the answer is None too."""
+    [n]) where at most 3/4 of the rows are distinct, else None; rows are keyed by a uint64 hash of their bits
+    (Fibonacci hashing, :data:`_MIX`) with the row number in its low bits, sorted once, and a hash shared by two
+    different rows also gives None."""
     bits = x.view(np.uint64)
     key = bits[:, 0].copy()
     for j in range(1, bits.shape[1]):
@@ -442,42 +426,27 @@ def fit_proposal(
     dtype: Any = EXACT,
 ) -> list[float]:
     """Minimise the ``objective`` of log q_phi(. | ``inputs``) over the proposal's parameters, in place; returns the
-    loss per step.
+    loss per step. ``adam`` (Kingma & Ba 2015) backpropagates by hand (:func:`pemviz.core.exact_fit.fit_exact`,
+    :class:`pemviz.core.torch_fits.Backprop`); ``lbfgs`` (Nocedal 1980; torch's, strong-Wolfe) uses autograd.
 
     Args:
         proposal: the :class:`Proposal` fitted, in place.
         inputs: the proposal's inputs, float64 [M] (gaps, metres) or [M, k] (:meth:`Proposal.forward`).
         objective: see :data:`pemviz.core.fit_settings.Objective`.
-        per: with a tensor C, the loss is ``-sum(C * log q) / per`` (e.g. the number of steps C stands for, so that a
-            ``tolerance`` in nats per step means the same at any N); None: not divided.
+        per: with a tensor C, the loss is ``-sum(C * log q) / per``; None: not divided.
         epochs: Adam steps, or the most L-BFGS iterations.
         lr: the step size.
-        check: called every :data:`pemviz.core.fit_settings.CHECK_EVERY` steps; may raise (a cancel token) to abandon
-            the fit.
-        dtype: the arithmetic of an ``adam`` fit of an array objective: :data:`pemviz.core.fit_settings.EXACT` (default,
-            :func:`pemviz.core.exact_fit.fit_exact`: the same parameters on every CPU), or torch's float32 (the
-            fastest) or float64 kernels (``"float32"``, ``"float64"`` or a torch dtype), whose last bits
-            depend on the CPU's vector unit and BLAS kernel. The parameters stay float64 and every weight of the
-            estimate is computed in float64 from the density sampled from (:meth:`Proposal.detect_logit`), so the
-            precision of the fit only moves the proposal, never the estimate's unbiasedness. A function objective
-            (the authors' recomputed weights) and ``lbfgs`` always fit in torch's float64.
+        check: called every :data:`pemviz.core.fit_settings.CHECK_EVERY` steps; may raise to abandon the fit.
+        dtype: an ``adam`` fit's arithmetic: :data:`pemviz.core.fit_settings.EXACT` (default, the same on every CPU)
+            or torch's ``"float32"`` / ``"float64"``; weights stay exact float64 either way.
         optimizer: one of :data:`pemviz.methods.adaptive.FITS`.
-        tolerance: ``adam``: early stopping once the loss fell by less than this over the last
-            :data:`pemviz.core.fit_settings.PLATEAU_EPOCHS` epochs (None: every epoch); ``lbfgs``: its tolerance on a
-            change of the loss (default
-            :data:`pemviz.core.fit_settings.LBFGS_TOLERANCE`).
+        tolerance: ``adam``: stop once the loss fell by less than this over
+            :data:`pemviz.core.fit_settings.PLATEAU_EPOCHS` epochs (None: every epoch); ``lbfgs``: its tolerance
+            (default :data:`pemviz.core.fit_settings.LBFGS_TOLERANCE`).
     Returns:
-        the loss per Adam epoch, or per L-BFGS evaluation; ``[]`` for no ``inputs`` (M = 0: every rollout failed
-        before its first action), the proposal left as it is.
+        the loss per Adam epoch, or per L-BFGS evaluation; ``[]`` for no ``inputs`` (M = 0).
     Raises:
-        ValueError: for an unknown ``optimizer``.
-
-    ``adam`` (Kingma & Ba 2015, :class:`pemviz.core.torch_fits.Adam`) backpropagates through the network by hand
-    (:func:`pemviz.core.exact_fit.fit_exact`, or :class:`pemviz.core.torch_fits.Backprop` in torch's kernels);
-    ``lbfgs`` (Nocedal 1980;
-    torch's, history 20, strong-Wolfe line search,
-    unit step) backpropagates the objective's gradient with autograd.
-    """
+        ValueError: for an unknown ``optimizer``."""
     if optimizer not in FITS:
         raise ValueError(f"fit_proposal: unknown optimizer {optimizer!r}; use one of {', '.join(FITS)}")
     own_fit = getattr(proposal, "fit_counts", None)
@@ -519,15 +488,9 @@ class ProposalFormatError(ValueError):
 
 
 def write_proposal_file(proposal: Proposal, path: str | os.PathLike[str]) -> None:
-    """``torch.save`` a :class:`Proposal` checkpoint into ``path`` as it is (no temporary file: for a caller that
-    moves its files into place itself, as :class:`pemviz.io.rollout_writer.RolloutWriter` does; else
-    :func:`save_proposal`).
-
-    The checkpoint is a plain dict: format tag, version, ``h_scale`` (metres), a copy of the ``state_dict`` and the
-    arithmetic it samples in (``sample_precision``: ``exact``, :meth:`Proposal.detect_logit`; checkpoints of
-    pemviz's earlier versions say ``float64`` or ``float32``, and are now sampled exactly), so that
-    ``torch.load(weights_only=True)`` reads it and later training of ``proposal`` does not change it.
-    """
+    """``torch.save`` a :class:`Proposal` checkpoint into ``path`` as it is (no temporary file; else
+    :func:`save_proposal`): a plain dict of format tag, version, ``h_scale`` (metres), a copy of the ``state_dict``
+    and ``sample_precision``, readable with ``torch.load(weights_only=True)``."""
     payload = {
         "format": PROPOSAL_FORMAT_TAG,
         "version": PROPOSAL_FORMAT_VERSION,

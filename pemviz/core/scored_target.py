@@ -11,13 +11,9 @@ from pemviz.core.detectors import Detector, reads_state
 
 class ScoredTarget(ErrorModelOf):
     """The target detector that also asks ``extras`` about every observation it is asked about and keeps their
-    logits and its own, so that a mixture's component densities come out of the simulation that drew the rollouts
-    instead of a second pass over them (each simulator asks its target once per step about all rollouts it steps
-    together).
-
-    :meth:`take` hands the kept logits over as [K, n, T] (and the target's [n, T]) for the next ``n`` rollouts of T
-    steps, or None when the asks do not fit that shape (a simulator that asks otherwise, or a remote executor whose
-    copy of this object did the asking): the caller then asks ``extras`` itself.
+    logits and its own, so that a mixture's component densities come out of the simulation itself. :meth:`take`
+    hands them over as [K, n, T] (and the target's [n, T]) for the next ``n`` rollouts, or None when the asks do not
+    fit that shape (then the caller asks ``extras`` itself).
     """
 
     _error_model_of = "target"  # it scores as the target does

@@ -1,25 +1,14 @@
 """Severity: how deep the failures go, as an exceedance curve P(failure and min_t s_t < x) over levels x of a signal.
 
-A failure of ``G(d >= 2)`` mixes grazes of the 2 m margin with contact. The exceedance curve splits them: for a
-signal s (e.g. the braking scenario's gap, metres) and levels x from the spec's margin down to 0, the probability that
-a rollout fails and its signal drops below x: the exceedance curve that severity and fragility analyses read. Contact
-is one distance of the scale (:attr:`SeverityScale.contact`), stated once with the impact speeds; the curve's levels
-are distances alone.
-
-Each point is estimated from the same importance-weighted rollouts as the failure probability: with E_x the event
-and tau_x the step at which it is decided (the later of the failure step and the first step with s < x),
-mu_hat_x = (1/N) sum_i 1[E_x,i] w_i(tau_x,i), where w_i(k) = prod_{t < k} p / q is the weight of the rollout's first k
-actions. Optional stopping at tau_x keeps each term unbiased: the actions after tau_x do not change E_x, and their
-likelihood ratio has mean 1 under q (Innes & Ramamoorthy 2022, eq. 6, with the failure step replaced by tau_x).
-
-The core knows no scenario: a problem states its scale (:class:`SeverityScale`) and the engine fills a
+For a signal s (e.g. the braking gap, metres) and levels x from the spec's margin down to 0, each point is estimated
+from the run's importance-weighted rollouts: with E_x the event and tau_x the step at which it is decided (the later
+of the failure step and the first step with s < x), mu_hat_x = (1/N) sum_i 1[E_x,i] w_i(tau_x,i), w_i(k) = prod_{t <
+k} p / q; optional stopping at tau_x keeps each term unbiased (Innes & Ramamoorthy 2022, eq. 6, with the failure
+step replaced by tau_x). A problem states its scale (:class:`SeverityScale`); the engine fills a
 :class:`SeverityCurve`.
 
-Each rollout's own severity, whatever the scene (:func:`rollout_severity`): its minimum distance and its impact speed,
-the closing speed into contact (the delta-v of crash-severity practice). Weighed by the failures' shares of p, they
-give p(severity | failure) (:class:`FailureSeverity`): how many of the failures, by probability, make contact, and how
-fast.
-"""
+Each rollout's own severity (:func:`rollout_severity`): its minimum distance and its impact speed, the closing speed
+into contact; weighed by the failures' shares of p they give p(severity | failure) (:class:`FailureSeverity`)."""
 
 from __future__ import annotations
 
@@ -45,17 +34,12 @@ class SeverityScale:
         signal: the STL signal name (e.g. ``d``, the braking scenario's gap).
         label: what the signal is, for people (``gap``, ``clearance``).
         unit: its unit (``m``).
-        levels: the levels x below the failure itself, descending (metres for a distance); the event at x is
-            "failure and min_t s_t < x".
-        margin: the level at which the spec itself fails on this signal (e.g. the braking scenario's crash gap, 2 m),
-            or None where the failure is not a level of this signal (a failure of another signal, e.g. a safe
-            distance).
-        contact: the distance at or below which the objects are in contact, the one meaning of contact (the impact
-            speeds', :func:`contact_level`): 0 where the boxes meet, more where the scene stops its objects short of
-            0 (e.g. the braking scenario's 0.7 m, where it stops the ego as CARLA's collision does).
-        target_flag: the ``pemviz run`` flag that makes a level the failure itself (``margin``: a run that targets
-            it), or None.
-    """
+        levels: the levels x below the failure itself, descending; the event at x is "failure and min_t s_t < x".
+        margin: the level at which the spec itself fails on this signal (e.g. 2 m), or None where the failure is not
+            a level of it.
+        contact: the distance at or below which the objects are in contact (:func:`contact_level`): 0 where the
+            boxes meet, more where the scene stops its objects short of 0.
+        target_flag: the ``pemviz run`` flag that makes a level the failure itself (``margin``), or None."""
 
     signal: str
     label: str
@@ -236,12 +220,9 @@ def severity_of_signal(signal: np.ndarray, contact: float, dt_s: float) -> tuple
     """Each rollout's minimum distance and impact speed from its distance signal alone.
 
     The impact speed is the closing speed over the step into contact, ``(s[t-1] - s[t]) / dt`` at the first step t
-    with ``s[t] <= contact``: the simulators move each car by its speed at the start of the step (explicit Euler,
-    ``x += v dt``), so this is the relative speed (ego minus the car it meets) with which the cars reached contact,
-    the delta-v of crash-severity practice for a collision with a car ahead (Evans, "Driver injury and fatality risk in
-    two-car crashes versus mass ratio inferred using Newtonian mechanics", Accident Analysis & Prevention 26(5), 1994;
-    Gabauer & Gabler, "Comparison of roadside crash injury metrics using event data recorders", AAP 40(2), 2008). A
-    scenario's own severity agrees with it number for number (e.g. the braking scenario's ``contact_speed_mps``).
+    with ``s[t] <= contact``: with explicit Euler steps, the delta-v of crash-severity practice (Evans, "Driver
+    injury and fatality risk in two-car crashes versus mass ratio inferred using Newtonian mechanics", Accident
+    Analysis & Prevention 26(5), 1994).
 
     Args:
         signal: s_t of each rollout, float64 [N, T] (metres), T >= 1.
@@ -249,11 +230,10 @@ def severity_of_signal(signal: np.ndarray, contact: float, dt_s: float) -> tuple
         dt_s: seconds per step (> 0).
     Returns:
         ``(min_distance, impact_speed)``, float64 [N] each: min_t s_t (metres) and the impact speed (m/s, > 0), NaN
-        exactly where the rollout never reaches contact.
+            exactly where the rollout never reaches contact.
     Raises:
         ValueError: ``signal`` not [N, T >= 1], a non-finite value in it, ``dt_s`` not positive, or a rollout in
-            contact at step 0 (no step into contact, so no closing speed: the scene starts in a collision).
-    """
+            contact at step 0."""
     s = np.asarray(signal, dtype=np.float64)
     if s.ndim != 2 or s.shape[1] == 0:
         raise ValueError(f"severity_of_signal: signal must be float [N, T >= 1], got shape {s.shape}")
@@ -305,24 +285,19 @@ class SeverityProblem(Protocol):
 
 
 def rollout_severity(problem: SeverityProblem, batch: RolloutBatch) -> tuple[np.ndarray, np.ndarray]:
-    """Each rollout's severity, whatever the scene: its minimum distance and its impact speed.
-
-    The distance is the problem's severity signal (:attr:`SeverityScale.signal`, metres); contact is that distance at
-    or below :func:`contact_level` (where the scene stops its objects, or 0: the boxes meet); the impact speed is the
-    closing speed over the step into contact (:func:`severity_of_signal`). Where the distance is a clearance to the
-    nearest object, the impact speed is the ego's speed minus that object's at the step before contact, to within the
-    change of the object's along-road speed over the step (e.g. 0.1 m/s for a car that turns in).
+    """Each rollout's severity, whatever the scene: its minimum distance along the problem's severity signal
+    (:attr:`SeverityScale.signal`, metres) and its impact speed at or below :func:`contact_level`
+    (:func:`severity_of_signal`).
 
     Args:
         problem: a :class:`pemviz.core.problems.Problem` with a severity scale.
         batch: N rollouts (:class:`pemviz.core.rollouts.RolloutBatch`) with the signal's column.
     Returns:
-        ``(min_distance, impact_speed)``: float64 [N] each, metres and m/s; the impact speed is NaN exactly where the
-        rollout never reaches contact.
+        ``(min_distance, impact_speed)``: float64 [N] each, metres and m/s; the impact speed is NaN exactly where
+            the rollout never reaches contact.
     Raises:
-        ValueError: a problem without a severity scale or a step (``dt_s``), a rollout in contact at
-            step 0 (:func:`severity_of_signal`); KeyError: the batch lacks the signal's column.
-    """
+        ValueError: a problem without a severity scale or a step (``dt_s``), a rollout in contact at step 0;
+            KeyError: the batch lacks the signal's column."""
     contact = contact_level(problem)
     scale = problem.severity
     assert scale is not None  # contact_level raised ValueError otherwise
@@ -357,23 +332,19 @@ def share_text(x: float) -> str:
 class FailureSeverity:
     """p(severity | failure): the failures' severity weighed by their shares of the estimate's p.
 
-    Each failure i carries the share pi_i = w_i / sum_j w_j of mu_hat (its self-normalised importance weight among the
-    failures: :class:`pemviz.core.population.FailureShares`), so sum_i pi_i 1[impact speed of i in bin b] estimates
-    P(impact speed in b | failure) under the PEM (Owen, "Monte Carlo theory, methods and examples", 2013, Sec. 9.2),
-    and the pi-weighted median of the min distances the median of min s given a failure. Failures whose rollout was
-    not kept (a streamed stage keeps a sample of its rollouts) are left out and the others' shares renormalised:
-    :attr:`covered` says how much of p the kept ones carry.
+    Each failure's share pi_i = w_i / sum_j w_j of mu_hat (:class:`pemviz.core.population.FailureShares`) makes
+    sum_i pi_i 1[impact speed of i in bin b] an estimate of P(impact speed in b | failure) (Owen, "Monte Carlo
+    theory, methods and examples", 2013, Sec. 9.2). Failures whose rollout was not kept are left out and the shares
+    renormalised (:attr:`covered`).
 
     Attributes:
         scale: the severity signal (its label and unit name the distance).
         contact: the distance at or below which the cars touch (metres).
-        log_share: float64 [F] each failure's log share of mu_hat (nats), in the order of the failures.
-        min_distance: float64 [F] its min distance (metres; NaN exactly where not kept).
+        log_share: float64 [F] each failure's log share of mu_hat (nats).
+        min_distance: float64 [F] its min distance (metres; NaN where not kept).
         impact_speed: float64 [F] its impact speed (m/s; NaN where no contact or not kept).
-        kept: bool [F] whether its rollout was located (its severity known).
-        edges: the impact-speed bin edges after "no contact" (m/s, ascending, > 0): bins [0, e_1), [e_1, e_2), ...,
-            [e_last, inf).
-    """
+        kept: bool [F] whether its rollout was located.
+        edges: the impact-speed bin edges after "no contact" (m/s, ascending, > 0)."""
 
     scale: SeverityScale
     contact: float

@@ -1,22 +1,12 @@
 """Student-t quantiles from a table: ``F^-1(u)`` of Student's t with nu degrees of freedom for many uniforms at once,
-about ten times faster than ``scipy.special.stdtrit`` and within 2e-12 of it (relative, checked by a test).
+about ten times faster than ``scipy.special.stdtrit`` and within 2e-12 of it (relative, tested).
 
-The noise PEM draws every detected object's range and lateral errors by inverse CDF (a heavy-tailed Student-t per
-component, :mod:`pemviz.pem.noise`); ``stdtrit`` solves each quantile iteratively (cdflib's root finder), and in a scene
-of several objects (e.g. the cut-in) that was a third of plain Monte Carlo's time. Here each binade ``[2^(e-1), 2^e)``
-of ``u < 1/2`` holds a cubic Hermite interpolant of ``Q(u) = F^-1(u)`` on :data:`KNOTS_PER_BINADE` equal steps of the
-mantissa, whose knot values are ``stdtrit``'s and whose slopes are ``dQ/du = 1 / f(Q)`` (f the t density); ``u > 1/2``
-uses ``Q(u) = -Q(1 - u)`` (``1 - u`` is exact there). Locating a uniform is exact bit arithmetic (``numpy.frexp``), and
-the interpolant is a fixed sequence of float64 multiplications and additions (no vector library): the same bits on every
-CPU from the same table (built once per df from stdtrit and libm's scalar lgamma, exp and log1p). Uniforms outside the
-table (``u < 2^-64``, 0, 1/2, non-finite) go to ``stdtrit`` itself.
-
-Error: a cubic Hermite interpolant on steps h of the mantissa is off by at most ``h^4 / 384 max |Q''''|``
-(de Boor, *A Practical Guide to Splines*, 2001, ch. II); with h = 1/1024 and the tail's ``Q ~ -c u^(-1/nu)`` that is
-below 2e-12 relative for nu >= 1 (measured: 2e-13 at the noise PEM's nu, 1.1e-12 at nu = 1). An error drawn from the
-table's quantile has its density evaluated exactly where it lands, so importance weights stay exact; the draw's own
-distribution is F to that relative tolerance. Measured on 10^5 uniforms: 2.3 ms against stdtrit's 26 ms.
-"""
+Each binade ``[2^(e-1), 2^e)`` of ``u < 1/2`` holds a cubic Hermite interpolant of ``Q(u)`` on
+:data:`KNOTS_PER_BINADE` steps of the mantissa, knots from ``stdtrit`` and slopes ``1 / f(Q)``; ``u > 1/2`` uses
+``Q(u) = -Q(1 - u)``. Locating a uniform is exact bit arithmetic and the interpolant a fixed float64 sequence: the
+same bits on every CPU. Uniforms outside the table go to ``stdtrit``. The error bound ``h^4 / 384 max |Q''''|`` is
+de Boor's (*A Practical Guide to Splines*, 2001, ch. II). A drawn error's density is evaluated where it lands, so
+importance weights stay exact."""
 
 from __future__ import annotations
 

@@ -1,9 +1,7 @@
 """The proposal's fits that run in torch: L-BFGS and the float32 / float64 Adam fits (:func:`fit_in_torch`), the
-measurement-error head (:class:`NoiseShift`, :func:`fit_noise_shift`), and the torch module a :class:`pemviz.core.
-sampling.Proposal` becomes when one of them, or a checkpoint, needs it (:class:`ProposalModule`).
-
-This module imports torch (about 1 s): :mod:`pemviz.core.sampling` imports it only then, so that a run whose fits are
-exact (:func:`pemviz.core.exact_fit.fit_exact`, the default) never imports torch.
+measurement-error head (:class:`NoiseShift`, :func:`fit_noise_shift`), and the torch module a proposal becomes when
+one of them or a checkpoint needs it (:class:`ProposalModule`). Imports torch; :mod:`pemviz.core.sampling` imports
+this module only then.
 """
 
 from __future__ import annotations
@@ -47,15 +45,13 @@ class ProposalModule(nn.Module):
 
 
 class NoiseShift(nn.Module):
-    """A proposal's measurement-error density relative to the target's: with the target's location and scale
-    (loc_p, s_p) of a row and the head's outputs (a, b) at the row's proposal inputs h,
+    """A proposal's measurement-error density relative to the target's: with the target's (loc_p, s_p) at a row and
+    the head's outputs (a, b) at its proposal inputs h,
 
         loc_q = loc_p + s_p a(h),    log s_q = log s_p + b(h),
 
-    in the target's family (:func:`pemviz.core.detector_noise.noise_quantile`). (a, b) are linear in h (Linear(k, 2 D),
-    float64), zero at first: q's errors are p's until a cross-entropy fit moves them toward the failures' errors
-    (Rubinstein & Kroese, "The Cross-Entropy Method", 2004: the CE update of a location-scale family's parameters); a
-    stage's few elites fit so few parameters without overfitting.
+    in the target's family; (a, b) are linear in h and zero at first, moved by cross-entropy fits toward the
+    failures' errors (Rubinstein & Kroese, "The Cross-Entropy Method", 2004).
     """
 
     def __init__(self, n_inputs: int, n_noise: int) -> None:
@@ -99,9 +95,9 @@ def fit_noise_shift(
     log_w: np.ndarray,
     options: FitOptions,
 ) -> list[float]:
-    """The cross-entropy update of the proposal's error head, in place: maximise the weighted log-likelihood
-    ``sum_s w_s log q(e_s | h_s)`` of detected objects' errors (Innes & Ramamoorthy 2022, eq. 10-11, for the errors'
-    density), by Adam on the mean over the weights; returns the loss per epoch (nats per error).
+    """The cross-entropy update of the proposal's error head, in place: maximise ``sum_s w_s log q(e_s | h_s)`` over
+    detected objects' errors (Innes & Ramamoorthy 2022, eq. 10-11, for the errors' density) by Adam; returns the
+    loss per epoch (nats per error).
 
     Args:
         proposal: the proposal whose error head is fitted, in place.
@@ -110,12 +106,10 @@ def fit_noise_shift(
         loc_p: float64 [S, D] the target's location at the rows.
         log_scale_p: float64 [S, D] the target's log scale at the rows.
         family: the target's family (:data:`pemviz.core.detector_noise.NOISE_FAMILIES`).
-        df: the target's Student-t degrees of freedom, float64 [D] (one per error component), or None (no Student-t).
-        log_w: float64 [S] each error's weight in log space (alpha times its rollout's importance log-weight).
-        options: Adam's epochs and lr, the cancel ``check``; beyond ``max_rows`` errors, a weighted systematic subsample
-            of them drawn by ``rng`` (:func:`pemviz.estimators.ce_fit`'s rule: the expected loss is kept; None: all);
-            ``tolerance``: stop once the loss fell by less than this over :data:`PLATEAU_EPOCHS` epochs.
-    """
+        df: the target's Student-t degrees of freedom, float64 [D], or None.
+        log_w: float64 [S] each error's log weight (alpha times its rollout's importance log-weight).
+        options: Adam's epochs and lr, the cancel ``check``, ``max_rows`` (a weighted systematic subsample by
+            ``rng`` beyond it) and ``tolerance`` (over :data:`PLATEAU_EPOCHS` epochs)."""
     max_rows, tolerance, check = options.max_rows, options.tolerance, options.check
     rng = options.rng or np.random.default_rng(0)
     head = proposal.noise_shift
@@ -149,16 +143,11 @@ def fit_noise_shift(
 
 
 class Backprop:
-    """Backpropagation through a proposal network written out (Rumelhart, Hinton & Williams 1986), without autograd.
-
-    :meth:`forward` returns log q [M, 2] (nats) and what :meth:`backward` needs; :meth:`backward` turns
-    d loss / d log q [M, 2] into d loss / d parameter, written in place into ``grads``. Both call the kernels
-    autograd would run for ``net(h)`` and its backward pass, in its order (``addmm``, ``relu``, ``log_softmax``;
-    ``_log_softmax_backward_data``, ``threshold_backward``, ``mm``), into activation buffers allocated once, with
-    each weight gradient as one product (``dz^T a``) rather than a transposed one: autograd's gradients to rounding
-    (a test checks the fitted parameters to 1e-9), without its per-operation overhead or allocations: a fit takes
-    thousands of steps on a few thousand inputs.
-    The parameters are read through the tensors bound here, so an optimiser must update them in place.
+    """Backpropagation through a proposal network written out (Rumelhart, Hinton & Williams 1986), without autograd:
+    :meth:`forward` returns log q [M, 2] (nats) and what :meth:`backward` needs, which writes d loss / d parameter
+    into ``grads``, calling autograd's own kernels in its order into buffers allocated once (a test checks the
+    fitted parameters to 1e-9). Parameters are read through the bound tensors, so an optimiser must update them in
+    place.
 
     Args:
         net: Linear-ReLU-Linear-ReLU-Linear-LogSoftmax (:class:`Proposal`'s ``net``).
@@ -219,13 +208,9 @@ class Backprop:
 
 
 class Adam:
-    """Adam (Kingma & Ba, "Adam: a method for stochastic optimization", ICLR 2015, Algorithm 1) with torch's defaults.
-
-    The same arithmetic, operation for operation, as ``torch.optim.Adam(params, lr)`` on CPU (its single-tensor
-    path: betas (0.9, 0.999), eps 1e-8, no weight decay), so a fit gives bit-identical parameters (a test checks
-    it). It exists for speed: ``torch.optim`` imports ``torch._dynamo`` when its first optimizer is built (about
-    1 s, as long as a whole default run's simulation) and wraps every step in dispatch that costs ~0.1 ms, while
-    a proposal fit takes thousands of steps of well under a millisecond each.
+    """Adam (Kingma & Ba, "Adam: a method for stochastic optimization", ICLR 2015, Algorithm 1) with torch's
+    defaults, operation for operation as ``torch.optim.Adam(params, lr)`` on CPU (bit-identical, tested), without
+    ``torch.optim``'s import and per-step dispatch costs.
 
     Args:
         params: the tensors to optimise (``requires_grad``); their ``.grad`` is read by :meth:`step`.

@@ -1,25 +1,12 @@
 """Read the payload files pemviz writes with ``torch.save`` without importing torch: tensors come back as numpy arrays.
 
-Importing torch takes about 1 s, and a PEM is evaluated in numpy: loading one needs only its arrays. The reader
-follows the zip format of PyTorch's ``torch/serialization.py`` (``_save`` and ``_load``; the archive is read by
-``caffe2/serialize/inline_container.cc``), which ``torch.save`` writes since torch 1.6:
-
-- a zip archive whose records all lie in one folder, named by the first record (``<archive>/...``; ``torch.save``
-  names it after the file);
-- ``<archive>/data.pkl``: the pickled object (protocol 2), in which each tensor is the call
-  ``torch._utils._rebuild_tensor_v2(storage, storage_offset, size, stride, requires_grad, backward_hooks)`` on a
-  persistent id ``('storage', torch.<Type>Storage, key, location, numel)``;
-- ``<archive>/data/<key>``: that storage's ``numel`` elements, raw, in the byte order of ``<archive>/byteorder``
-  (``little`` or ``big``; little when absent, as torch assumes); ``<archive>/version`` (or ``.data/version``): the
-  format version, 1 to 3 here.
-
-The unpickler allows fewer globals than ``torch.load(weights_only=True)`` does (the tensor and parameter rebuild
-functions, the typed storage classes of numpy dtypes, ``collections.OrderedDict``, ``set``, ``complex``,
-``bytearray``, ``_codecs.encode`` for bytes); anything else raises :class:`UnsupportedPayload`.
-:func:`load_payload` then falls back to ``torch.load(weights_only=True)``, importing torch only then, so a file
-this reader does not understand (the legacy non-zip format, another global, a damaged archive) loads, or fails,
-exactly as it does with torch.
-"""
+The reader follows the zip format of PyTorch's ``torch/serialization.py`` (``torch.save`` since torch 1.6): one
+folder of records, ``<archive>/data.pkl`` the pickled object (each tensor a ``torch._utils._rebuild_tensor_v2`` call
+on a persistent storage id), ``<archive>/data/<key>`` each storage's raw elements in the byte order of
+``<archive>/byteorder``, ``<archive>/version`` 1 to 3. The unpickler allows fewer globals than
+``torch.load(weights_only=True)``; anything else raises :class:`UnsupportedPayload`, and :func:`load_payload` then
+falls back to ``torch.load(weights_only=True)``, so a file this reader does not understand loads, or fails, exactly
+as with torch."""
 
 from __future__ import annotations
 
@@ -183,14 +170,12 @@ def read_payload(path: str | os.PathLike[str]) -> Any:
         path: the file.
 
     Returns:
-        What ``torch.load(path, weights_only=True)`` returns, with each tensor (and parameter) a numpy array of its
-        dtype and shape (C order, native byte order, owning its memory; values bit for bit the tensor's);
-        dicts, ``OrderedDict``, lists, tuples and plain values as they are.
+        What ``torch.load(path, weights_only=True)`` returns, each tensor a numpy array of its dtype and shape (C
+            order, native byte order, bit for bit).
 
     Raises:
         UnsupportedPayload: anything this reader does not understand (see the module docstring).
-        OSError: the file cannot be opened or read.
-    """
+        OSError: the file cannot be opened or read."""
     try:
         with zipfile.ZipFile(path) as archive:
             return _read_archive(archive)

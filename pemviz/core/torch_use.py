@@ -1,8 +1,6 @@
-"""torch, imported where a computation first needs it (about 1 s to import), with the thread count a run asked for.
-
-A run whose fits are exact never imports torch (:class:`pemviz.core.sampling.Proposal` keeps its parameters in numpy).
-:func:`pemviz.engine.resources.torch_threads` sets torch's threads for a whole run; when torch is not imported yet it
-leaves the number here (:func:`want_threads`), and :func:`torch_module` applies it on the import.
+"""torch, imported where a computation first needs it, with the thread count a run asked for:
+:func:`pemviz.engine.resources.torch_threads` leaves the number here when torch is not imported yet
+(:func:`want_threads`), and :func:`torch_module` applies it on the import.
 """
 
 from __future__ import annotations

@@ -1,12 +1,9 @@
-"""The verdict's checks one by one, each with what it found, its rule and whether it passed: what a report prints
-beside the verdict (:func:`pemviz.core.estimate.estimate` decides it from the same thresholds).
-
-An importance-sampling estimate is ``reliable`` only with at least :data:`~pemviz.core.estimate.MIN_FAILURES`
-failures, an ESS of at least :data:`~pemviz.core.estimate.MIN_ESS_RELIABLE` and a fitted Pareto k-hat at most the
-sample-size threshold of Vehtari, Simpson, Gelman, Yao & Gabry ("Pareto Smoothed Importance Sampling", JMLR 25(72),
-2024, Sec. 3.2); plain Monte Carlo (every weight 1, its ESS the failure count) needs the failures alone; splitting
-(AMS) keeps no weights, and its ESS (1 / the relative variance) is no check. The verdict also weighs what these three
-do not show (distinct failures, the mean weight, the AMS families): its reason says so where that decided it.
+"""The verdict's checks one by one, each with what it found, its rule and whether it passed, as a report prints them
+beside the verdict (:func:`pemviz.core.estimate.estimate` decides from the same thresholds): at least
+:data:`~pemviz.core.estimate.MIN_FAILURES` failures, an ESS of at least
+:data:`~pemviz.core.estimate.MIN_ESS_RELIABLE` and a Pareto k-hat at most the sample-size threshold of Vehtari,
+Simpson, Gelman, Yao & Gabry ("Pareto Smoothed Importance Sampling", JMLR 25(72), 2024, Sec. 3.2); plain Monte Carlo
+needs the failures alone; splitting keeps no weights.
 """
 
 from __future__ import annotations

@@ -2,21 +2,14 @@
 rollouts, and the mean-weight check of a logged sampling density.
 
 Conventions (Owen 2013, "Monte Carlo theory, methods and examples", ch. 9; Innes & Ramamoorthy 2022, eq. 6 and
-Algorithm 1). A rollout of T steps takes actions a_0..a_{T-1}; the one at the last step changes nothing inside the
-spec's horizon, so no convention weighs it.
+Algorithm 1); the last action changes nothing, so neither weighs it:
 
-- ``full``: w = prod_{t < T-1} p(a_t | s_t) / q(a_t | .), the paper's product over the whole trajectory. Unbiased:
-  E_q[1{fail} w] = sum_tau q(tau) 1{fail}(tau) p(tau) / q(tau) = P_p(fail).
-- ``to-failure``: w = prod_{t < min(t_f, T-1)} p / q, stopped at the failure step t_f (the first step where the
-  ``G[a,b]`` formula is violated; T for a rollout that does not fail), what pemviz's default sampler weighs with.
-  Unbiased too: W_t = prod_{s < t} p / q is a q-martingale with W_0 = 1 (E_q[p(a_t | s_t) / q(a_t | .) | past] =
-  sum_a p(a | s_t) = 1), and t_f is a stopping time bounded by T, so E_q[W_{t_f}] = 1 (optional stopping) and
-  E_q[1{fail} W_{t_f}] = P_p(fail): whether a rollout has failed by step t is decided by the actions before t, so
-  the full weight's factors after t_f integrate out to 1 given the past. Both estimate the same mu; the stopped
-  weight drops factors that only add variance.
+- ``full``: w = prod_{t < T-1} p(a_t | s_t) / q(a_t | .), the paper's product over the whole trajectory;
+- ``to-failure``: the same product stopped at the failure step t_f (the first violation of the ``G[a,b]`` formula),
+  pemviz's default. Unbiased too: the partial products are a q-martingale of mean 1 and t_f a bounded stopping time
+  (optional stopping), so E_q[1{fail} W_{t_f}] = P_p(fail) with less variance.
 
-The weights are formed in float64 log space throughout (sums of log-probabilities, :func:`scipy.special.logsumexp`).
-"""
+Weights are formed in float64 log space throughout."""
 
 from __future__ import annotations
 
@@ -51,28 +44,22 @@ def mixture_step_log_q(
     densities: bool = False,
     log_start: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Per-step log density of a mixture over whole rollouts, float64 [N, T] (nats).
-
-    Rollouts drawn from sum_k c_k q_k(tau) (component k picked once per rollout with probability c_k) have the
-    sequential density q_mix(a_t | s_t, a_{<t}) = M_t - M_{t-1} in log space, with M_t = logsumexp_k (log c_k +
-    sum_{s <= t} log q_k(a_s | s_s)) and M_{-1} = 0: the components' likelihoods so far weigh each component's
-    prediction (the balance heuristic of multiple importance sampling, Veach & Guibas 1995, written step by step).
-    Its sum over any first k steps is log sum_k c_k prod_{s < k} q_k, so both conventions weigh with the mixture.
+    """Per-step log density of a mixture over whole rollouts, float64 [N, T] (nats): q_mix(a_t | .) = M_t - M_{t-1}
+    with M_t = logsumexp_k (log c_k + sum_{s <= t} log q_k) and M_{-1} = 0 (the balance heuristic, Veach & Guibas
+    1995, step by step), so its sum over any first k steps is log sum_k c_k prod_{s < k} q_k.
 
     Args:
         log_q: float64 [K, N, T], log q_k(a_t | s_t) of each component (nats).
         shares: c_k > 0, [K], summing to 1.
-        densities: the steps hold log densities (continuous measurement errors), which may be positive; else
-            probabilities, whose conditionals are clipped at 0 (rounding).
+        densities: the steps hold log densities (may be positive); else probabilities, whose conditionals are
+            clipped at 0.
         log_start: None, or float64 [K, N]: each component's log-density of what was drawn before the first step
-            relative to the target's (over an ODD, log q_k(theta) - log p_ODD(theta)); then M_{-1} = logsumexp_k
-            (log c_k + log_start_k), the rollout's :func:`stage_log_q_params`, and the steps' sum is log sum_k c_k
-            q_k / p_ODD less it.
+            relative to the target's (over an ODD); then M_{-1} = logsumexp_k (log c_k + log_start_k)
+            (:func:`stage_log_q_params`).
     Returns:
         float64 [N, T], each entry <= 0 unless ``densities``.
     Raises:
-        ValueError: shapes that do not match, or shares not positive.
-    """
+        ValueError: shapes that do not match, or shares not positive."""
     log_q = np.asarray(log_q, dtype=np.float64)
     c = np.asarray(shares, dtype=np.float64)
     if log_q.ndim != 3 or c.shape != (log_q.shape[0],) or not (c > 0).all():
