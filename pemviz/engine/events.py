@@ -1,13 +1,9 @@
-"""The events the experiment engine (:class:`pemviz.engine.experiment.Experiment`) emits, and what they carry.
-
-Events, in order: :class:`RunStarted` (with the run's :class:`~pemviz.core.plan.RunPlan` and the problem's
-:class:`~pemviz.core.problem_view.ProblemView`); for each stage (0 = pretraining, 1..K = cross-entropy stages, K+1 =
-final batch) :class:`StageStarted`, one :class:`RolloutChunk` per chunk of its rollouts, one :class:`RolloutsSampled`,
-:class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or :class:`RunCancelled`).
-
-Sinks (:class:`pemviz.sinks.Sink`: the console table, the rerun recording, the rollout file, the viser panel) read
-these and nothing else of the engine. This module imports neither torch nor the engine, so a sink can be written and
-tested on hand-made events.
+"""The events the experiment engine (:class:`pemviz.engine.experiment.Experiment`) emits, in order:
+:class:`RunStarted` (with the :class:`~pemviz.core.plan.RunPlan` and
+:class:`~pemviz.core.problem_view.ProblemView`); per stage (0 = pretraining, 1..K = cross-entropy stages, K+1 =
+final batch) :class:`StageStarted`, a :class:`RolloutChunk` per chunk, one :class:`RolloutsSampled` and
+:class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or :class:`RunCancelled`). Sinks read
+these and nothing else of the engine; this module imports neither torch nor the engine.
 """
 
 from __future__ import annotations

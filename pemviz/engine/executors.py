@@ -1,39 +1,20 @@
 """Executors: where a stage's rollouts are simulated: worker processes on this machine (``local``, the default:
 :mod:`pemviz.engine.pool`), this process (``serial``) or Ray tasks (``ray``).
 
-The engine asks its executor for every batch (``executor.simulate(problem, n, sampler, target, rng)``) and for the
-chunks of a stage streamed in chunks (``executor.stream(...)``). All give the same rollouts, bit for bit, for the same
-seed, whatever the number of workers or tasks:
+The engine asks its executor for every batch (``executor.simulate(problem, n, sampler, target, rng)``) and for
+streamed chunks (``executor.stream(...)``). All give the same rollouts, bit for bit, for the same seed, whatever the
+number of workers or tasks. ``local`` and ``ray`` cut the N rollouts into the fixed blocks of
+:data:`pemviz.core.rng.RQMC_BLOCK` rollouts (:func:`pemviz.core.rng.block_bounds`); since every simulator draws one
+``rng.random(n K)`` per step (:func:`pemviz.core.rollouts.draws_per_rollout`), the block ``a..b-1`` gets a stand-in
+for ``rng`` (:class:`ChunkUniforms`) that jumps a copy of the PCG64 stream (``bit_generator.advance``) to its slice.
+Only the generator's state travels with a block, and ``rng`` ends where the serial run leaves it. A batch of one
+block is simulated in this process (:func:`splittable`).
 
-- ``serial`` calls ``problem.simulate(n, sampler, target, rng)`` (``problem.stream`` for chunks); so does ``local``
-  with one worker, or for a batch too small to pay for its pool.
-- ``local`` simulates the blocks (below) of a large batch, or of a streamed stage, in a pool of worker processes.
-- ``ray`` simulates every block as a Ray task, at most twice the cluster's CPUs of them submitted and not yet taken
-  back, taken back in order (a streamed stage's blocks each dropped once its chunks are handed out, so that the
-  object store and the driver hold a bounded number of blocks whatever N).
-
-Both cut the N rollouts into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts
-(:func:`pemviz.core.rng.block_bounds`), which every simulator also works by: an Array-RQMC sampler couples the
-rollouts of a block, and detectors are asked about one block at a time. Every pemviz
-simulator draws one ``rng.random(n K)`` per step, K uniforms per rollout
-(:func:`pemviz.core.rollouts.draws_per_rollout`: 1 for a single-object scenario; u for rollout i at step t is then
-the ``(t * n + i)``-th uniform of the stream),
-so the block ``a..b-1`` gets a stand-in for ``rng`` (:class:`ChunkUniforms`) whose k-th ``random((b - a) K)``
-returns slice ``[a, b)`` of the serial run's k-th draw, found by jumping a copy of the PCG64 stream
-(``bit_generator.advance``). Nothing but the generator's state (a few integers) travels with a block, and
-``rng`` ends where the serial run leaves it. A batch of one block (at most 8,192 rollouts, e.g. every batch of the
-default sampler) is simulated in this process (:func:`splittable`): there is nothing to split without changing the
-rollouts.
-
-Requirements for ``ray``: Ray installed (``pip install ray``; pemviz's ``test`` extra installs it),
-pemviz importable on every worker, the problem picklable by cloudpickle (pemviz's problems are),
-a PCG64 / PCG64DXSM generator (``np.random.default_rng`` gives one; any other runs serially, with the
-same result), and a ``problem.simulate`` that draws one ``rng.random(n)`` per step (pemviz's simulators
-and :func:`pemviz.core.lockstep.simulate` do; anything else raises a RuntimeError naming the problem).
-
+Requirements for ``ray``: Ray installed (``pip install ray``), pemviz importable on every worker, the problem
+picklable by cloudpickle, a PCG64 / PCG64DXSM generator (any other runs serially, with the same result), and a
+``problem.simulate`` that draws one ``rng.random(n)`` per step (else a RuntimeError naming the problem).
 :func:`chunk_uniforms` gives the u's of rollouts ``a..b-1`` as a [T, b - a] array for
-:func:`pemviz.core.lockstep.simulate` (``uniforms=``), to run blocks on any other infrastructure.
-"""
+:func:`pemviz.core.lockstep.simulate`, to run blocks on any other infrastructure."""
 
 from __future__ import annotations
 
@@ -116,16 +97,12 @@ class SerialExecutor:
 
 
 class ChunkUniforms:
-    """Stands in for the run's ``np.random.Generator`` inside one chunk of rollouts ``start..stop-1``.
-
-    Its k-th call ``random((stop - start) K)`` returns the slice of rollouts ``start..stop-1`` of the k-th
-    ``rng.random(n K)`` the serial run draws from ``state`` (a PCG64 / PCG64DXSM state dict): K uniforms per rollout
-    and step (:func:`pemviz.core.rollouts.draws_per_rollout`; 1 for a single-object scenario), the positions ``k n K +
-    start K .. k n K + stop K - 1`` of the stream. ``calls`` counts the draws.
+    """Stands in for the run's ``np.random.Generator`` inside one chunk of rollouts ``start..stop-1``: its k-th call
+    ``random((stop - start) K)`` returns that chunk's slice of the k-th ``rng.random(n K)`` the serial run draws
+    from ``state`` (a PCG64 / PCG64DXSM state dict). ``calls`` counts the draws.
 
     Raises (from :meth:`random`):
-        RuntimeError: a draw of another size or kind (the simulator does not draw one ``random(n K)`` per step).
-    """
+        RuntimeError: a draw of another size or kind (the simulator does not draw one ``random(n K)`` per step)."""
 
     bit_generator = None
     """Not a real generator: simulators that inspect it (the batched one) then draw plainly."""
@@ -158,15 +135,12 @@ class ChunkUniforms:
 
 
 def chunk_uniforms(rng_state: Mapping[str, Any], n: int, n_steps: int, start: int, stop: int) -> np.ndarray:
-    """The u's of rollouts ``start..stop-1`` of an n-rollout serial run, float64 [T, stop - start].
-
-    Equal to ``np.random.Generator(bg).random((T, n))[:, start:stop]`` for the bit generator ``bg`` in
-    ``rng_state`` (``rng.bit_generator.state``, PCG64 or PCG64DXSM), without drawing the other columns;
-    pass it to :func:`pemviz.core.lockstep.simulate` as ``uniforms``.
+    """The u's of rollouts ``start..stop-1`` of an n-rollout serial run, float64 [T, stop - start]:
+    ``np.random.Generator(bg).random((T, n))[:, start:stop]`` for the bit generator in ``rng_state``, without
+    drawing the other columns.
 
     Raises:
-        ValueError: a bit generator that cannot jump, or ``0 <= start < stop <= n`` violated.
-    """
+        ValueError: a bit generator that cannot jump, or ``0 <= start < stop <= n`` violated."""
     if rng_state.get("bit_generator") not in ("PCG64", "PCG64DXSM"):
         raise ValueError(f"chunk_uniforms: needs a PCG64 or PCG64DXSM state, got {rng_state.get('bit_generator')}")
     if not 0 <= start < stop <= n:
@@ -179,10 +153,9 @@ def simulate_chunk(
     problem: Any, n: int, start: int, stop: int, sampler: Detector, target: Detector, rng_state: Mapping[str, Any]
 ) -> tuple[RolloutBatch, int, int]:
     """Rollouts ``start..stop-1`` of the serial run ``problem.simulate(n, sampler, target, rng)`` from
-    ``rng_state``; returns the batch [stop - start, T], the number of per-step draws it made (T) and the uniforms
-    per rollout of each (:func:`pemviz.core.rollouts.draws_per_rollout`). The rollouts
-    are the serial run's when ``start..stop-1`` is one block (:func:`pemviz.core.rng.block_bounds`) or, without
-    Array-RQMC and with detectors that give the same bits at any batch size, any range."""
+    ``rng_state``: the batch [stop - start, T], its per-step draws (T) and uniforms per rollout; the serial run's
+    when the range is one block (:func:`pemviz.core.rng.block_bounds`), or any range without Array-RQMC and with
+    batch-size-independent detectors."""
     stream = ChunkUniforms(rng_state, n, start, stop)
     batch = problem.simulate(stop - start, sampler, target, stream)
     return batch, stream.calls, stream.per_rollout
@@ -234,14 +207,12 @@ def stream_chunks(
     blocks: Iterator[tuple[RolloutBatch, int, int]],
     chunk_size: int | None = None,
 ) -> Iterator[RolloutBatch]:
-    """The chunks of a streamed batch of ``n`` rollouts from its blocks' results ``(batch, draws, uniforms per
-    rollout)`` in rollout order: each block cut into chunks of at most ``chunk_size`` rollouts (None: the block), each
-    block checked (:func:`check_draws`) and dropped once its chunks are handed out; ``rng`` advanced by n K T after the
-    last, where the serial stream leaves it. Closing this closes ``blocks``.
+    """The chunks of a streamed batch of ``n`` rollouts from its blocks' results in rollout order, each block cut into
+    chunks of at most ``chunk_size`` (None: the block), checked (:func:`check_draws`) and dropped once handed out;
+    ``rng`` is advanced to where the serial stream leaves it.
 
     Raises:
-        RuntimeError: a block drew another number of times than its rollouts have steps.
-    """
+        RuntimeError: a block drew another number of times than its rollouts have steps."""
     drawn = (0, 0)
     try:
         for result in blocks:
@@ -366,15 +337,13 @@ class RayExecutor:
     """Simulates each batch as Ray tasks, one per block of rollouts, a bounded number in flight (module docstring).
 
     Args:
-        address: Ray cluster address (``ray.init(address=...)``); None starts a local cluster. If Ray is
-            already initialised in this process, that cluster is used and ``address`` is ignored.
-        in_flight: the most tasks submitted and not yet taken back (default: twice the cluster's CPU count). The
-            rollouts do not depend on it.
+        address: Ray cluster address (``ray.init(address=...)``); None starts a local cluster (an initialised one is
+            used as it is).
+        in_flight: the most tasks submitted and not yet taken back (default: twice the cluster's CPUs).
         init_kwargs: more keyword arguments for ``ray.init``.
     Raises:
         ImportError: Ray is not installed (the message says how to install it).
-        ValueError: ``address`` does not answer (:func:`probe_ray_address`), or ``in_flight`` below 1.
-    """
+        ValueError: ``address`` does not answer (:func:`probe_ray_address`), or ``in_flight`` below 1."""
 
     name = "ray"
 
@@ -408,10 +377,8 @@ class RayExecutor:
         keep_rows: bool | None = None,
     ) -> Iterator[tuple[RolloutBatch, int, int]]:
         """The results ``(batch, draws, uniforms per rollout)`` of the blocks of ``n`` rollouts in order, each a Ray
-        task (:func:`ray_block`; the problem and detectors put in the object store once), at most :attr:`in_flight`
-        submitted and not yet taken: one more is submitted as the next in order is taken. A result is the object
-        store's (its arrays read-only views of it), freed there once the caller drops it; closing this cancels the
-        tasks not taken."""
+        task (:func:`ray_block`), at most :attr:`in_flight` not yet taken; a result is freed in the object store
+        once dropped, and closing this cancels the tasks not taken."""
         ray = self._ray
         shared = [ray.put((problem, sampler, target))]
         todo = collections.deque(block_bounds(n))

@@ -1,17 +1,10 @@
 """A worker's result handed to the run's process through shared memory instead of the pool's pipe.
 
-A pooled block of rollouts is a few arrays of tens of megabytes (a block of 8,192 crossing rollouts: 37 MB). Pickled
-and sent through loky's pipe, each block cost the worker about 90 ms and the run's process about 165 ms of CPU (the
-pickled bytes copied into the pipe in 64 kB pieces, read back by the run's result thread, unpickled; measured on a
-2-core machine), against about 20 ms each here: the worker pickles the result with protocol 5, whose out-of-band
-buffers (every contiguous numpy array) it writes once into a file of a RAM-backed folder (``/dev/shm``), and the run's
-process maps that file copy-on-write and unpickles the arrays in place, with no copy (PEP 574, pickle protocol 5).
-The values are the same bits either way.
-
-Where there is no such folder, or writing to it fails (e.g. a full ``/dev/shm``), the result travels through the pipe
-pickled whole, as before. A pool's folder goes with the pool (the blocks it never read with it); one left by a run
-that was killed is removed when the next pool's folder is made.
-"""
+The worker pickles the result with protocol 5, writes its out-of-band buffers (every contiguous numpy array) once
+into a file of a RAM-backed folder (``/dev/shm``), and the run's process maps that file copy-on-write and unpickles
+the arrays in place (PEP 574): the same bits, several times less CPU than the pipe for blocks of tens of megabytes.
+Where there is no such folder or writing fails, the result travels through the pipe. A pool's folder goes with the
+pool; one left by a killed run is removed when the next is made."""
 
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
-"""The map of where p_ODD comes from, made by the engine for a run over an operating design domain: it gathers the
-final stage's rollouts (their parameters, importance weights and failures) as they pass, and after the final estimate
-bins them (:func:`pemviz.core.odd.odd_map`); :class:`pemviz.engine.events.FinalEstimate` carries the result as its
-``odd_map``, which the console, the recording, the panel and the result document show."""
+"""The map of where p_ODD comes from for a run over an operating design domain: the final stage's parameters,
+weights and failures gathered as they pass and binned after the final estimate (:func:`pemviz.core.odd.odd_map`),
+carried as :attr:`pemviz.engine.events.FinalEstimate.odd_map`."""
 
 from __future__ import annotations
 

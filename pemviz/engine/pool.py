@@ -1,25 +1,15 @@
 """The ``local`` executor: a batch's rollouts simulated by a pool of worker processes on this machine, the same
 rollouts, bit for bit, as one process gives.
 
-A batch is cut into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts
-(:func:`pemviz.core.rng.block_bounds`) and each block is simulated from its slice of the serial uniform stream
-(:class:`pemviz.engine.executors.ChunkUniforms`), as the Ray executor does. The first block of a batch is simulated in
-this process and timed (CPU seconds); the pool starts when the blocks left would take at least
-:data:`pemviz.engine.resources.POOL_PAYS_S` seconds more (a worker's start costs about 1 s of CPU: its imports and the
-problem's unpickling, once), and once started takes every batch of two blocks or more: a streamed stage's blocks at
-most two per worker ahead, handed back in order. A batch of one block (e.g. a braking default run's 2,100 rollouts)
-never starts it. A worker hands its blocks' arrays back in shared-memory files (:mod:`pemviz.engine.handoff`), not
-through the pool's pipe.
+A batch is cut into the blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts, each simulated from its slice of the
+serial uniform stream (:class:`pemviz.engine.executors.ChunkUniforms`). The first block is simulated here and timed;
+the pool starts when the blocks left would take at least :data:`pemviz.engine.resources.POOL_PAYS_S` seconds more,
+and then takes every batch of two blocks or more, a streamed stage's at most two per worker ahead, handed back in
+order through shared-memory files (:mod:`pemviz.engine.handoff`). The pool is joblib's loky executor (fork + exec:
+safe in a parent with threads; broken workers replaced; idle ones exit after :data:`IDLE_S` seconds).
 
-The pool is joblib's loky executor: processes started by fork + exec, so a parent with threads (the panel's) is safe;
-a broken worker is detected and replaced; idle workers exit after :data:`IDLE_S` seconds. Measured on a 2-core machine
-(load ~2): starting 2 workers with pemviz imported takes 4.6 s with loky, 4.6 s with ``concurrent.futures`` spawn,
-5.2 s forkserver, 0.6 s fork (unsafe in a process with threads, e.g. torch's or the panel's).
-
-Ctrl-C and SIGTERM reach the run only: the workers ignore SIGINT, and the run's end (its result, Ctrl-C, SIGTERM)
-shuts the pool down (:func:`pemviz.engine.executors.close_executors`, also at exit), killing the workers; a streamed
-stage that is cancelled drops the blocks not yet handed back.
-"""
+Ctrl-C and SIGTERM reach the run only: the workers ignore SIGINT, and the run's end shuts the pool down
+(:func:`pemviz.engine.executors.close_executors`, also at exit)."""
 
 from __future__ import annotations
 
