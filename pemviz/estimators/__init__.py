@@ -1,20 +1,11 @@
 """Rare-event estimators, one per method of :data:`pemviz.methods.BUILTIN_METHODS`, behind one small interface
-(:class:`~pemviz.estimators.base.Estimator`) that the engine drives stage by stage.
-
-- :class:`~pemviz.estimators.cross_entropy.CrossEntropy` (``adaptive``): Algorithm 1 of Innes & Ramamoorthy (2022)
-  with pemviz's improvements.
-- :class:`~pemviz.estimators.fixed.FixedSampler` (``mc``, ``naive50``, ``mixed50``): one importance-weighted batch
-  from a fixed detector.
-- :class:`~pemviz.estimators.ams.AdaptiveMultilevelSplitting` (``ams``): splitting of target rollouts on their
-  robustness, no weights.
-- :class:`~pemviz.estimators.tilt.CommittorTilt` (``tilt``): the scenario's own tilted proposal, one weighted batch.
-- :class:`~pemviz.estimators.precision.PrecisionTarget` (``rel_error``, ``require``): any of the first two, with
-  final batches added until a relative precision or a decision on a requirement.
-
-Every method, these and a user's own, is a record of :mod:`pemviz.methods`, which
-:func:`build_estimator` and :func:`run_plan` (this package's own) read. Each estimator's name has one import path, its
-module's.
-"""
+(:class:`~pemviz.estimators.base.Estimator`) that the engine drives stage by stage:
+:class:`~pemviz.estimators.cross_entropy.CrossEntropy` (``adaptive``: Algorithm 1 of Innes & Ramamoorthy 2022,
+improved), :class:`~pemviz.estimators.fixed.FixedSampler` (``mc``, ``naive50``, ``mixed50``),
+:class:`~pemviz.estimators.ams.AdaptiveMultilevelSplitting` (``ams``),
+:class:`~pemviz.estimators.tilt.CommittorTilt` (``tilt``) and :class:`~pemviz.estimators.precision.PrecisionTarget`
+(``rel_error``, ``require``). Every method is a record of :mod:`pemviz.methods`, read by :func:`build_estimator` and
+:func:`run_plan`. Each estimator's name has one import path, its module's."""
 
 from __future__ import annotations
 
@@ -31,13 +22,9 @@ if TYPE_CHECKING:  # the package stays light: importing its registry (a config's
 
 
 def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | None = None) -> Estimator:
-    """The estimator of ``config.method`` on ``problem`` (``check``: called between and inside fits, may raise).
-
-    The baselines draw ``config.n_per_stage`` rollouts and stop their weights at the failure step with
-    ``config.weights_until_failure``, like the adaptive sampler's.
-    The method is the registry's (:func:`pemviz.methods.get_method`: the built-in ones and a user's own);
-    a method that can be extended is wrapped in a :class:`PrecisionTarget` when the config has a stop rule, and the
-    result in what the method runs after its stages (:attr:`pemviz.methods.Method.then`).
+    """The estimator of ``config.method`` on ``problem`` (``check``: called between and inside fits, may raise),
+    from the registry (:func:`pemviz.methods.get_method`), wrapped in a :class:`PrecisionTarget` when the config has
+    a stop rule and in what the method runs after its stages (:attr:`pemviz.methods.Method.then`).
 
     Raises:
         KeyError: a method no one registered; ValueError: a stop rule for a method that cannot take more batches.

@@ -1,11 +1,7 @@
-"""What every estimator shares: the interface the engine drives, importance weights up to the failure step, and
-the per-rollout numbers of a stage.
-
-An estimator states its run before the first batch (:class:`RunPlan`: its stages, whether it ends with a final batch,
-its simulations), plans each batch (:class:`StagePlan`: stage number, kind, size, the detector that draws it), is
-shown each batch's rollouts (:meth:`Estimator.observe`, possibly chunk by chunk), closes the stage
-(:meth:`Estimator.finish`: threshold, elites, fit, the stage's estimate) and gives the run's answer
-(:meth:`Estimator.result`). The engine does the rest: simulation, robustness, events, cancellation.
+"""What every estimator shares: the interface the engine drives, importance weights up to the failure step, and the
+per-rollout numbers of a stage. An estimator states its run (:class:`RunPlan`), plans each batch
+(:class:`StagePlan`), is shown its rollouts (:meth:`Estimator.observe`), closes the stage (:meth:`Estimator.finish`)
+and gives the answer (:meth:`Estimator.result`); the engine does simulation, robustness, events and cancellation.
 """
 
 from __future__ import annotations
@@ -37,18 +33,15 @@ class StagePlan:
 
     Attributes:
         stage: 0 = pretraining, 1..K = CE stages, K+1 = the final batch (1 for a single-batch estimator).
-        kind: ``pretrain`` | ``ce`` | ``final`` | ``ams`` (AMS: 0 the initial particles, then groups of iterations).
+        kind: ``pretrain`` | ``ce`` | ``final`` | ``ams``.
         n: rollouts.
         sampler: the detector that draws them (q); the problem's target (p) weighs them.
-        draw: None (the engine simulates ``n`` rollouts from ``sampler``) or the estimator's own way to produce the
-            stage's batch, ``draw(rng) -> RolloutBatch`` (AMS continues its particles from snapshots).
-        mixture: a defensive mixture over whole rollouts, ``((n_1, detector_1), ...)`` with n_1 + ... = n, drawn in
-            this order; each rollout then weighs p / sum_k (n_k / n) q_k (:func:`mixture_log_weight`); empty: all ``n``
-            from ``sampler``.
-        target: what the simulator asks for the target's logits: None (the problem's target) or a detector that gives
-            the same logits and keeps more (:class:`pemviz.core.scored_target.ScoredTarget`: the mixture components'
-            logits).
-    """
+        draw: None (the engine simulates ``n`` rollouts from ``sampler``) or ``draw(rng) -> RolloutBatch``, the
+            estimator's own (AMS).
+        mixture: a defensive mixture over whole rollouts, ``((n_1, detector_1), ...)`` summing to n, each rollout
+            weighing p / sum_k (n_k / n) q_k (:func:`mixture_log_weight`); empty: all from ``sampler``.
+        target: None (the problem's target) or a detector with the same logits that keeps more
+            (:class:`pemviz.core.scored_target.ScoredTarget`)."""
 
     stage: int
     kind: str
@@ -183,11 +176,10 @@ def weighted_steps_mask(problem: Problem, batch: RolloutBatch, until_failure: bo
 def look_ahead_weights(
     problem: Problem, batch: RolloutBatch, weigh: Weigh | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The conditional Monte Carlo weights of the problem's look-ahead (:attr:`pemviz.core.problems.Problem.look_ahead`;
-    None where it has none): (log w_i + log V_i where V_i > 0, else log w_i; V_i > 0, bool; log w_i), [N] each, in nats,
-    w_i the importance weight over the steps before rollout i's start (``weigh(mask)`` for a mixture, else the sum of
-    log p - log q), V_i = P(failure | its state there). E_q[w V] = p whatever the proposal after the start, and E_q[w] =
-    1 (the check that the weights belong to the proposal)."""
+    """The conditional Monte Carlo weights of the problem's look-ahead
+    (:attr:`pemviz.core.problems.Problem.look_ahead`; None without one): (log w_i + log V_i where V_i > 0, else log
+    w_i; V_i > 0; log w_i), [N] each in nats, w_i the weight before rollout i's start and V_i = P(failure | its
+    state there), so E_q[w V] = p."""
     if problem.look_ahead is None:
         return None
     start, log_v = problem.look_ahead(batch)
@@ -198,11 +190,9 @@ def look_ahead_weights(
 
 
 def mixture_log_weight(log_p: np.ndarray, log_q: np.ndarray, shares: np.ndarray) -> np.ndarray:
-    """Importance log-weights of rollouts drawn from a mixture of K samplers, float64 [N] (nats):
-    ``log p(x) - log sum_k c_k q_k(x)``. With fixed shares (n_k of the N rollouts from q_k, c_k = n_k / N) this is the
-    balance heuristic of multiple importance sampling, unbiased (Veach & Guibas, SIGGRAPH 1995); with the target p
-    among the q_k at share c, every weight is at most 1 / c, the defensive mixture (Hesterberg, "Weighted average
-    importance sampling and defensive mixture distributions", Technometrics 1995; Owen & Zhou, "Safe and effective
+    """Importance log-weights of rollouts drawn from a mixture of K samplers, float64 [N] (nats): ``log p(x) - log
+    sum_k c_k q_k(x)``, the balance heuristic (Veach & Guibas, SIGGRAPH 1995); with the target among the q_k at
+    share c every weight is at most 1 / c (Hesterberg, Technometrics 1995; Owen & Zhou, "Safe and effective
     importance sampling", JASA 2000).
 
     Args:
@@ -227,14 +217,10 @@ def log_p_before_failure(problem: Problem, batch: RolloutBatch) -> np.ndarray:
 
 
 class SeenFailures:
-    """The probability of the distinct failures a run has drawn: a lower bound of p, whatever the samplers.
-
-    Where the detections are a rollout's only randomness (no measurement errors) and its start is fixed, the
-    detections before the failure step decide the failure: the event "the first t_f detections are these" has
-    probability prod_{t < t_f} p(a_t | s_t) under the PEM and implies the failure, and two distinct failing prefixes
-    are disjoint events (neither is a prefix of the other: the shorter would have failed the longer rollout earlier).
-    So p >= the sum over the distinct failing prefixes drawn, under any proposal. At most :data:`KEEP` of the most
-    likely prefixes are kept (a sum over fewer is still a bound).
+    """The probability of the distinct failures a run has drawn: a lower bound of p, whatever the samplers. Where
+    the detections are a rollout's only randomness and its start is fixed, each distinct failing prefix of
+    detections is a disjoint event of probability prod_{t < t_f} p(a_t | s_t) that implies the failure; at most
+    :data:`KEEP` of the likeliest are kept.
     """
 
     KEEP: ClassVar[int] = 20_000
@@ -318,13 +304,9 @@ def severity_arrays(
     weigh: Weigh | None = None,
     log_p: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Per severity level of ``problem.severity`` (:class:`pemviz.core.severity.SeverityScale`): each rollout's
-    importance log-weight up to the step its event is decided, the event, and log p over the same steps.
-
-    A rollout that reaches level x (:func:`pemviz.core.severity.level_events`) is weighed over its actions before the
-    step tau_x at which that is decided (with ``until_failure``; else over the first T - 1, like the run's weights);
-    the others keep ``log_w``, the run's own weights (they do not enter the level's sum, only its diagnostics), and
-    ``log_p``, their log p before the failure (None: :func:`log_p_before_failure`).
+    """Per severity level of ``problem.severity``: each rollout's importance log-weight up to the step tau_x its
+    event is decided (with ``until_failure``; else over the first T - 1), the event, and log p over the same steps;
+    rollouts that miss the level keep ``log_w`` and ``log_p`` (None: :func:`log_p_before_failure`).
 
     Returns:
         (log-weights, events, log p), float64 / bool / float64 [L, N] (nats), or None: no severity scale, the
@@ -492,16 +474,10 @@ def kth_threshold(robustness: np.ndarray, k: int, floor: float = 0.0) -> float:
 
 
 class EliteCandidates:
-    """The rollouts of a stage that can still be elites, kept as its chunks arrive, so that a stage of any N
-    holds [N] robustness values and only the rollouts at or below a falling bound, not [N, T] arrays.
-
-    The threshold is gamma_kappa = max(floor, the k-th smallest robustness of all N), k = :func:`elite_count`.
-    After some chunks the k-th smallest value seen so far can only fall as more arrive, so a rollout above
-    max(floor, that value) can never be an elite and is dropped. The kept rollouts are exactly those with
-    robustness <= gamma_kappa at the end (ties included), in the order drawn: the same elites, ties broken by the
-    same random draws, as from one batch of all N. Once the bound is the floor, gamma_kappa is the floor and every
-    rollout below it is an elite for sure: :meth:`settle` hands those over (e.g. to be reduced to their fitted
-    steps), so that a stage where most rollouts fail does not hold them all.
+    """The rollouts of a stage that can still be elites, kept as its chunks arrive: [N] robustness values and only
+    the rollouts at or below a falling bound max(floor, the k-th smallest seen, k = :func:`elite_count`), so the
+    same elites in the same order as from one batch; once the bound is the floor, :meth:`settle` hands the sure
+    elites over.
 
     Args:
         n: N, rollouts of the stage.

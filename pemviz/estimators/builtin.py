@@ -1,12 +1,6 @@
-"""The built-in methods' hooks that are not their estimators' own, as :mod:`pemviz.methods` names them (each imported
-when a run first uses it): the builders of ``mc``, ``naive50``, ``mixed50`` (:mod:`pemviz.estimators.fixed`) and
-``tilt`` (:class:`pemviz.estimators.tilt.CommittorTilt`), and the methods' checks, budgets and advice. ``adaptive``
-and ``ams`` are built by their classes (:class:`pemviz.estimators.cross_entropy.CrossEntropy`,
-:class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`); ``state``'s code is its own folder's
-(:mod:`pemviz.methods.state`).
-
-Each builder is ``(config, problem, check) -> Estimator``: the baselines draw ``config.n_per_stage`` rollouts and stop
-their weights at the failure step with ``config.weights_until_failure``, like the adaptive sampler's.
+"""The built-in methods' hooks that are not their estimators' own, as :mod:`pemviz.methods` names them (each
+imported on first use): the builders of ``mc``, ``naive50``, ``mixed50`` (:mod:`pemviz.estimators.fixed`) and
+``tilt``, and the methods' checks, budgets and advice. Each builder is ``(config, problem, check) -> Estimator``.
 """
 
 from __future__ import annotations
@@ -41,11 +35,10 @@ def adaptive_then_plan(config: ExperimentConfig) -> RunPlan | None:
 def adaptive_then_drawn(
     config: ExperimentConfig, simulations: int, problem: Problem
 ) -> tuple[RunPlan | None, int, str]:
-    """What the fallback (:func:`pemviz.estimators.fallback.with_plain_fallback`) may draw on ``problem`` after stages
-    of ``simulations`` rollout-equivalents: as :func:`adaptive_then_plan` and :func:`adaptive_then_most`, less the retry
-    where the scene refuses it (:func:`pemviz.estimators.fallback.retry_refused`) and the plain rollouts where they
-    could decide nothing (:func:`pemviz.estimators.fallback.plain_cannot_decide` on their cap and the scene's stated p):
-    the rules :class:`pemviz.estimators.fallback.PlainFallback` draws by."""
+    """What the fallback may draw on ``problem`` after stages of ``simulations`` rollout-equivalents, by the rules
+    :class:`pemviz.estimators.fallback.PlainFallback` draws by: no retry where the scene refuses it
+    (:func:`pemviz.estimators.fallback.retry_refused`), no plain rollouts where they could decide nothing
+    (:func:`pemviz.estimators.fallback.plain_cannot_decide`)."""
     return _then(config, simulations, problem)
 
 

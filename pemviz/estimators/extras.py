@@ -1,7 +1,6 @@
-"""What an estimator may say besides the interface the engine drives (:class:`pemviz.estimators.base.Estimator`),
-read in one place (:func:`extras`) so that the engine probes no estimator for a capability: the simulations it counts,
-how it pools its stages, a cap on its verdict, why it stopped, a requirement's decision, how its proposal was prepared,
-and whether a streamed stage's chunks must carry their object rows."""
+"""What an estimator may say besides the :class:`pemviz.estimators.base.Estimator` interface, read in one place
+(:func:`extras`): its simulations, pooling, verdict cap, stop reason, requirement decision, proposal preparation,
+and whether streamed chunks must carry object rows."""
 
 from __future__ import annotations
 

@@ -1,46 +1,28 @@
 """Plain Monte Carlo after a weighted run whose weights back no interval: the cross-entropy sampler's answer on a scene
 its proposal family cannot follow.
 
-A proposal learned by cross-entropy can land on a failure region that is not the one that carries the probability
-(e.g. on a stack that mislocates objects behind a tracker, a family that tilts the detections finds failures by
-twenty misses while the likely ones need one large range error and two misses at the right steps): its failures then
-weigh e^-30 each, a few dominate, and the verdict is ``unreliable`` while mu_hat is orders of magnitude low. No
-importance weight can say by how much. Plain Monte Carlo can, at its own cost, wherever p is not too small for the
-rollouts one is willing to draw: :class:`PlainFallback` draws them after the method's stages when its verdict is not
-``reliable``, to the run's precision target (``rel_error``, else :data:`REL_ERROR`) or requirement, at most
-``plain_fallback`` times the simulations the method spent and never more than
-:data:`~pemviz.settings.PLAIN_FALLBACK_MOST` nor than what the run's cap of simulations leaves
-(``max_sims``; with a precision target or a requirement, by default 1,000,000 for the whole run) (the default 500: a
-million after the default run's 2,100; a quick run of a few hundred gets a proportionate few)
+A proposal learned by cross-entropy can land on a failure region that is not the one that carries the probability:
+its failures then weigh little, a few dominate, the verdict is ``unreliable`` and mu_hat may be orders of magnitude
+low, by an amount no importance weight can tell. Plain Monte Carlo can, at its own cost: :class:`PlainFallback`
+draws it after the method's stages when its verdict is not ``reliable``, to the run's precision target
+(``rel_error``, else :data:`REL_ERROR`) or requirement, at most ``plain_fallback`` times the simulations the method
+spent, never more than :data:`~pemviz.settings.PLAIN_FALLBACK_MOST` nor than the run's ``max_sims`` leaves
 (:class:`pemviz.estimators.precision.PrecisionTarget` on :func:`pemviz.estimators.fixed.monte_carlo`), from a stream
-of their own (the method's rollouts are those of the run without it). Its answer is plain Monte Carlo's
-(Clopper-Pearson interval: exact, whatever the sampler before it) where those rollouts saw a failure; else the
-method's, with plain Monte Carlo's 95 % upper bound in the stop line.
+of its own. Its answer is plain Monte Carlo's (Clopper-Pearson interval) where it saw a failure; else the method's,
+with plain Monte Carlo's 95 % upper bound in the stop line.
 
-Plain Monte Carlo is drawn only where its cap can decide something (:func:`plain_cannot_decide`). Its cap is known
-before its first rollout; p is not, and no importance weight bounds it from above (a proposal that misses the failure
-region that carries p is orders of magnitude low, e.g. the crossing's stages at 2.98e-4), nor do a few thousand plain
-rollouts without a failure (they leave p just below 3 / n possible, where the rest of the cap would see failures). So
-it is not drawn only where that follows from what the run knows for certain: the scene's exact answer, or the upper
-end of its plain Monte Carlo reference, expects less than one failure in the cap (e.g. braking at ``--margin 0``:
-8.06e-33 against 10^6 rollouts); or a requirement it could decide only by a bound below its threshold, which needs
-more rollouts than the cap (``p < 1e-13``: 3 x 10^13), and which that answer says it cannot decide by failures
-either. Where no answer states p the fallback is drawn (the crossing with other parameters, a user's scene).
+Plain Monte Carlo is skipped only where its cap provably cannot decide anything (:func:`plain_cannot_decide`): the
+scene's exact answer or the upper end of its reference expects less than one failure in the cap, or a requirement
+would need more rollouts than the cap to bound. Where no answer states p the fallback is drawn.
 
-Before plain Monte Carlo, the method's stages run once more (``retry_factor``, :class:`Shifted`): N that many times as
-large (the default 4), from a stream of their own, their stages numbered after the first run's. A proposal family that
-can follow the failures but whose first, small run was unlucky (a heavy weight tail at N = 100) is then ``reliable``
-at a few thousand rollouts, not a million (the crowd with measurement noise: 20/20 ``reliable`` at N = 400 where 9/20
-were at N = 100); one that cannot follow them costs those few thousand more before plain Monte Carlo. There is no
-retry where the scene caps the verdict of every run of its stages below ``reliable``
-(:attr:`pemviz.core.problems.Problem.verdict_cap`, e.g. braking at ``--margin 0``): its interval could not be backed
-either.
+Before it, the method's stages run once more (``retry_factor``, :class:`Shifted`) at an N that many times as large,
+from a stream of their own, numbered after the first run's: an unlucky small first run is then ``reliable`` at a few
+thousand rollouts, not a million. No retry where the scene caps every run's verdict below ``reliable``
+(:attr:`pemviz.core.problems.Problem.verdict_cap`).
 
-Choosing the answer by the first estimate's verdict, and the second estimate from rollouts independent of the first,
-keeps the second one's coverage (and so for the third): its rollouts are drawn whatever the first run found
-(Hesterberg, "Weighted average importance sampling and defensive mixture distributions", Technometrics 37(2), 1995,
-for the idea that the target bounds what a poor proposal can cost).
-"""
+Choosing the answer by the first estimate's verdict, with the second drawn independently of the first, keeps the
+second one's coverage (Hesterberg, "Weighted average importance sampling and defensive mixture distributions",
+Technometrics 37(2), 1995)."""
 
 from __future__ import annotations
 
@@ -119,11 +101,9 @@ def more_budget(spent: int, require: str | None) -> str:
 
 
 def stated_log_p(problem: Any) -> tuple[float, str] | None:
-    """The largest p the scene states, as a natural log with its words: its exact answer
-    (:attr:`~pemviz.core.problems.Problem.exact_log_p`), else the upper end of its plain Monte Carlo reference's
-    interval; None where it states neither (a user's scene, the crossing with other parameters). ``problem``: a
-    :class:`~pemviz.core.problems.Problem`, or anything with its ``exact_log_p`` and ``reference`` (the run's
-    :class:`~pemviz.engine.events.RunStarted`)."""
+    """The largest p the scene states, as a natural log with its words: its exact answer, else the upper end of its
+    reference's interval; None where it states neither. ``problem``: a :class:`~pemviz.core.problems.Problem` or the
+    run's :class:`~pemviz.engine.events.RunStarted`."""
     if problem.exact_log_p is not None:
         return float(problem.exact_log_p), "the exact answer"
     if problem.reference is not None:
@@ -132,13 +112,10 @@ def stated_log_p(problem: Any) -> tuple[float, str] | None:
 
 
 def plain_cannot_decide(cap: int, stated: tuple[float, str] | None, require: str | None = None) -> str | None:
-    """Why plain Monte Carlo of at most ``cap`` rollouts cannot decide the run, or None where it may.
-
-    Without a requirement it decides where it sees a failure (an exact interval): not where the scene's stated p
-    expects fewer than :data:`LEAST_EXPECTED_FAILURES` in the cap. With a requirement ``p < T`` (or ``p > T``) it
-    decides one side by a bound below T with no failure, which needs :func:`rollouts_to_bound` (T) rollouts whatever
-    p, and the other by failures, which the stated p must expect in the cap and lie beyond T; not where neither can
-    happen. With no stated p (``stated`` None) nothing rules out failures: None.
+    """Why plain Monte Carlo of at most ``cap`` rollouts cannot decide the run, or None where it may: without a
+    requirement, where the stated p expects fewer than :data:`LEAST_EXPECTED_FAILURES` failures in the cap; with
+    one, where neither a bound (:func:`rollouts_to_bound` rollouts) nor failures beyond the threshold can come
+    within the cap. No stated p: None.
 
     Args:
         cap: the most plain rollouts (>= 0).
@@ -173,11 +150,8 @@ def plain_cannot_decide(cap: int, stated: tuple[float, str] | None, require: str
 
 
 def retry_refused(problem: Any) -> str | None:
-    """Why the stages of a run on ``problem`` are never run once more, or None where they may be: the scene caps the
-    verdict of every run of its stages below ``reliable`` (:attr:`~pemviz.core.problems.Problem.verdict_cap`),
-    e.g. braking at ``--margin 0``, so the retry's interval could not be backed either. ``problem``: a
-    :class:`~pemviz.core.problems.Problem`, or anything with its ``verdict_cap`` (the run's
-    :class:`~pemviz.engine.events.RunStarted`)."""
+    """Why the stages of a run on ``problem`` are never run once more, or None where they may be: the scene caps
+    every run's verdict below ``reliable`` (:attr:`~pemviz.core.problems.Problem.verdict_cap`)."""
     capped = getattr(problem, "verdict_cap", None)
     if capped is not None and capped[0] != "reliable":
         return f"the scene caps every run of the stages at {capped[0]}"
@@ -281,22 +255,19 @@ class Shifted(_Speaks):
 
 
 class PlainFallback(_Speaks):
-    """Runs ``inner``; if its estimate's interval is not backed (:attr:`Estimate.interval_backed`), its stages once
-    more at a larger N (:func:`retry_config`, numbered after its last: :class:`Shifted`), and if theirs is not backed
-    either, plain Monte Carlo rollouts, up to ``ratio`` times the simulations of both, as stages numbered after the
-    last (kind ``final``); :meth:`result` is the retry's once backed, plain Monte Carlo's once it saw a failure
-    (module docstring).
+    """Runs ``inner``; if its interval is not backed (:attr:`Estimate.interval_backed`), its stages once more at a
+    larger N (:func:`retry_config`, :class:`Shifted`), and if that is not backed either, plain Monte Carlo rollouts,
+    up to ``ratio`` times the simulations of both, as stages of kind ``final`` (module docstring).
 
     Args:
         inner: the method's estimator (with its stop rule's added batches, if any).
-        config: the run's settings: ``seed``, ``weights_until_failure``, ``rel_error`` / ``require``, ``max_time_s``,
-            its :attr:`~pemviz.config.ExperimentConfig.fallback` (``retry_factor``).
+        config: the run's settings: ``seed``, ``weights_until_failure``, ``rel_error`` / ``require``,
+            ``max_time_s``, its :attr:`~pemviz.config.ExperimentConfig.fallback`.
         problem: what to estimate.
         ratio: the most plain rollouts per simulation of ``inner`` and its retry (>= 1).
         clock: seconds, monotonic (tests pass their own).
     Raises:
-        ValueError: ``ratio`` < 1.
-    """
+        ValueError: ``ratio`` < 1."""
 
     SETTINGS: ClassVar[tuple[str, ...]] = settings_of(FALLBACK)
     """The settings it reads, the run's fallback settings (:class:`pemviz.settings.FallbackSettings`), whatever the

@@ -1,31 +1,17 @@
 """A scene-neutral graded score for adaptive multilevel splitting (``pemviz run --method ams --ams-score lookahead``):
 how close the rollout's state is to failure if perception from now on does what it most likely does.
 
-At a scored step t, the score of a rollout is the robustness of the formula's operand, minimised over the steps from t
-to the end, of its **nominal continuation**: the rollout's own events before t, then from t on every object detected
-iff the PEM says it is more likely detected than not and its measurement errors at their medians (every uniform of the
-simulator's draw at 0.5: :func:`pemviz.core.detectors.draw_step`). A state from which the nominal continuation still
-acts in time scores the nominal margin (e.g. an emergency brake's); the misses and mislocations that have already made
-it act late lower it, by the margin they cost; a doomed state (the nominal continuation fails) scores at the floor. It
-needs nothing but what every scenario gives: the problem's ``branch`` (the rollout continued from a step, by snapshot
-or prefix replay), its target detector and its formula's robustness. It names no scene and learns nothing, so a run
-cannot overfit it.
-
-Which steps are scored: every ``stride``-th step (stride = ceil(T / :data:`SCORED_STEPS`)) at which the rollout has
-not failed and, for a scene with object rows and a finite proposal window (:attr:`pemviz.core.problems.Problem.
-window`, metres), some object is nearer than the window; the others score +inf (no information).
+At a scored step t the score is the robustness of the formula's operand, minimised over the steps from t on, of the
+rollout's **nominal continuation**: its own events before t, then every object detected iff the PEM says more likely
+than not and its measurement errors at their medians (every uniform at 0.5:
+:func:`pemviz.core.detectors.draw_step`). It needs only the problem's ``branch``, target and formula, names no scene
+and learns nothing. Scored are every ``stride``-th step (stride = ceil(T / :data:`SCORED_STEPS`)) before failure
+with, for a scene with a finite window, some object inside it; the others score +inf.
 
 Splitting stays unbiased for any score that is a function of the state and the step (Brehier, Gazeau, Goudenege,
 Lelievre & Rousset, "Unbiasedness of some generalized adaptive multilevel splitting algorithms", Ann. Appl. Probab.
-26(6), 2016); a poor score costs variance (ties, few families). The nominal continuation is a deterministic function of
-the prefix, so this one is. Its levels are as coarse as the scene's decisions: on a scene that brakes at a step, the
-margin moves in steps of the distance covered in one; on a scene whose controller regulates back to one margin (for
-example an ACC), every nominal continuation ends on that plateau, every particle ties, and the run dies out (measured in
-``benchmarks/scene_neutral.py``).
-
-Cost: every step each look-ahead simulates (T - t for a look-ahead from step t) is counted in :attr:`LookAheadScore.
-steps`; a look-ahead's replayed prefix is not, as for the splitting's own branches (:mod:`pemviz.estimators.ams`).
-"""
+26(6), 2016); a poor score costs variance: on a scene whose controller regulates back to one margin every particle
+ties (``benchmarks/scene_neutral.py``). Every look-ahead step is counted in :attr:`LookAheadScore.steps`."""
 
 from __future__ import annotations
 

@@ -1,22 +1,15 @@
 """The zero-variance importance sampler q* of a Markov chain, built from an exact value function, and the relative
 variance that measures how far another sampler is from it.
 
-With V(s) = P(failure | s), the proposal
-
-    q*(a | s) = p(a | s) V(s'_a) / V(s),   V(s) = sum_a p(a | s) V(s'_a)
-
-(s'_a the state after action a) draws only failing rollouts, each of importance weight exactly
-prod_t p / q* = V(s_0) = mu: the estimate has variance 0 at any N (L'Ecuyer, Mandjes & Tuffin, "Importance
-sampling in rare event simulation", in Rubino & Tuffin (eds.), Rare Event Simulation using Monte Carlo Methods,
-Wiley 2009, Sec. 2.3; Juneja & Shahabuddin, "Rare-event simulation techniques: an introduction and recent
-advances", Handbooks in OR & MS 13, 2006). For a detector (two actions) the odds are
+With V(s) = P(failure | s), the proposal q*(a | s) = p(a | s) V(s'_a) / V(s) draws only failing rollouts, each of
+weight exactly V(s_0) = mu (L'Ecuyer, Mandjes & Tuffin, "Importance sampling in rare event simulation", in Rubino &
+Tuffin (eds.), Rare Event Simulation using Monte Carlo Methods, Wiley 2009, Sec. 2.3). For a detector:
 
     logit q*(detect | s) = logit p(detect | s) + log V(s'_detect) - log V(s'_miss).
 
-V is known in closed form only on small problems (:class:`pemviz.scenarios.toy.ToyValue`,
-:class:`pemviz.scenarios.braking.truth_latched.LatchedValue`, for example); on the others q* is the limit a learned
-proposal approaches, and :func:`relative_variance` says how far it is.
-"""
+V is known in closed form only on small problems (for example :class:`pemviz.scenarios.toy.ToyValue`,
+:class:`pemviz.scenarios.braking.truth_latched.LatchedValue`, for example); elsewhere q* is the limit a learned
+proposal approaches (:func:`relative_variance`)."""
 
 from __future__ import annotations
 
@@ -76,10 +69,8 @@ class Draw:
 
 
 def draw_fixed(problem: Problem, sampler: Detector, n: int, seed: int = 0, weights_until_failure: bool = True) -> Draw:
-    """``n`` rollouts of ``problem`` from ``sampler``, through the estimator the ``mc`` / ``naive50`` baselines use
-    (:class:`~pemviz.estimators.fixed.FixedSampler`: one final batch, weighted by the problem's target, failure by
-    classic robustness) and the engine's order of calls (plan, simulate from the estimator's stream, observe,
-    finish).
+    """``n`` rollouts of ``problem`` from ``sampler`` through the ``mc`` / ``naive50`` baselines' estimator
+    (:class:`~pemviz.estimators.fixed.FixedSampler`), in the engine's order of calls.
     """
     est = FixedSampler(problem, sampler, n, weights_until_failure, seed)
     plan = est.next_stage()

@@ -1,8 +1,7 @@
-"""Pooling the stages of a run: the run's estimate over the rollouts of several stages, each weighted by the proposal
-that drew it (:func:`pool`, with the stages' weights lambda_k: :func:`pool_stage_weights`, :func:`stage_weights_of`),
-and the numbers pooled as that estimate is: the exceedance curve (:func:`severity_curve`), p under each alternative PEM
-(:func:`pem_spread`) and the failures' shares of mu_hat (:func:`failure_population`). :mod:`pemviz.estimators.base`
-imports every name here too.
+"""Pooling the stages of a run: the run's estimate over several stages' rollouts, each weighted by the proposal that
+drew it (:func:`pool`, stage weights lambda_k: :func:`pool_stage_weights`, :func:`stage_weights_of`), and what is
+pooled alike: the exceedance curve (:func:`severity_curve`), p under alternative PEMs (:func:`pem_spread`) and the
+failures' shares (:func:`failure_population`). Re-exported by :mod:`pemviz.estimators.base`.
 """
 
 from __future__ import annotations
@@ -82,11 +81,9 @@ def pooled_rows(
     arrays: str,
     cap: tuple[str, str] | None = None,
 ) -> list[Estimate] | None:
-    """One estimate per row of the [R, N] arrays that each used stage's
-    :class:`~pemviz.estimators.base.StageRollouts` gives by its method ``arrays`` (``severity_arrays``,
-    ``alternative_arrays``: log-weights, events, log p), pooled over the stages ``used`` as the run's estimate is
-    (``pooling``'s lambda_k, :func:`pool`; None or ``rollouts``: every rollout alike), each capped at ``cap``; None
-    where the estimator keeps no such arrays."""
+    """One estimate per row of the [R, N] arrays each used stage's :class:`~pemviz.estimators.base.StageRollouts`
+    gives by its method ``arrays``, pooled over the stages ``used`` as the run's estimate is, each capped at
+    ``cap``; None where the estimator keeps no such arrays."""
     stages = getattr(estimator, "stages", None)
     if not isinstance(stages, dict) or any(k not in stages for k in used):
         return None

@@ -1,20 +1,13 @@
 """A precision target for any estimator with a final batch: sample until the interval is as narrow as asked.
 
-Reliability tools let a user ask for a coefficient of variation and let the run decide its size; here the target is
-the relative half-width of the 95 % interval, (hi - lo) / (2 mu_hat) (:attr:`pemviz.core.estimate.Estimate.
-rel_half_width`), of an interval the run backs (:attr:`pemviz.core.estimate.Estimate.interval_backed`). After the
-estimator's planned stages, :class:`PrecisionTarget` asks it for more final batches
-(:meth:`Extensible.extend`: fresh rollouts from the same sampler, pooled with the first final batch, every rollout of
-the final batches alike) until the target holds or a cap (simulations, seconds) is hit, and says which. Batches that
-cannot reach the target are not drawn: where the weights back no interval and more of them cannot
-(:func:`cannot_back`), the run stops at that look (and, for a requirement, only where the lower bound cannot decide
-it either), so that plain Monte Carlo after it (:mod:`pemviz.estimators.fallback`) has the budget.
-
-For plain Monte Carlo this is a sequential stop on the Clopper-Pearson interval; for importance sampling the
-final proposal is fixed before any added batch is drawn, so each added rollout is an unbiased term of the same mean.
-Stopping on the data (when the interval first looks narrow enough) is optional stopping: the benchmark
-``benchmarks/honest_numbers.py`` measures the coverage it keeps.
-"""
+The target is the relative half-width of a backed 95 % interval
+(:attr:`pemviz.core.estimate.Estimate.rel_half_width`, :attr:`pemviz.core.estimate.Estimate.interval_backed`). After
+the planned stages :class:`PrecisionTarget` asks for more final batches from the same sampler
+(:meth:`Extensible.extend`), pooled with the first, until the target holds or a cap (simulations, seconds) is hit;
+batches that cannot reach it (:func:`cannot_back`) are not drawn, leaving the budget to the plain fallback
+(:mod:`pemviz.estimators.fallback`). The final proposal is fixed before any added batch, so each added rollout is an
+unbiased term of the same mean; the coverage kept under this optional stopping is measured by
+``benchmarks/honest_numbers.py``."""
 
 from __future__ import annotations
 
@@ -53,15 +46,12 @@ def default_cap_words(max_sims: int) -> str:
 
 
 def cannot_back(est: Estimate, cap: tuple[str, str] | None, heavy_looks: int) -> str | None:
-    """Why more final batches from the sampler that drew ``est`` cannot back its interval, or None where they may.
-
-    An importance-sampling interval is backed by a ``reliable`` verdict only. Added batches come from the same fixed
-    proposal, so they cannot lift a verdict the sampler caps (``cap``: (verdict, reason), e.g. a proposal never fitted
-    to a failure), nor the weights' tail: with Pareto k-hat above :data:`~pemviz.core.estimate.KHAT_UNRELIABLE` the
-    variance of the weights is, in practice, infinite, and the rollouts a central limit needs grow without bound
-    (Vehtari, Simpson, Gelman, Yao, Gabry, "Pareto smoothed importance sampling", JMLR 25(72), 2024, Sec. 3);
-    ``heavy_looks``: the looks in a row with k-hat above it (at least :data:`HEAVY_LOOKS` count).
-    Returns one clause, e.g. ``k-hat above 0.7 at 2 looks running (2.54 now): ...``, or None.
+    """Why more final batches from the sampler that drew ``est`` cannot back its interval, or None where they may:
+    they come from the same fixed proposal, so they cannot lift a verdict the sampler caps (``cap``) nor a weight
+    tail with k-hat above :data:`~pemviz.core.estimate.KHAT_UNRELIABLE` for :data:`HEAVY_LOOKS` looks running
+    (``heavy_looks``), whose variance is in practice infinite (Vehtari, Simpson, Gelman, Yao, Gabry, "Pareto
+    smoothed importance sampling", JMLR 25(72), 2024, Sec. 3). Returns one clause, e.g. ``k-hat above 0.7 at 2 looks
+    running (2.54 now): ...``, or None.
     """
     if cap is not None and cap[0] != "reliable":
         return f"the sampler caps their verdict at {cap[0]} ({cap[1]})"
@@ -119,26 +109,21 @@ def decision_batch_size(est: Estimate, n_final: int, log_threshold: float) -> in
 
 
 class PrecisionTarget:
-    """Runs ``inner`` as planned, then adds final batches until the estimate's relative half-width is at most
-    ``rel_error`` (a precision target) or a requirement ``require`` is decided
-    (:func:`pemviz.core.requirement.decide`, one look after each batch), or ``max_sims`` simulations (default
-    :data:`pemviz.settings.DEFAULT_MAX_SIMS`: :attr:`pemviz.config.ExperimentConfig.most_simulations`) or
-    ``max_time_s`` seconds are reached, or no added batch can reach the target: the weights back no interval and
-    more of them cannot (:func:`cannot_back`), and, for a requirement, the estimate lies below the threshold (its lower
-    bound, the one side an unbacked estimate decides, cannot reach it). :attr:`stop` says why it stopped, in one line;
-    :attr:`decision` is the last look's :class:`pemviz.core.requirement.Decision`.
+    """Runs ``inner`` as planned, then adds final batches until the relative half-width is at most ``rel_error``, a
+    requirement ``require`` is decided (:func:`pemviz.core.requirement.decide`), ``max_sims`` simulations (default
+    :data:`pemviz.settings.DEFAULT_MAX_SIMS`) or ``max_time_s`` seconds are reached, or no added batch can reach the
+    target (:func:`cannot_back`). :attr:`stop` says why in one line; :attr:`decision` is the last look's
+    :class:`pemviz.core.requirement.Decision`.
 
     Args:
         inner: the estimator (:class:`Extensible`).
         config: the run's settings (``rel_error`` set).
         clock: seconds, monotonic (tests pass their own).
-        max_batch: the most rollouts of one added batch (None: as many as the target asks), e.g. for a problem that
-            cannot stream its rollouts, which hold them all at once.
+        max_batch: the most rollouts of one added batch (None: as many as the target asks).
         cap_words: what the stop line calls the simulations cap (None: ``--max-sims N``, or
-            :func:`default_cap_words` where the config gives none).
+            :func:`default_cap_words`).
     Raises:
-        ValueError: ``rel_error`` is None.
-    """
+        ValueError: ``rel_error`` is None."""
 
     def __init__(
         self,

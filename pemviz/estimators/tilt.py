@@ -1,15 +1,9 @@
-"""Approximate zero-variance importance sampling with the scenario's own proposal (``method = "tilt"``): each step's
-events drawn in proportion to p(event) times an approximate committor (the probability of failure after the event),
-mixed defensively with the PEMs, every weight p / q exact.
-
-The scenario supplies the proposal (:attr:`pemviz.core.problems.Problem.tilt`, a :class:`~pemviz.core.problems.
-TiltSampler`: e.g. :class:`pemviz.scenarios.cut_in.tilt.CutInTilt`); this estimator solves it once, draws its batches
-and pools them like plain Monte Carlo's: every rollout alike, weighed by p / q (Kollman, Baggerly, Cox & Picard 1999,
-Ann. Appl. Probab. 9(2); L'Ecuyer & Tuffin 2008, "Approximate zero-variance simulation", WSC). The estimate is
-unbiased whatever the committor's errors, which cost variance only.
-
-The run's simulations are rollout-equivalents: the rollouts plus every step the proposal's look-aheads simulate (its
-solve included), divided by the rollout's T steps.
+"""Approximate zero-variance importance sampling with the scenario's own proposal (``method = "tilt"``,
+:attr:`pemviz.core.problems.Problem.tilt`, e.g. :class:`pemviz.scenarios.cut_in.tilt.CutInTilt`): each step's events
+drawn in proportion to p(event) times an approximate committor, mixed defensively with the PEMs, every weight p / q
+exact. This estimator solves it once, draws its batches and pools them as plain Monte Carlo (Kollman, Baggerly, Cox
+& Picard 1999, Ann. Appl. Probab. 9(2); L'Ecuyer & Tuffin 2008, WSC); unbiased whatever the committor's errors.
+Simulations count the look-aheads' steps too, in rollout-equivalents.
 """
 
 from __future__ import annotations
@@ -30,10 +24,9 @@ from pemviz.estimators.fixed import FixedSampler
 
 @dataclass(frozen=True)
 class SceneProposal:
-    """The scenario's tilted proposal as a stage's sampler (:attr:`pemviz.estimators.base.StagePlan.sampler`): its
-    density is each batch's ``log_q``, made by the proposal's look-aheads along each rollout, not a function of an
-    observation. It is not the target, so a rollout file's sidecar declares no bound on its weights;
-    ``detect_logit`` gives the target's, all a display of q at a bare observation can show.
+    """The scenario's tilted proposal as a stage's sampler: its density is each batch's ``log_q``, made along each
+    rollout, not a function of an observation, so a rollout file declares no weight bound and ``detect_logit`` shows
+    the target's.
 
     Attributes:
         target: the problem's target (p).
