@@ -1,21 +1,14 @@
 """The KITTI salient-variable files: find them, fetch them, load and validate them.
 
-The files are third-party data (KITTI object detection benchmark, CC BY-NC-SA 3.0;
-YOLOv3 detections matched to ground truth by Hungarian matching at IoU > 0.01, by Innes & Ramamoorthy).
-pemviz never ships them; it finds them at run time, in this order:
+The files are third-party data (KITTI object detection, CC BY-NC-SA 3.0; YOLOv3 detections matched to ground truth
+by Innes & Ramamoorthy), never shipped; they are found in ``$PEMVIZ_DATA_DIR``, ``<repository
+root>/../shared/data/kitti-salient``, then the user cache (``$XDG_CACHE_HOME/pemviz/kitti-salient``), where ``pemviz
+data fetch`` (:func:`fetch`) downloads them and checks their SHA-256.
 
-1. ``$PEMVIZ_DATA_DIR``
-2. ``<repository root>/../shared/data/kitti-salient``
-3. the user cache, ``$XDG_CACHE_HOME/pemviz/kitti-salient`` (default ``~/.cache/pemviz/kitti-salient``)
-
-``pemviz data fetch`` (:func:`fetch`) downloads them into the user cache from their public origin and
-checks their SHA-256.
-
-Input columns (11): class, truncation, occlusion, alpha, dim_w, dim_l, dim_h, loc_x, loc_y, loc_z, rot_y
-(KITTI camera frame: metres, radians; the three box dimensions are KITTI's height, width, length in that order, whatever
-the files' header calls them). Label columns (9): detected, the detector's box cx, cy, w, h and its error (detector
-minus ground truth) err cx, cy, w, h, pixels (:func:`load_salient_label_table`).
-"""
+Input columns (11): class, truncation, occlusion, alpha, dim_w, dim_l, dim_h, loc_x, loc_y, loc_z, rot_y (KITTI
+camera frame: metres, radians; the box dimensions are KITTI's height, width, length in that order). Label columns
+(9): detected, the detector's box cx, cy, w, h and its error (detector minus ground truth) in pixels
+(:func:`load_salient_label_table`)."""
 
 from __future__ import annotations
 
@@ -169,16 +162,14 @@ def fetch(
     timeout_s: float = 60.0,
     on_file: Callable[[str, str], None] | None = None,
 ) -> Path:
-    """Download the salient files into ``dest`` (default: :func:`user_cache_dir`) and check their SHA-256.
-
-    Each file goes to a temporary file in ``dest`` that replaces the target (``os.replace``) only when
-    its SHA-256 matches :data:`FILE_SHA256`; a failed download or a wrong checksum leaves nothing behind.
-    Files already present with the right checksum are kept (unless ``force``).
+    """Download the salient files into ``dest`` (default: :func:`user_cache_dir`) and check their SHA-256; a file
+    replaces its target only when its checksum matches :data:`FILE_SHA256`, and one already present with the right
+    checksum is kept (unless ``force``).
 
     Args:
         dest: target folder (created if needed).
-        base_url: folder URL; a file is fetched from ``<base_url>/<name>``. Default: the public origin,
-            craigiedon/PyTorch-YOLOv3-kitti at commit 0544b18, ``salient_dataset/``.
+        base_url: folder URL (``<base_url>/<name>``); default: craigiedon/PyTorch-YOLOv3-kitti at commit 0544b18,
+            ``salient_dataset/``.
         files: names to fetch (default: all four of :data:`FILE_SHA256`).
         force: download even if a file with the right checksum is present.
         timeout_s: socket timeout per request, seconds.
@@ -190,8 +181,7 @@ def fetch(
     Raises:
         ChecksumError: a downloaded file has the wrong SHA-256 (it is deleted).
         DataError: a download failed (HTTP error, unreachable host); message names the URL.
-        ValueError: a name in ``files`` is not one of the known files.
-    """
+        ValueError: a name in ``files`` is not one of the known files."""
     names = tuple(FILE_SHA256) if files is None else tuple(files)
     unknown = [n for n in names if n not in FILE_SHA256]
     if unknown:
@@ -302,12 +292,10 @@ def load_salient_labels(path: str | os.PathLike[str]) -> np.ndarray:
 
 
 def load_salient_label_table(path: str | os.PathLike[str]) -> np.ndarray:
-    """The whole label file, float64 ``[N, 9]`` (columns :data:`LABEL_COLUMNS`; pixels of the original image).
-
-    Column 0 is detected (0 or 1). Columns 1-4 are the *detector's* box (centre x, centre y, width, height) and
-    5-8 its error, detector minus ground truth: the authors' ``saveSalientDataset.py`` writes
-    ``[1, im_cx, im_cy, im_w, im_h, im_cx - tru_cx, ...]`` (the header's "bbox" is the detected box); the ground-truth
-    box is ``box - err``. A missed obstacle's row is all zero.
+    """The whole label file, float64 ``[N, 9]`` (columns :data:`LABEL_COLUMNS`; pixels of the original image):
+    detected (0 or 1), the *detector's* box (centre x, centre y, width, height) and its error, detector minus ground
+    truth (the authors' ``saveSalientDataset.py``), so the ground-truth box is ``box - err``; a missed obstacle's
+    row is all zero.
 
     Raises:
         DataFormatError: wrong column count (9 expected), non-number, NaN, a label not in {0, 1}, or a detected row

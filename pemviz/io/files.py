@@ -1,8 +1,5 @@
-"""Writing files safely: never a half-written file, and bad output paths refused before any work.
-
-The atomic write itself (:func:`pemviz.core.files.atomic_write`, :class:`pemviz.core.files.OutputExists`) and the
-tagged checkpoints live in :mod:`pemviz.core.files`, where the core and the PEMs save and load their own models; this
-module holds the checks of output paths and the writers of the commands' files, built on them.
+"""Writing files safely: never a half-written file, and bad output paths refused before any work; built on the
+atomic write and tagged checkpoints of :mod:`pemviz.core.files`.
 """
 
 from __future__ import annotations
@@ -165,14 +162,11 @@ def check_output_path(
         path: the file to be written.
         suffix: the extension it must have (``.rrd``, ``.parquet`` ...).
         what: how the message names the path (a flag such as ``--save``).
-        overwrite: an existing file may be replaced (only a regular file that pemviz wrote, see
-            :func:`written_by_pemviz`).
+        overwrite: an existing file may be replaced (only a regular file pemviz wrote, :func:`written_by_pemviz`).
     Raises:
-        ValueError: wrong extension, a directory, a missing folder, a name too long for the file system
-            (with the temporary name's extra characters), a folder where no file can be created (tested by
-            creating and removing one: root ignores permission bits, not read-only mounts), or an existing
-            file (:class:`OutputExists` without ``overwrite``; with it, one pemviz did not write).
-    """
+        ValueError: wrong extension, a directory, a missing folder, a name too long, a folder where no file can be
+            created (tested by creating one), or an existing file (:class:`OutputExists` without ``overwrite``; with
+            it, one pemviz did not write)."""
     p = Path(path)
     if p.suffix != suffix:
         raise ValueError(f"{what} {p}: the file name must end in {suffix}")
@@ -207,10 +201,8 @@ def _check_writable(folder: Path, where: str) -> None:
 
 
 def check_output_folder(folder: str | os.PathLike[str], names: tuple[str, ...], what: str = "--out") -> Path:
-    """Refuse an output folder where ``names`` cannot be written, before any work starts (nothing is created).
-
-    The folder (and its parents) may be missing: they are made when the files are written. The files are
-    reports the command regenerates, replaced when present (but never a folder or a special file of that name).
+    """Refuse an output folder where ``names`` cannot be written, before any work starts (nothing is created); the
+    folder may be missing, and files of those names are replaced (never a folder or special file).
 
     Raises:
         ValueError: not a folder, no parent folder, not writable, a name too long, or a name taken by a folder.

@@ -1,18 +1,12 @@
-"""A run's result as files a CI job reads: one JSON document (``pemviz run --json``; ``pemviz estimate --json``'s
-holds the same ``estimate`` object, :func:`estimate_document`) and a JUnit XML test case for a
-requirement (``pemviz run --junit``).
+"""A run's result as files a CI job reads: one JSON document (``pemviz run --json``; ``pemviz estimate --json``'s holds
+the same ``estimate`` object, :func:`estimate_document`) and a JUnit XML test case for a requirement (``pemviz run
+--junit``).
 
-The JSON document (format tag ``pemviz-result``, :data:`RESULT_VERSION`) holds the estimate with its 95 % interval,
-ESS, k-hat and verdict, the exact answer or reference where one is known, the requirement's outcome, the settings and
-seed, the pemviz version and the recording's path; the failures by their shares of p, in groups and by severity
-(p(severity | failure) over impact-speed bins). Probabilities are given both as numbers and as natural logs (a
-probability below float64's range is 0 as a number, finite as a log); a value that is not finite is ``null``. Its JSON
-Schema is in the user guide ("pemviz in CI"), and a test validates a run's document against it.
-
-The JUnit file (the format of Ant's JUnit task, which CI dashboards read) holds one test case named after the
-requirement: passed when met, ``<failure>`` when violated, ``<error type="undecided">`` when undecided within the
-budget.
-"""
+The JSON document (``pemviz-result``, :data:`RESULT_VERSION`) holds the estimate with its interval, ESS, k-hat and
+verdict, the exact answer or reference, the requirement's outcome, the settings, seed, version and recording, and
+the failures by share, group and severity. Probabilities are given as numbers and as natural logs; a non-finite
+value is ``null``. Its JSON Schema is in the user guide ("pemviz in CI"). The JUnit file holds one test case named
+after the requirement: passed when met, ``<failure>`` when violated, ``<error type="undecided">`` when undecided."""
 
 from __future__ import annotations
 
@@ -96,13 +90,11 @@ def result_document(
         reference: its :class:`pemviz.core.estimate.Reference`, or None.
         recording: where the recording went (a path or a URL), or None.
         command: the command line, for the record.
-        problem: the run's :class:`pemviz.core.problems.Problem` (its name, description and formula go in), or None.
-        console: the lines the console printed after the table (the estimate, severity, stop, advice), or None.
-        inputs: the files the run read, ``{"what", "path", "sha256"}`` each (the PEMs), or None.
-        failures: the final estimate's failures in groups with their shares of p and, where the problem has a
-            severity signal, p(severity | failure): their shares by impact speed and each listed failure's min
-            distance and impact speed (:func:`pemviz.sinks.population.grouping_document`), or None.
-    """
+        problem: the run's :class:`pemviz.core.problems.Problem`, or None.
+        console: the lines the console printed after the table, or None.
+        inputs: the files the run read, ``{"what", "path", "sha256"}`` each, or None.
+        failures: the final estimate's failures in groups with their shares of p and severity
+            (:func:`pemviz.sinks.population.grouping_document`), or None."""
     import pemviz
 
     doc: dict[str, Any] = {
@@ -203,11 +195,10 @@ def estimate_document(
     command: str | None = None,
     console: list[str] | None = None,
 ) -> dict[str, Any]:
-    """The JSON document of ``pemviz estimate --json`` (format tag ``pemviz-estimate``, :data:`RESULT_VERSION`): the
-    estimate in the fields of a run's document (:func:`estimate_fields`, log p in full float64) with the mean NLL,
-    the -log-mean-exp NLL (nats), the log mean importance weight and the least robustness; each stage's estimate; the
-    weight convention, the failure event, the metric, where log p and log q came from; the exact answer or
-    reference ``known`` (log p in nats, :class:`pemviz.core.estimate.Reference`) of the run that wrote the file.
+    """The JSON document of ``pemviz estimate --json`` (``pemviz-estimate``, :data:`RESULT_VERSION`): the estimate in a
+    run document's fields (:func:`estimate_fields`) with the NLLs, log mean weight and least robustness, each
+    stage's estimate, the weight convention, failure event, metric, the sources of log p and log q, and the exact
+    answer or reference ``known`` of the run that wrote the file.
 
     Args:
         result: :class:`pemviz.io.rollout_estimate.RolloutEstimate` of the file.
@@ -215,8 +206,7 @@ def estimate_document(
         sources: (log p's source, log q's source) as printed.
         known: (the exact log p in nats or None, the :class:`pemviz.core.estimate.Reference` or None) of the run.
         command: the command line, for the record.
-        console: the lines ``pemviz estimate`` printed.
-    """
+        console: the lines ``pemviz estimate`` printed."""
     import pemviz
 
     def fields(e: Any) -> dict[str, Any]:

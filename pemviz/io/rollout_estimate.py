@@ -1,11 +1,7 @@
-"""Failure-probability estimates from logged rollouts (a file of :mod:`pemviz.io.rollout_format`): ``pemviz estimate``.
-
-The importance weights need log p_PEM and log q of every logged action: from the file's ``log_p`` / ``log_q``
-columns, or recomputed here under a PEM (:func:`pem_log_prob`) and the detector that sampled the rollouts
-(:func:`sampler_detector`, or a proposal checkpoint read by :func:`pemviz.core.sampling.load_proposal`).
-:func:`estimate_rollouts` forms mu_hat as the engine does (Innes & Ramamoorthy 2022, eq. 6): per stage, pooled over
-the stages the sidecar names with its stage weights, under either weight convention (:mod:`pemviz.core.weights`), with
-the mean-weight check of the logged density.
+"""Failure-probability estimates from logged rollouts (a file of :mod:`pemviz.io.rollout_format`): ``pemviz
+estimate``. log p and log q of every action come from the file's columns or are recomputed under a PEM
+(:func:`pem_log_prob`) and the detector that sampled (:func:`sampler_detector`, or a checkpoint);
+:func:`estimate_rollouts` forms mu_hat as the engine does (Innes & Ramamoorthy 2022, eq. 6).
 """
 
 from __future__ import annotations
@@ -51,10 +47,8 @@ def _one_object(data: RolloutData) -> None:
 
 
 def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
-    """``log p(a_t | s_t)`` of the logged actions under a detector, float64 [N, T] (nats).
-
-    The detector sees the observations of all N rollouts one step at a time, [N, F], as
-    :func:`pemviz.core.lockstep.simulate` asks it, so the numbers are those of the run that made the file.
+    """``log p(a_t | s_t)`` of the logged actions under a detector, float64 [N, T] (nats), asked one step of all N
+    rollouts at a time, as :func:`pemviz.core.lockstep.simulate` asks.
 
     Raises:
         ValueError: a file of several objects or with measurement errors (their rows are not in it).
@@ -67,11 +61,9 @@ def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
 
 
 def pem_log_prob(data: RolloutData, pem: Any) -> np.ndarray:
-    """``log p_PEM(a_t | s_t)`` of the logged actions, float64 [N, T] (nats).
-
-    From the file's salient-variable columns (:meth:`pemviz.pem.PEM.logit`) when it has them; from the
-    gap (:meth:`pemviz.pem.PEM.logit_at_gap`, the braking scenario's gap -> salient mapping) when it has none or
-    when they are exactly that mapping of the gap (the same function, evaluated by its exact fast path).
+    """``log p_PEM(a_t | s_t)`` of the logged actions, float64 [N, T] (nats), from the file's salient-variable
+    columns (:meth:`pemviz.pem.PEM.logit`), or from the gap (:meth:`pemviz.pem.PEM.logit_at_gap`) when it has none
+    or they are exactly the braking gap's mapping.
 
     Raises:
         ValueError: a file of several objects or with measurement errors (their rows are not in it).
@@ -148,10 +140,7 @@ def _no_simulator(n: int, sampler: Detector, target: Detector, rng: np.random.Ge
 
 def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
     """The :class:`~pemviz.core.problems.Problem` a rollout file poses: the sidecar's formula, signals and signal
-    ranges.
-
-    Its robustness and failure (classic robustness < 0) are the engine's; it has no simulator (the rollouts are
-    given) and no target detector (the logged log-probabilities are).
+    ranges, with the engine's robustness and failure, and no simulator or target.
 
     Raises:
         RolloutFormatError: the sidecar's formula is not valid STL.
@@ -179,17 +168,11 @@ def estimate_rollouts(
     verdict_cap: tuple[str, str] | None = None,
     look_ahead: LookAheadFn | None = None,
 ) -> RolloutEstimate:
-    """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says.
-
-    The rollouts go through the engine's code: robustness and failure steps of :func:`file_problem`
-    (:meth:`pemviz.core.problems.Problem.robustness`, :func:`pemviz.estimators.base.log_weight`), the estimate of
-    :func:`pemviz.core.estimate.estimate`, the pool of :func:`pemviz.estimators.pooling.pool`. ``log w_i = sum_{t < k_i}
-    log p - log q`` with k_i = T - 1 (``weights="full"``: the last action affects nothing) or, with ``"to-failure"`` and
-    ``failure="crash"``, the step at which rollout i first violates the sidecar's ``G[a,b](...)`` formula (both
-    unbiased: :mod:`pemviz.core.weights`). Failure = classic robustness of the formula < 0 (``failure="crash"``, the
-    default) or robustness under ``metric`` < 0. The NLL sums log p over the steps before the failure. With a stage
-    column and the sidecar's ``pooling``, mu_hat = sum_k lambda_k mu_hat_k over its stages; otherwise the mean over
-    every rollout.
+    """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says, through
+    the engine's code (:func:`file_problem`, :func:`pemviz.estimators.base.log_weight`,
+    :func:`pemviz.core.estimate.estimate`, :func:`pemviz.estimators.pooling.pool`): ``log w_i = sum_{t < k_i} log p
+    - log q`` with k_i = T - 1 (``"full"``) or the failure step (``"to-failure"``; :mod:`pemviz.core.weights`); the
+    NLL sums log p before the failure.
 
     Args:
         data: the rollout file read (:func:`pemviz.io.rollouts.read_rollouts`).
@@ -197,22 +180,18 @@ def estimate_rollouts(
         log_q: float64 [N, T] each action's log-probability under the sampler (nats).
         metric: the robustness semantics that ranks the rollouts (:data:`pemviz.settings.METRICS`).
         failure: ``crash`` (classic robustness < 0) or ``metric`` (robustness under ``metric`` < 0).
-        weights: one of :data:`pemviz.core.weights.CONVENTIONS`; ``to-failure`` with a formula that is not
-            ``G[a,b](state predicate)``, or with ``failure="metric"``, weighs every step but the last (``full``, said in
-            :attr:`RolloutEstimate.weights`).
-        log_p_seen: the probability of the failures the run drew (nats; the sidecar's, for the run's own log p; a
-            non-finite value as the sidecar writes it, ``"-inf"``, is read as that number):
-            with the file's own failures' (:class:`pemviz.estimators.base.SeenFailures`, ``failure="crash"``), the
-            bound below which the verdict is unreliable (:meth:`pemviz.core.estimate.Estimate.below_seen`).
-        verdict_cap: the best verdict the run's sampler let it claim (the sidecar's; :meth:`pemviz.core.estimate.
-            Estimate.at_most`), for the run's own log p.
-        look_ahead: the run's problem's look-ahead (the sidecar says the run used one), for the run's own log p and
-            failure: each rollout weighs up to its start times the exact failure probability from there
-            (:func:`pemviz.estimators.base.look_ahead_weights`, as the run weighed it).
+        weights: one of :data:`pemviz.core.weights.CONVENTIONS`; ``to-failure`` falls back to ``full`` for a formula
+            not ``G[a,b](state predicate)`` or with ``failure="metric"``.
+        log_p_seen: the probability of the failures the run drew (nats, the sidecar's; ``"-inf"`` read as that
+            number), with the file's own failures the bound below which the verdict is unreliable
+            (:meth:`pemviz.core.estimate.Estimate.below_seen`).
+        verdict_cap: the best verdict the run's sampler let it claim (the sidecar's;
+            :meth:`pemviz.core.estimate.Estimate.at_most`).
+        look_ahead: the run's problem's look-ahead, weighed as the run weighed it
+            (:func:`pemviz.estimators.base.look_ahead_weights`).
     Raises:
-        ValueError: an unknown metric, failure mode or convention, arrays of the wrong shape, or a formula the file's
-            signals cannot evaluate (a RolloutFormatError naming the file).
-    """
+        ValueError: an unknown metric, failure mode or convention, arrays of the wrong shape, or a formula the
+            file's signals cannot evaluate (a RolloutFormatError naming the file)."""
     _check_choices(metric, failure, weights)
     shape = (data.n, data.n_steps)
     log_p_seen = json_float(log_p_seen)  # a sidecar writes -inf as text

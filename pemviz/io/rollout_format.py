@@ -1,97 +1,22 @@
 """The logged-rollout file format: a Parquet table, one row per step, and a JSON sidecar (spec, dt, units).
 
-pemviz estimates from rollouts produced anywhere (CARLA, a user's simulator, ``pemviz run
---save-rollouts``): :func:`pemviz.io.rollout_writer.write_rollouts` / :func:`pemviz.io.rollouts.read_rollouts`, ``pemviz
-estimate`` on the command line. Both validate with the same code, so a file pemviz writes is one pemviz reads. This
-module holds the format's constants and its sidecar (:class:`RolloutMeta`); :mod:`pemviz.io.rollouts` the table;
+pemviz estimates from rollouts produced anywhere (CARLA, a user's simulator, ``pemviz run --save-rollouts``):
+:func:`pemviz.io.rollout_writer.write_rollouts` / :func:`pemviz.io.rollouts.read_rollouts`, ``pemviz estimate`` on
+the command line. Both validate with the same code, so a file pemviz writes is one pemviz reads. This module holds
+the format's constants and its sidecar (:class:`RolloutMeta`); :mod:`pemviz.io.rollouts` the table;
 :mod:`pemviz.io.rollout_sidecars` the sidecars of the braking scenario's and of any problem's rollouts.
 
-Format, version 2
------------------
-``NAME.parquet``: one row per (rollout, step). The rows of a rollout are contiguous, hold steps
-0, 1, ..., T-1 in this order, and every rollout has the same T.
-
-============================  ===========================  =====  ==========================================
-column                        type                         unit   meaning
-============================  ===========================  =====  ==========================================
-``rollout``                   integer                      -      rollout id (any distinct integers)
-``step``                      integer                      -      step t = 0..T-1 (time t * dt_s)
-``gap_m``                     float                        m      h(s), the column the proposal and the window
-                                                                  read (required; another name where the
-                                                                  sidecar's ``h_column`` says so)
-signals of the spec           float                        SI     e.g. ``ego_speed_mps``, ``lead_speed_mps``
-``detected``                  bool (or integer 0/1)        -      the detector output a_t taken at step t
-``detected_<m>``, ``<e>_<m>`` bool; float                  -; m   version 3, a scene of M objects or with
-                                                                  measurement errors (the sidecar's ``objects``
-                                                                  and ``noise``): object m's detection and its
-                                                                  error e (0 where missed), m = 0..M-1, in place
-                                                                  of ``detected``
-``salient_<name>`` (11)       float                        m/rad  optional: the PEM's salient variables, KITTI
-                                                                  columns :data:`SALIENT_COLUMNS`
-``log_p``                     float                        nats   optional: log p_PEM(a_t | s_t)
-``log_q``                     float                        nats   optional: log q(a_t | s_t, a_0..a_{t-1}),
-                                                                  the density the rollout was drawn from and
-                                                                  weighed with (for a mixture over whole
-                                                                  rollouts its per-step conditional,
-                                                                  :func:`pemviz.core.weights.mixture_step_log_q`)
-``stage``                     integer >= 0                 -      optional (version 2): the stage that drew the
-                                                                  rollout, the same on all its rows
-``component``                 integer >= 0                 -      optional (version 2): which sampler of the
-                                                                  stage's mixture drew it (index into the
-                                                                  sidecar's ``stages[].components``)
-``min_distance_m``,            float64                      m;     optional, both or neither: the rollout's
-``impact_speed_mps``                                         m/s    severity, the same on all its rows (its
-                                                                  minimum distance; its closing speed at
-                                                                  contact, null without contact)
-============================  ===========================  =====  ==========================================
-
-Floats must be finite; log-probabilities <= 0 (with errors, ``log_p`` and ``log_q`` include the errors' log
-densities, which may be positive). ``log_p`` may also be -inf: an action the PEM cannot take (p = 0), which gives
-its rollout importance weight 0; ``log_q`` stays finite (a proposal drew each action, so q > 0). Other columns are
-ignored.
-
-``NAME.rollouts.json`` (the sidecar, same name with suffix ``.rollouts.json``; a file written before it had that name
-reads back from ``NAME.json``), a JSON object:
-
-- ``formula`` (required): the safety spec in STL, e.g. ``"G[0,99](d >= 2)"``; failure = classic
-  robustness < 0 (Innes & Ramamoorthy 2022).
-- ``dt_s`` (required): seconds per step.
-- ``signals``: STL signal name -> column (default ``{"d": "gap_m"}``); ``signal_ranges``: per STL
-  signal ``[lo, hi]`` for AGM's normalisation; ``h_column``: the column the proposal and the window read, first of
-  the state columns (default ``gap_m``); ``observation_columns``: the state columns in the order detectors see them
-  (default ``h_column`` then the signals' columns); ``units``: column -> unit (informative).
-- ``pem``: the PEM ``log_p`` was computed under (a shipped name or a path); ``proposal``: a proposal
-  checkpoint (:func:`pemviz.core.sampling.save_proposal`, path relative to the sidecar) or ``pem`` / ``naive50`` /
-  ``mixed50``, what sampled the rollouts; ``window_m``: mixed50's 50 % window (metres, default 10).
-- ``n_rollouts``, ``n_steps``: checked against the table when present.
-- ``weights`` (version 2): the weight convention the writer weighed with, ``to-failure`` (the product of p / q
-  over the steps before the failure step) or ``full`` (over every step but the last; Innes & Ramamoorthy 2022,
-  eq. 6); ``pemviz estimate`` uses it unless ``--weights`` says otherwise (absent: ``to-failure``).
-- ``stages`` (version 2): one object per stage in the table: ``stage``, ``kind``, ``n`` (its rollouts),
-  ``components`` (``[{"sampler": text, "n": rollouts}, ...]`` in the order of the ``component`` column; the
-  rollouts were drawn from the mixture sum_k (n_k / n) q_k), ``max_weight`` (n / n_target when the target itself is a
-  component, the bound of every weight; else null).
-- ``pooling`` (version 2): how the writer's estimate combines the stages: ``rule`` (``quadratic``, ``linear``,
-  ``rollouts`` or ``single``), ``stages`` (the pooled stages) and ``stage_weights`` (lambda_k >= 0, summing to 1):
-  mu_hat = sum_k lambda_k mu_hat_k (absent: every rollout alike).
-- ``objects`` (version 3): M, the objects perceived at each step (default 1); ``noise`` (version 3): the names of
-  a detected object's measurement-error components (metres, default none). With M > 1 or any error the table has
-  ``detected_<m>`` and ``<e>_<m>`` columns instead of ``detected``, and must hold ``log_p`` and ``log_q`` (the PEMs'
-  inputs, each object's row, are not in the file, so they cannot be recomputed).
-- ``odd_parameters``: the scenario parameters drawn per rollout from an operating design domain (observation
-  columns; default none). Where a sampler drew them from a proposal of its own, the table's column ``log_q_params``
-  (one value a rollout, on each of its rows) holds log q(theta) - log p_ODD(theta) (nats), a term of the rollout's
-  log q before any step: its importance weight is exp(sum_t (log_p - log_q) - log_q_params).
-- ``format`` (``"pemviz-rollouts"``), ``version`` (2, or 3 for a file of several objects or with errors; version 1
-  files, without ``weights``, ``stages``, ``pooling`` and the two integer columns, are read too),
-  ``pemviz_version``, ``provenance`` (free-form: the run's config, its estimate and its per-stage estimates).
+The format (version 3; versions 1 and 2 are read too), its columns and sidecar fields are documented in
+docs/own-simulator.md, "Logged rollout files": ``NAME.parquet`` holds one row per (rollout, step), a rollout's rows
+contiguous with steps 0..T-1 in order and the same T for all; ``NAME.rollouts.json`` (or ``NAME.json`` for an older
+file) holds the STL ``formula`` (failure = classic robustness < 0, Innes & Ramamoorthy 2022), ``dt_s`` and the
+optional fields of :class:`RolloutMeta`. Floats must be finite; log-probabilities are in nats and <= 0 unless they
+include measurement errors' densities; ``log_p`` may be -inf (weight 0), ``log_q`` stays finite.
 
 Importance weights use at most the first T - 1 steps (the last action affects nothing; Innes & Ramamoorthy 2022,
 Algorithm 1), as the engine does, so an estimate from a file written by ``pemviz run`` equals the run's to float64
-rounding.
-Bad input raises :class:`RolloutFormatError`: one message naming the file, the column, and the rollout
-and step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file.
-"""
+rounding. Bad input raises :class:`RolloutFormatError`: one message naming the file, the column, and the rollout and
+step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file."""
 
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
 """The sidecars (:class:`pemviz.io.rollout_format.RolloutMeta`) of a scene's rollout files: the braking scenario's
-(:func:`braking_meta`: its gap, ego and lead speed columns and the PEM's salient variables with their units, dt 0.05 s;
-Innes & Ramamoorthy 2022) and any other problem's (:func:`problem_meta`: its formula, signals, ranges, units and step).
-Which one a run writes is :func:`pemviz.io.run_rollouts.run_meta`'s choice.
+(:func:`braking_meta`) and any other problem's (:func:`problem_meta`); :func:`pemviz.io.run_rollouts.run_meta`
+chooses.
 """
 
 from __future__ import annotations
@@ -72,10 +71,9 @@ def problem_meta(
     proposal: str | None = None,
     provenance: Mapping[str, Any] | None = None,
 ) -> RolloutMeta:
-    """The sidecar of a problem's rollouts (a :class:`pemviz.core.problems.Problem`): its formula, signals, signal
-    ranges, units and step; the objects and errors are filled in by the writer from the rollouts. A problem that does
-    not know its step (``dt_s`` None, e.g. the toys, whose steps are units of travel) is written with ``dt_s = 1`` and
-    the provenance's ``dt_s_unknown`` saying so: no estimate reads the step, only the impact speed of a failure.
+    """The sidecar of a problem's rollouts: its formula, signals, signal ranges, units and step (``dt_s = 1`` with
+    ``dt_s_unknown`` in the provenance where the problem knows none: only a failure's impact speed reads it); the
+    writer fills in objects and errors.
     """
     provenance = dict(provenance or {})
     if problem.dt_s is None:

@@ -2,23 +2,11 @@
 optional columns: the severity (:data:`SEVERITY_COLUMNS`) and the braking lead's salient variables
 (:func:`braking_salient`).
 
-The reader (:func:`pemviz.io.rollouts.read_rollouts`) and the writer (:mod:`pemviz.io.rollout_writer`, which checks
-every chunk before it writes it) validate with the same checks, so a file pemviz writes is one pemviz reads. Bad
-input raises :class:`~pemviz.io.rollout_format.RolloutFormatError`: one message naming the file, the column, and the
-rollout and step where the problem is. The format itself (columns, sidecar, units) is
-:mod:`pemviz.io.rollout_format`'s. Floats must be finite, except ``log_p``, which may be -inf: an action the PEM
-cannot take (p = 0, so the rollout's importance weight is 0; a 50 % sampler detects cars the camera cannot see).
-``log_q`` stays finite: a proposal drew each action, so q > 0.
-
-Two optional columns carry each rollout's severity, the same value on all its rows (:data:`SEVERITY_COLUMNS`,
-:func:`pemviz.core.severity.rollout_severity`; ``pemviz run --save-rollouts`` writes them): ``min_distance_m`` (float,
-metres, finite: the smallest value of the problem's severity signal, the braking gap or the cut-in clearance) and
-``impact_speed_mps`` (float, m/s, > 0: the closing speed over the step into contact; null where the rollout never
-reaches contact, and a NaN is read alike). Give both or neither. They are a record, not an input: estimates do not
-read them, and a file without them (every file before them) reads as before, with :attr:`RolloutData.min_distance`
-and :attr:`RolloutData.impact_speed` None; readers that ignore other columns read a file with them unchanged, so the
-format version stays.
-"""
+The reader (:func:`pemviz.io.rollouts.read_rollouts`) and the writer (:mod:`pemviz.io.rollout_writer`) validate with
+the same checks; bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError` naming the file, the column,
+the rollout and the step. The format is :mod:`pemviz.io.rollout_format`'s. The severity columns, ``min_distance_m``
+(metres, finite) and ``impact_speed_mps`` (m/s, > 0, null without contact), come both or neither, the same on all of
+a rollout's rows (:func:`pemviz.core.severity.rollout_severity`); estimates do not read them."""
 
 from __future__ import annotations
 
@@ -57,31 +45,24 @@ def braking_salient(gap_m: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class RolloutData(RolloutBatch):
     """N logged rollouts of T steps as :func:`~pemviz.io.rollouts.read_rollouts` returns them: a
-    :class:`~pemviz.core.rollouts.RolloutBatch` (its accessors ``n``, ``n_steps``, ``signal``, ``gap_m``) with one
-    difference, plus what the file adds.
-
-    The difference: ``log_p`` / ``log_q`` are None when the file has no such column (the format makes them
-    optional; ``pemviz estimate`` recomputes them), so :meth:`log_weight` needs both columns and :meth:`to_batch`
-    gives the plain :class:`~pemviz.core.rollouts.RolloutBatch`, with the file's or recomputed log-probabilities, that
-    the estimators take.
+    :class:`~pemviz.core.rollouts.RolloutBatch` whose ``log_p`` / ``log_q`` may be None (no such column;
+    :meth:`to_batch` fills them), plus what the file adds.
 
     Attributes:
         observations: float64 [N, T, F], columns ``observation_names`` (``gap_m`` first).
         detected: bool [N, T, M] (M = the sidecar's ``objects``).
-        log_p, log_q: float64 [N, T] (nats) or None when the file has no such column (:meth:`to_batch` fills them);
-            ``log_p`` is -inf at an action the PEM cannot take (the rollout's importance weight is 0), ``log_q`` finite.
+        log_p, log_q: float64 [N, T] (nats) or None; ``log_p`` is -inf at an action the PEM cannot take, ``log_q``
+            finite.
         observation_names: the F state columns.
         meta: the sidecar.
         rollout_ids: int64 [N], in file order.
         salient: float64 [N, T, 11] (:data:`SALIENT_COLUMNS`) or None.
         path: the Parquet file (None for data not read from disk).
         stage, component: int64 [N], each rollout's stage and mixture component (version 2), or None.
-        noise, noise_names: float64 [N, T, M, D] each object's measurement errors (metres, 0 where missed) and their
-            D names (version 3, the sidecar's ``noise``), or None and ().
-        min_distance, impact_speed: float64 [N] each rollout's min distance (metres) and impact speed (m/s; NaN
-            exactly where the file says no contact, a null), or None where the file has no such columns
-            (:data:`SEVERITY_COLUMNS`).
-    """
+        noise, noise_names: float64 [N, T, M, D] measurement errors (metres, 0 where missed) and their D names
+            (version 3), or None and ().
+        min_distance, impact_speed: float64 [N] min distance (metres) and impact speed (m/s; NaN: no contact), or
+            None (:data:`SEVERITY_COLUMNS`)."""
 
     # Optional here, unlike RolloutBatch's (the class docstring's one difference): an override mypy cannot accept
     log_p: np.ndarray | None  # type: ignore[assignment]

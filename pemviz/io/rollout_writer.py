@@ -36,10 +36,8 @@ from pemviz.io.rollout_table import SEVERITY_COLUMNS, _Table
 
 
 def check_rollouts_path(path: str | os.PathLike[str], *, overwrite: bool = False, what: str = "rollout file") -> Path:
-    """Refuse a path where a rollout file cannot be written, before any work (nothing is created).
-
-    The sidecar ``NAME.rollouts.json`` and checkpoint ``NAME.proposal.pt`` are checked too: an existing one is replaced
-    only with ``overwrite`` and only if pemviz wrote it.
+    """Refuse a path where a rollout file cannot be written, before any work (nothing is created); its sidecar and
+    checkpoint are replaced only with ``overwrite`` and only if pemviz wrote them.
 
     Raises:
         ValueError: not ``.parquet``, a directory, a folder that does not exist / is not writable, a name too
@@ -61,9 +59,9 @@ def rollouts_table(
     component: np.ndarray | None = None,
     severity: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Any:
-    """The Parquet table of a batch: rollout, step, observations, detected (or, for several objects or errors, each
-    object's ``detected_<m>`` and ``<error>_<m>``), [salient], [log_p, log_q, [log_q_params]], [stage, component],
-    [min_distance_m, impact_speed_mps].
+    """The Parquet table of a batch: rollout, step, observations, detected (or each object's ``detected_<m>`` and
+    ``<error>_<m>``), [salient], [log_p, log_q, [log_q_params]], [stage, component], [min_distance_m,
+    impact_speed_mps].
 
     Args:
         batch: N rollouts [N, T].
@@ -72,11 +70,10 @@ def rollouts_table(
         log_probs: include ``log_p`` and ``log_q``.
         stage: the stage of all N rollouts, or int [N] each rollout's, or None (no stage column).
         component: int [N] each rollout's mixture component (with ``stage``; default 0).
-        severity: (min distance float64 [N] in metres, impact speed float64 [N] in m/s, NaN: no contact), written as
-            :data:`SEVERITY_COLUMNS` (the impact speed null where NaN), or None: not written.
+        severity: (min distance [N] in metres, impact speed [N] in m/s, NaN: no contact) as
+            :data:`SEVERITY_COLUMNS`, or None.
     Raises:
-        ValueError: arrays of the wrong shape.
-    """
+        ValueError: arrays of the wrong shape."""
     n, n_steps = batch.n, batch.n_steps
     ids = np.arange(n, dtype=np.int64) if rollout_ids is None else np.asarray(rollout_ids, dtype=np.int64)
     if ids.shape != (n,):
@@ -127,23 +124,20 @@ def rollouts_table(
 
 class RolloutWriter:
     """Writes one rollout unit (``NAME.parquet``, its sidecar ``NAME.rollouts.json``, optionally ``NAME.proposal.pt``)
-    chunk by chunk: each :meth:`append` validates a chunk and writes it as a Parquet row group, so memory holds one
-    chunk whatever the number of rollouts. Nothing appears under ``path`` before :meth:`commit`, which moves the files
-    into place sidecar last (the sidecar holds the SHA-256 of the table and checkpoint, so
-    :func:`~pemviz.io.rollouts.read_rollouts` tells a unit cut short by a kill from a complete one); :meth:`abort`, or
-    leaving a ``with`` block without a commit, removes everything written so far and leaves an existing unit
-    untouched.
+    chunk by chunk, one Parquet row group an :meth:`append`. Nothing appears under ``path`` before :meth:`commit`,
+    which moves the files into place sidecar last (it holds the SHA-256 of the others, so a unit cut short is told
+    from a complete one); :meth:`abort`, or leaving a ``with`` block without a commit, removes everything written
+    and leaves an existing unit untouched.
 
     Args:
         path: ``NAME.parquet``, checked at once (:func:`check_rollouts_path`).
-        meta: the sidecar (:func:`~pemviz.io.rollout_sidecars.braking_meta` for the braking scenario,
-            :func:`~pemviz.io.rollout_sidecars.problem_meta` for another problem); ``n_rollouts`` / ``n_steps`` /
-            ``observation_columns`` and ``objects`` / ``noise`` are filled in from the rollouts.
+        meta: the sidecar (:func:`~pemviz.io.rollout_sidecars.braking_meta`,
+            :func:`~pemviz.io.rollout_sidecars.problem_meta`); its counts and columns are filled in from the
+            rollouts.
         log_probs: write ``log_p`` and ``log_q``.
         overwrite: replace existing files of the unit (only ones pemviz wrote).
     Raises:
-        ValueError: a bad path (an existing file without ``overwrite``).
-    """
+        ValueError: a bad path (an existing file without ``overwrite``)."""
 
     def __init__(
         self, path: str | os.PathLike[str], meta: RolloutMeta, *, log_probs: bool = True, overwrite: bool = False
@@ -331,10 +325,7 @@ def write_rollouts(
     severity: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Path:
     """Write ``NAME.parquet``, its sidecar ``NAME.rollouts.json`` and (with ``proposal``) ``NAME.proposal.pt`` as one
-    unit (a :class:`RolloutWriter` with one chunk).
-
-    The table is validated as :func:`~pemviz.io.rollouts.read_rollouts` validates it before anything is written;
-    ``meta.n_rollouts`` / ``n_steps`` / ``observation_columns`` are filled in.
+    unit (a :class:`RolloutWriter` with one chunk), validated before anything is written.
 
     Args:
         path: ``NAME.parquet``.
@@ -343,20 +334,18 @@ def write_rollouts(
         rollout_ids: int [N], as :func:`rollouts_table` (default 0..N-1).
         salient: as :func:`rollouts_table`.
         log_probs: include ``log_p`` and ``log_q``.
-        stage: as :func:`rollouts_table` (of a version-2 file: ``RolloutData.stage``).
-        component: as :func:`rollouts_table` (of a version-2 file: ``RolloutData.component``).
+        stage: as :func:`rollouts_table`.
+        component: as :func:`rollouts_table`.
         severity: as :func:`rollouts_table`, the optional :data:`SEVERITY_COLUMNS`.
-        proposal: a :class:`pemviz.core.sampling.Proposal` that sampled the batch, saved as ``NAME.proposal.pt`` and
-            named in the sidecar; None: none saved.
+        proposal: a :class:`pemviz.core.sampling.Proposal` that sampled the batch, saved as ``NAME.proposal.pt``;
+            None: none.
         overwrite: replace existing files of the unit (only ones pemviz wrote).
     Returns:
         the Parquet path.
     Raises:
-        ValueError: a bad path (:func:`check_rollouts_path`; an existing file without ``overwrite``), wrong
-            shapes, or a :class:`RolloutFormatError` (NaN, a positive log-probability ...) naming the rollout
-            and step; nothing is written.
-        OSError: the folder is not writable, the disk is full (nothing is left behind).
-    """
+        ValueError: a bad path, wrong shapes, or a :class:`RolloutFormatError` naming the rollout and step; nothing
+            is written.
+        OSError: the folder is not writable, the disk is full (nothing is left behind)."""
     with RolloutWriter(path, meta, log_probs=log_probs, overwrite=overwrite) as writer:
         writer.append(
             batch, rollout_ids=rollout_ids, salient=salient, stage=stage, component=component, severity=severity

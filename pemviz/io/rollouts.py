@@ -1,13 +1,7 @@
-"""Logged rollouts on disk: read and validate a rollout file (:func:`read_rollouts`); a file is written chunk by chunk
-by :mod:`pemviz.io.rollout_writer` (:class:`~pemviz.io.rollout_writer.RolloutWriter`,
-:func:`~pemviz.io.rollout_writer.write_rollouts`).
-
-The format (the Parquet table's columns, the JSON sidecar's fields, the units) is :mod:`pemviz.io.rollout_format`'s;
-the table's checks, :class:`~pemviz.io.rollout_table.RolloutData` and the optional severity columns
-(:data:`~pemviz.io.rollout_table.SEVERITY_COLUMNS`) are :mod:`pemviz.io.rollout_table`'s. This module reads a file;
-each name has one import path, its module's.
-Bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError`: one message naming the file, the column, and
-the rollout and step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file.
+"""Logged rollouts on disk: read and validate a rollout file (:func:`read_rollouts`); writing is
+:mod:`pemviz.io.rollout_writer`'s, the format :mod:`pemviz.io.rollout_format`'s and the table's checks
+:mod:`pemviz.io.rollout_table`'s. Bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError` naming the
+file, the column, the rollout and the step.
 """
 
 from __future__ import annotations

@@ -1,11 +1,7 @@
-"""What a run's rollout file holds beyond the rollouts themselves, by the run's problem (what
-:class:`pemviz.sinks.rollouts.RolloutSink` writes): the sidecar, the PEM's salient variables and the severity columns.
-
-The braking scenario's files keep their own sidecar (:func:`pemviz.io.rollout_sidecars.braking_meta`: the gap, ego and
-lead speed columns, dt 0.05 s) and the salient variables of the car ahead at each gap
-(:func:`pemviz.io.rollout_table.braking_salient`), as its first files did; every other problem's sidecar is
-:func:`pemviz.io.rollout_sidecars.problem_meta`'s, without salient variables. No run's problem known: the braking
-scenario's file at its defaults.
+"""What a run's rollout file holds beyond the rollouts, by the run's problem (what
+:class:`pemviz.sinks.rollouts.RolloutSink` writes): the sidecar (:func:`pemviz.io.rollout_sidecars.braking_meta` for
+the braking scenario, with the lead's salient variables, :func:`pemviz.io.rollout_table.braking_salient`; else
+:func:`pemviz.io.rollout_sidecars.problem_meta`) and the severity columns.
 """
 
 from __future__ import annotations
