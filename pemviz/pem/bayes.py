@@ -1,13 +1,7 @@
-"""The paper's B-NN baseline: a Bayesian PEM fitted by variational inference with pyro.
-
-Innes & Ramamoorthy 2022, Table I: the ML-NN's layers without BatchNorm (Linear(14,20)-ReLU-Linear(20,20)-
-ReLU-Linear(20,1)), N(0, 1) priors on every weight and bias, a low-rank multivariate normal guide
-(``pyro.infer.autoguide.AutoLowRankMultivariateNormal``), and as prediction the posterior predictive mean
-p(detect | x) = E_q[sigmoid(f_w(x))] over ~800 posterior samples. The paper's B-NN scored BCE 0.238,
-ROC-AUC 0.726.
-
-The predictive mean is kept in log space: ``log p = logsumexp_s(log sigmoid(l_s)) - log S`` and
-``log(1 - p) = logsumexp_s(log sigmoid(-l_s)) - log S``, and its logit is their difference.
+"""The paper's B-NN baseline: a Bayesian PEM fitted by variational inference with pyro (Innes & Ramamoorthy 2022,
+Table I: the ML-NN's layers without BatchNorm, N(0, 1) priors, a low-rank multivariate normal guide), predicting the
+posterior predictive mean p(detect | x) = E_q[sigmoid(f_w(x))] over ~800 samples, kept in log space
+(``logsumexp_s(log sigmoid(+-l_s)) - log S``).
 """
 
 from __future__ import annotations
@@ -111,12 +105,10 @@ def train_bnn_pem(
     norm: NormStats | None = None,
     progress: bool = False,
 ) -> BayesianPEM:
-    """Fit the B-NN by stochastic variational inference (pyro ``SVI`` with ``Trace_ELBO``).
-
-    Mini-batches of ``batch_size`` rows subsampled by ``pyro.plate`` (the likelihood is rescaled to the full
-    training set), ``ClippedAdam`` with learning rate ``lr`` decayed 10x over ``steps``, guide
-    ``AutoLowRankMultivariateNormal(rank=rank, init_scale=0.01)``; then ``n_samples`` weight sets are drawn
-    from the guide. One torch thread; ``pyro.set_rng_seed(seed)`` (this seeds torch, numpy and random).
+    """Fit the B-NN by stochastic variational inference (pyro ``SVI``, ``Trace_ELBO``, mini-batches of
+    ``batch_size`` by ``pyro.plate``, ``ClippedAdam`` at ``lr`` decayed 10x over ``steps``, guide
+    ``AutoLowRankMultivariateNormal(rank=rank, init_scale=0.01)``), then draw ``n_samples`` weight sets; one torch
+    thread, ``pyro.set_rng_seed(seed)``.
 
     Raises:
         ValueError: mismatched lengths, labels not in {0, 1}.

@@ -1,26 +1,15 @@
 """Camera geometry: the detector's pixel box errors as metric measurement errors of the obstacle.
 
-KITTI's left colour camera (camera 2) is a pinhole (Hartley & Zisserman 2003, *Multiple View Geometry*, eq. 6.1;
-Geiger et al. 2013, "Vision meets robotics: the KITTI dataset", eq. 5): a point ``(X, Y, Z)`` of the camera frame
-(metres; x right, y down, z forward) images at ``u = f X / Z + c_u``, ``v = f Y / Z + c_v`` (pixels), so an
-obstacle of height ``H`` at range ``Z`` spans ``h = f H / Z`` pixels and ``Z = f H / h``.
+KITTI's camera 2 is a pinhole (Hartley & Zisserman 2003, *Multiple View Geometry*, eq. 6.1; Geiger et al. 2013,
+"Vision meets robotics: the KITTI dataset", eq. 5): ``u = f X / Z + c_u``, ``v = f Y / Z + c_v``, so an obstacle of
+height ``H`` at range ``Z`` spans ``h = f H / Z`` pixels. With the detected box ``cx_d = cx_t + e_cx``, ``h_d = h_t
++ e_h`` (errors detector minus ground truth, :func:`pemviz.io.data.load_salient_label_table`):
 
-For an obstacle at the true range ``Z`` (the label's loc_z) whose ground-truth box is ``cx_t, h_t`` and whose
-detected box is ``cx_d = cx_t + e_cx``, ``h_d = h_t + e_h`` (the salient label file's errors are detector minus
-ground truth, see :func:`pemviz.io.data.load_salient_label_table`):
+- **range error** (metres, along z): ``dZ = Z (h_t / h_d - 1) = -Z e_h / h_d``, about ``-Z^2 e_h / (f H)``: it grows
+  with the square of the range;
+- **lateral error** (metres, along x): ``dX = e_cx Z / f``, linear in the range.
 
-- **range error** (metres, along camera z): the range read from the detected box, ``f H / h_d``, with ``H`` the
-  height at which the ground-truth box reads the true range (``H = Z h_t / f``), minus the true range:
-  ``dZ = Z (h_t / h_d - 1) = -Z e_h / h_d``. ``f`` and ``H`` cancel. (The labelled 3D height does not serve: the
-  box also spans the obstacle's depth, and ``f H_label / h_t`` is a median 0.93 of loc_z on the KITTI file.) For
-  a small error ``dZ ~ -Z^2 e_h / (f H)``: a constant pixel error grows with the square of the range.
-- **lateral error** (metres, along camera x): the centre's pixel error back-projected at the true range,
-  ``dX = e_cx Z / f`` (from ``X = (u - c_u) Z / f``); it grows linearly with the range. The range error's own
-  share of the back-projected x (``dZ X / Z``, the bearing kept) is left out: the two dimensions stay the errors
-  along and across the optical axis.
-
-``f`` is :data:`KITTI_FOCAL_PX` (the ``P2`` matrix of KITTI's calibration files).
-"""
+``f`` is :data:`KITTI_FOCAL_PX` (the ``P2`` matrix of KITTI's calibration files)."""
 
 from __future__ import annotations
 
@@ -45,26 +34,22 @@ def box_errors_to_metric(
     err_h_px: np.ndarray,
     focal_px: float = KITTI_FOCAL_PX,
 ) -> np.ndarray:
-    """Range and lateral measurement errors (metres) of obstacles from the detector's pixel box errors.
-
-    Implements the module's formulas: ``dZ = -Z e_h / h_d`` and ``dX = e_cx Z / f`` (pinhole camera,
-    Hartley & Zisserman 2003, eq. 6.1).
+    """Range and lateral measurement errors (metres) of obstacles from the detector's pixel box errors: ``dZ = -Z e_h /
+    h_d`` and ``dX = e_cx Z / f`` (pinhole camera, Hartley & Zisserman 2003, eq. 6.1).
 
     Args:
-        range_m: true range ``Z`` of each obstacle along camera z (the label's loc_z), metres, ``[R]``.
+        range_m: true range ``Z`` along camera z (the label's loc_z), metres, ``[R]``.
         det_height_px: height ``h_d`` of the detected box, pixels, ``[R]``.
-        err_cx_px: centre-x error ``e_cx`` of the detected box (detected minus true), pixels, ``[R]``.
+        err_cx_px: centre-x error ``e_cx`` (detected minus true), pixels, ``[R]``.
         err_h_px: height error ``e_h`` (detected minus true), pixels, ``[R]``.
         focal_px: focal length ``f``, pixels (default KITTI's camera 2).
 
     Returns:
-        float64 ``[R, 2]``: column 0 the range error ``dZ``, column 1 the lateral error ``dX`` (metres; measured
-        minus true).
+        float64 ``[R, 2]``: the range error ``dZ`` and the lateral error ``dX`` (metres; measured minus true).
 
     Raises:
-        ValueError: arrays of different lengths, a detected or true box height (``h_d``, ``h_d - e_h``) <= 0, a range
-            below :data:`MIN_RANGE_M` or a focal length <= 0.
-    """
+        ValueError: arrays of different lengths, a box height (``h_d``, ``h_d - e_h``) <= 0, a range below
+            :data:`MIN_RANGE_M` or a focal length <= 0."""
     z, h_d, e_cx, e_h = (
         np.asarray(a, dtype=np.float64).reshape(-1) for a in (range_m, det_height_px, err_cx_px, err_h_px)
     )

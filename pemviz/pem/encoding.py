@@ -211,10 +211,8 @@ def encode_salient(raw_inputs: np.ndarray, norm: NormStats) -> np.ndarray:
 
 
 def braking_salient_inputs(gap_m: np.ndarray) -> np.ndarray:
-    """Salient variables of the lead car in the braking scenario: class Car, no occlusion, the camera 1.76 m up.
-
-    class Car, occlusion none, loc_x = 0.0, loc_y = 1.76 (camera height), loc_z = gap + 2.48,
-    rot_y = -pi/2; the unused columns (truncation, alpha, box dimensions) are 0.
+    """Salient variables of the lead car in the braking scenario: class Car, no occlusion, loc_x = 0.0, loc_y = 1.76
+    (camera height), loc_z = gap + 2.48, rot_y = -pi/2, the other columns 0.
 
     Args:
         gap_m: gap from the ego's camera to the lead's rear, metres, any shape ``[...]``.

@@ -1,17 +1,12 @@
 """An ensemble of plausible PEMs: bootstrap refits that express the shipped PEM's epistemic uncertainty.
 
-A PEM fitted to 37,498 KITTI obstacles is one of many equally good fits; a crash needs many misses in a row, so p
-moves by orders of magnitude with small shifts of the PEM at short range. The ensemble is M refits of the same
-recipe, each on a bootstrap resample of the training rows (Efron & Tibshirani, "An Introduction to the Bootstrap",
-1993; for networks, the bagged ensembles of Lakshminarayanan, Pritzel & Blundell, "Simple and scalable predictive
-uncertainty estimation using deep ensembles", NeurIPS 2017), every member z-scored with the full file's statistics
-as the nominal PEM is. Rollouts drawn once are re-weighted under each member (:mod:`pemviz.core.reweight`).
-
-The ensemble file is a ``torch.save`` dict: ``format`` ``pemviz-pem-ensemble``, ``version`` 1, ``nominal`` (the name
-of the PEM it belongs to), ``metadata`` (the command, the data's sha256, the seeds) and ``members``, a list of PEM
-payloads exactly as a PEM file holds them (:func:`pemviz.pem.store.save_pem`); ``torch.load(path,
-weights_only=True)`` reads it.
-"""
+A crash needs many misses in a row, so p moves by orders of magnitude with small shifts of the PEM at short range.
+The ensemble is M refits of the same recipe, each on a bootstrap resample of the training rows (Efron & Tibshirani,
+"An Introduction to the Bootstrap", 1993; Lakshminarayanan, Pritzel & Blundell, "Simple and scalable predictive
+uncertainty estimation using deep ensembles", NeurIPS 2017), z-scored with the full file's statistics; rollouts
+drawn once are re-weighted under each member (:mod:`pemviz.core.reweight`). The file is a ``torch.save`` dict
+(``format`` ``pemviz-pem-ensemble``, ``version`` 1, ``nominal``, ``metadata``, ``members``: PEM payloads as
+:func:`pemviz.pem.store.save_pem` writes them), readable with ``weights_only=True``."""
 
 from __future__ import annotations
 
@@ -66,24 +61,21 @@ def train_ensemble(
     progress: bool = False,
     metadata: Mapping[str, Any] | None = None,
 ) -> list[PEM]:
-    """M bootstrap refits of a detection recipe (:class:`pemviz.pem.training.PemRecipe`).
-
-    Member k trains on :func:`bootstrap_rows` ``(n, seed, k)`` with the recipe's architecture and optimiser, initial
-    weights seeded ``seed + 1 + k`` (the nominal PEM keeps ``seed``), and the z-score statistics of the full
-    ``inputs``.
+    """M bootstrap refits of a detection recipe (:class:`pemviz.pem.training.PemRecipe`): member k trains on
+    :func:`bootstrap_rows` ``(n, seed, k)``, weights seeded ``seed + 1 + k``, with the full ``inputs``' z-score
+    statistics.
 
     Args:
         recipe: the detection recipe refitted.
         inputs: the training file's raw salient inputs [N, 11].
         labels: its detections [N] in {0, 1}.
         m: members, at least 2.
-        seed: the bootstrap's seed (member k's weights seeded ``seed + 1 + k``).
+        seed: the bootstrap's seed.
         epochs: each member's epochs (None: the recipe's).
         progress: print each member's training progress.
-        metadata: provenance stored with each member (with its number and seeds).
+        metadata: provenance stored with each member.
     Raises:
-        ValueError: m < 2, or what :func:`pemviz.pem.training.train_pem` raises.
-    """
+        ValueError: m < 2, or what :func:`pemviz.pem.training.train_pem` raises."""
     if m < 2:
         raise ValueError(f"an ensemble needs at least 2 members, got {m}")
     inputs, labels = np.asarray(inputs), np.asarray(labels)

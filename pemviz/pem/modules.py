@@ -1,9 +1,5 @@
 """The torch modules of the PEMs, for training: the ML-NN network (:class:`MLNN`) and the noise PEM's loss
-(:class:`NoiseNLL`).
-
-This module imports torch (about 1 s); evaluating or loading a PEM does not need it (:mod:`pemviz.pem.network` folds
-the weights in numpy): import it where a module is trained or built (``from pemviz.pem.modules import MLNN``), the
-one import path of both names.
+(:class:`NoiseNLL`). Imports torch; evaluating or loading a PEM does not need it (:mod:`pemviz.pem.network`).
 """
 
 from __future__ import annotations

@@ -1,19 +1,11 @@
 """The paper's ML-NN PEM (and wider variants) and its evaluation that no CPU or batch rounds differently.
 
 Innes & Ramamoorthy 2022, Sec. IV-A: Linear(14,20)-BatchNorm-ReLU-Linear(20,20)-BatchNorm-ReLU-Linear(20,1) -> logit
-(the authors' ``PEMClass_Deterministic``); training is :mod:`pemviz.pem.training`.
-
-A :class:`PEM` evaluates its network in numpy with each BatchNorm folded into the linear layer before it (exact
-algebra: ``gamma * (W x + b - mean) / sqrt(var + eps) + beta``), any salient variables in order-free arithmetic
-(:class:`GridMLP`: a row's logit depends on that row alone, within about 1e-5 of float64 products). Along the braking
-scenario only the gap varies, so the ReLU network is an exactly piecewise-linear function of the gap; its
-pieces are computed once, and :meth:`PEM.logit_at_gap` (the simulator's hot path) is one ``searchsorted``
-and one multiply-add.
-
-Loading and evaluating a PEM does not import torch (about 1 s): its weights are numpy arrays, folded here
-(:func:`fold_state_dict`). Training (:func:`pemviz.pem.training.train_pem`), :meth:`PEM.to_module` and the torch
-module :class:`MLNN` (:mod:`pemviz.pem.modules`, imported by those alone) import it.
-"""
+(the authors' ``PEMClass_Deterministic``); training is :mod:`pemviz.pem.training`. A :class:`PEM` evaluates in numpy
+with each BatchNorm folded into the linear layer before it, in order-free arithmetic (:class:`GridMLP`: a row's
+logit depends on that row alone); along the braking scenario's gap the network is exactly piecewise linear, so
+:meth:`PEM.logit_at_gap` is one ``searchsorted`` and one multiply-add. Loading and evaluating a PEM does not import
+torch (:func:`fold_state_dict`)."""
 
 from __future__ import annotations
 
@@ -116,25 +108,21 @@ def fold_state_dict(
     in_dim: int = N_FEATURES,
     out_dim: int = 1,
 ) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-    """The layers of the :class:`MLNN` with this state, folded in numpy, bit for bit as in torch: affine layers
-    ``(W float64 [out, in], b float64 [out])``, each BatchNorm (eval mode, ``eps`` :data:`BATCH_NORM_EPS`) folded
-    into the Linear before it, ``gamma * (W x + b - mean) / sqrt(var + eps) + beta``; a ReLU follows every layer but
-    the last.
-
-    The weights are first rounded to float32, as loading them into the module's float32 parameters does, then widened
-    to float64 (exact), and the fold takes the same float64 operations in the same order as the torch module's fold
-    (``fold_layers`` in the tests).
+    """The layers of the :class:`MLNN` with this state, folded in numpy, bit for bit as in torch: affine layers ``(W
+    float64 [out, in], b float64 [out])``, each BatchNorm (eval mode, ``eps`` :data:`BATCH_NORM_EPS`) folded into
+    the Linear before it, a ReLU after every layer but the last; the weights first rounded to float32 as torch's
+    parameters hold them.
 
     Args:
-        state: numpy arrays under :func:`mlnn_shapes`'s keys (e.g. :func:`as_arrays` of a module's ``state_dict()``).
+        state: numpy arrays under :func:`mlnn_shapes`'s keys (e.g. :func:`as_arrays` of a module's
+            ``state_dict()``).
         hidden: the hidden layers' widths.
         batch_norm: a BatchNorm after each hidden Linear.
         in_dim: the input features (the 14 of the encoding).
         out_dim: the outputs.
 
     Raises:
-        ValueError: the state does not fit the architecture (:func:`state_problem`'s reason).
-    """
+        ValueError: the state does not fit the architecture (:func:`state_problem`'s reason)."""
     shapes = mlnn_shapes(hidden, batch_norm=batch_norm, in_dim=in_dim, out_dim=out_dim)
     problem = state_problem(state, shapes)
     if problem is not None:
@@ -163,17 +151,12 @@ stay in the CPU's cache between the layers. Speed only: a row's result is the sa
 
 @dataclass(frozen=True, eq=False)
 class GridMLP:
-    """Folded affine layers (:func:`fold_state_dict`, ReLU between) evaluated in order-free arithmetic: a row's outputs
-    depend on that row alone, never on the batch it came in, the BLAS kernel, the vector unit or the CPU.
-
-    Each layer's input row is rounded to ``bits`` = :func:`pemviz.core.exact.grid_bits` (K) significant bits of its
-    largest magnitude (a power of two per row) and each layer's weights to as many bits of the layer's largest weight
-    (block floating point; Wilkinson, "Rounding Errors in Algebraic Processes", 1963), so that the float64 product of
-    the integers is exact in any order (:mod:`pemviz.core.exact`); the bias is added, and the ReLU taken, in float64.
-    That is float32's precision of the operands (24 bits for K <= 32), which the networks were trained in: a logit
-    is within about 1e-5 of the float64 network's (measured on the shipped PEMs).
-
-    Build with :meth:`of`; call with inputs float64 ``[N, K]`` for outputs float64 ``[N, out]``.
+    """Folded affine layers (:func:`fold_state_dict`, ReLU between) evaluated in order-free arithmetic: a row's
+    outputs depend on that row alone, never on the batch, the BLAS kernel or the CPU. Each layer's input row and
+    weights are rounded to :func:`pemviz.core.exact.grid_bits` (K) bits of their largest magnitude (block floating
+    point; Wilkinson 1963), so the integer products are exact in any order (:mod:`pemviz.core.exact`): float32's
+    precision, which the networks were trained in. Build with :meth:`of`; call with float64 ``[N, K]`` for ``[N,
+    out]``.
     """
 
     weights: tuple[np.ndarray, ...]
@@ -285,13 +268,9 @@ class OneHotColumns:
 def _piecewise_linear_pieces(
     layers: tuple[tuple[np.ndarray, np.ndarray], ...], slope0: np.ndarray, offset0: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Exact pieces of a ReLU network of one scalar input ``g`` whose first pre-activation is
-    ``slope0 * g + offset0`` ``[H1]`` and whose later affine layers are ``layers[1:]``.
-
-    Walks the layers keeping, for each interval of ``g``, the affine map of the current pre-activations;
-    each ReLU splits an interval where a unit crosses zero. Returns ``knots`` ``[K]`` (sorted interval
-    boundaries) and ``slopes``, ``intercepts`` ``[K + 1]`` of the output on each interval (interval ``i``
-    is ``knots[i-1] <= g <= knots[i]``; the network is continuous, so either side of a knot is exact).
+    """Exact pieces of a ReLU network of one scalar input ``g`` (first pre-activation ``slope0 * g + offset0`` [H1],
+    later layers ``layers[1:]``), by splitting intervals of ``g`` where a unit crosses zero: ``knots`` [K] and the
+    output's ``slopes``, ``intercepts`` [K + 1] on each interval.
     """
     intervals = [(-math.inf, math.inf, slope0, offset0)]
     for w, b in layers[1:]:
@@ -321,14 +300,10 @@ def _piecewise_linear_pieces(
 
 @dataclass(frozen=True, eq=False)
 class PEM:
-    """A trained PEM: network weights, z-score statistics, name and provenance.
-
-    Build with :func:`pemviz.pem.training.train_pem`, :func:`load_pem`, :func:`load_reference_pem` or
-    :meth:`from_module`.
-    Attributes ``state_dict`` (the :class:`MLNN` weights as trained, float32 numpy arrays under
-    :func:`mlnn_shapes`'s keys; torch tensors given are copied into numpy arrays), ``hidden``, ``batch_norm``,
-    ``temperature`` (logits are divided by it; 1.0 for the paper's ML-NN) and ``metadata`` (plain values) are stored
-    by :func:`save_pem`.
+    """A trained PEM: network weights, z-score statistics, name and provenance (build with
+    :func:`pemviz.pem.training.train_pem`, :func:`load_pem`, :func:`load_reference_pem` or :meth:`from_module`).
+    ``state_dict`` (the :class:`MLNN` weights, float32 numpy arrays), ``hidden``, ``batch_norm``, ``temperature``
+    (logits are divided by it) and ``metadata`` are stored by :func:`save_pem`.
 
     Raises:
         ValueError: a temperature not finite and > 0; PemFormatError: weights that do not fit ``hidden`` and
@@ -465,20 +440,15 @@ class PEM:
         return self._mlp(encode_salient(raw_inputs, self.norm))
 
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
-        """Logit of p(detect) of the lead car at a gap (the braking scenario's lead car).
-
-        Equal to the folded network's float64 products on ``braking_salient_inputs(gap_m)`` to 1e-9 (tested, also at
-        the pieces' ends), and to :meth:`logit`'s grid form of them within 1e-5 (float32's precision): with
-        only the gap varying, the ReLU network is an exactly piecewise-linear function of the gap, whose
-        pieces are computed once at construction (:func:`_piecewise_linear_pieces`); a call is one
-        ``searchsorted`` and one multiply-add (~20 us for 1,000 gaps).
+        """Logit of p(detect) of the lead car at a gap (the braking scenario's lead car): the network's float64
+        products on ``braking_salient_inputs(gap_m)`` to 1e-9 (tested), from its piecewise-linear pieces
+        (:func:`_piecewise_linear_pieces`).
 
         Args:
             gap_m: gaps, metres, any shape ``[...]``.
 
         Returns:
-            float64 logits of the same shape as ``gap_m``.
-        """
+            float64 logits of the same shape as ``gap_m``."""
         gap = np.asarray(gap_m, dtype=np.float64)
         piece = np.searchsorted(self._gap_knots, gap)
         return self._gap_slopes[piece] * gap + self._gap_intercepts[piece]

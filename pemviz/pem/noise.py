@@ -1,24 +1,15 @@
 """The noise PEM: p(range error, lateral error | salient variables) of a detected obstacle.
 
-A detected obstacle's measurement error ``e = (dZ, dX)`` (metres; measured minus true, along camera z and x, from
-the detector's box errors by :func:`pemviz.pem.camera.box_errors_to_metric`) is drawn from a location-scale family
-with independent dimensions:
+A detected obstacle's measurement error ``e = (dZ, dX)`` (metres; measured minus true,
+:func:`pemviz.pem.camera.box_errors_to_metric`) is drawn from a location-scale family with independent dimensions:
 
     p(e | x) = prod_{d in (range, lateral)} (1 / s_d(x)) g((e_d - m_d(x)) / s_d(x)),
 
-with ``g`` a standard normal, Laplace or Student-t (``nu_d`` degrees of freedom, one per dimension) density and
-``x`` the 14-dim encoding of the salient variables (:func:`pemviz.pem.encode_salient`). Two kinds:
-
-- :class:`NoisePEM`: heteroscedastic; ``(m(x), log s(x))`` from a small ReLU network (an :class:`MLNN` with 4
-  outputs), trained by maximum likelihood (``torch.distributions``) and evaluated in float64 numpy (loading one does
-  not import torch; training does, and :class:`NoiseNLL`, the loss, is in :mod:`pemviz.pem.modules`);
-- :class:`HomoscedasticNoise`: the baseline; a linear mean (or a constant) and one scale per dimension.
-
-Both evaluate densities, CDFs and samples with ``scipy.stats`` on their parameters; ``log_prob`` is in nats,
-float64. :func:`noise_training_data` builds the training set from the KITTI salient files, :func:`train_noise_pem`
-and :func:`fit_homoscedastic` fit the two kinds. The choice of family by held-out NLL is in
-``pemviz.studies.noise_eval`` (``pemviz pem eval``).
-"""
+``g`` a standard normal, Laplace or Student-t density, ``x`` the 14-dim encoding
+(:func:`pemviz.pem.encode_salient`). :class:`NoisePEM` is heteroscedastic, ``(m(x), log s(x))`` from a small ReLU
+network trained by maximum likelihood and evaluated in float64 numpy; :class:`HomoscedasticNoise` is the baseline.
+``log_prob`` is in nats. :func:`noise_training_data` builds the training set from the KITTI files,
+:func:`train_noise_pem` and :func:`fit_homoscedastic` fit; the family is chosen in ``pemviz.studies.noise_eval``."""
 
 from __future__ import annotations
 
@@ -157,10 +148,9 @@ class NoiseModel:
 @dataclass(frozen=True, eq=False, kw_only=True)
 class NoisePEM(NoiseModel):
     """The heteroscedastic noise PEM: an :class:`MLNN` (ReLU, no BatchNorm) with 4 outputs ``(m_range, m_lateral,
-    log s_range, log s_lateral)`` in units of ``target_scale`` (float64 ``[2]``, metres: the training errors' std per
-    dimension). ``state_dict`` holds the weights as trained (float32 numpy arrays under
-    :func:`pemviz.pem.network.mlnn_shapes`'s keys; torch tensors given are copied into numpy arrays);
-    :meth:`noise_params` evaluates the network in float64 numpy with the target scale folded into its last layer.
+    log s_range, log s_lateral)`` in units of ``target_scale`` (float64 ``[2]``, metres); ``state_dict`` holds the
+    weights as trained (float32 numpy arrays) and :meth:`noise_params` evaluates them in float64 numpy with the
+    target scale folded in.
 
     Raises:
         ValueError: a target scale not 2 finite values > 0, or a bad family; PemFormatError: weights that do not fit
@@ -242,14 +232,10 @@ class NoiseData:
 
 
 def noise_training_data(inputs: np.ndarray, label_table: np.ndarray, *, seed: int = 0) -> NoiseData:
-    """Metric measurement errors of the detected obstacles of the KITTI salient files.
-
-    Rows: detected (label column 0 = 1) with a range (loc_z) of at least :data:`MIN_RANGE_M`. The file rounds the
-    boxes and errors to whole pixels, so 29 % of the centre errors are exactly 0 and a continuous density would have an
-    unbounded likelihood there: each pixel error ``e_cx``, ``e_h`` is dequantised by adding uniform noise on
-    [-1/2, 1/2) pixel (Uria, Murray & Larochelle 2013; Theis, van den Oord & Bethge 2016, Sec. 3.1; the noise is drawn
-    from ``numpy.random.default_rng(seed)``), and the ground-truth box height stays ``h_d - e_h`` of the file. Then
-    :func:`pemviz.pem.camera.box_errors_to_metric`.
+    """Metric measurement errors of the detected obstacles of the KITTI salient files with a range of at least
+    :data:`MIN_RANGE_M`. The file rounds boxes and errors to whole pixels, so each pixel error is dequantised by
+    uniform noise on [-1/2, 1/2) pixel (Uria, Murray & Larochelle 2013; Theis, van den Oord & Bethge 2016, Sec. 3.1;
+    ``numpy.random.default_rng(seed)``) before :func:`pemviz.pem.camera.box_errors_to_metric`.
 
     Args:
         inputs: raw salient inputs ``[N, 11]`` (:data:`pemviz.pem.encoding.INPUT_COLUMNS`).
@@ -300,25 +286,21 @@ def train_noise_pem(
     progress: bool = False,
     metadata: Mapping[str, Any] | None = None,
 ) -> NoisePEM:
-    """Fit the heteroscedastic noise PEM by maximum likelihood (:class:`NoiseNLL`; the training loop of the ML-NN,
-    :func:`pemviz.pem.training.fit_network`: Adam, reshuffled mini-batches, float32, one thread, seeded).
-
-    The targets are divided by their std per dimension (``target_scale``) for training; :class:`NoisePEM` folds it
-    back. The same seed gives the same weights on the same torch build.
+    """Fit the heteroscedastic noise PEM by maximum likelihood (:class:`NoiseNLL`; the ML-NN's training loop,
+    :func:`pemviz.pem.training.fit_network`), the targets divided by their std per dimension (folded back by
+    :class:`NoisePEM`). The same seed gives the same weights on the same torch build.
 
     Args:
-        recipe: the name, family (one of :data:`FAMILIES`), network and optimiser settings (hidden, epochs,
-            batch_size, lr, weight_decay, seed).
+        recipe: the name, family (one of :data:`FAMILIES`), network and optimiser settings.
         inputs: raw salient inputs ``[M, 11]`` of detected obstacles.
         errors: their metric errors ``[M, 2]`` (metres).
-        norm: z-score statistics of the encoding (default: fitted on ``inputs``; pemviz uses the full file's).
+        norm: z-score statistics of the encoding (default: fitted on ``inputs``).
         progress: print the training's progress.
         metadata: extra provenance stored with the model.
 
     Raises:
         ValueError: shapes other than ``[M, 11]`` / ``[M, 2]``, non-finite errors, an unknown family, fewer than 2
-            rows, epochs < 1 or batch_size < 1.
-    """
+            rows, epochs < 1 or batch_size < 1."""
     import torch
 
     from pemviz.pem.modules import NoiseNLL

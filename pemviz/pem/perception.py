@@ -1,12 +1,7 @@
-"""A perception model with two heads: whether an obstacle is detected, and if so how wrong its measurement is.
-
-Per obstacle and step, with ``x`` the 14-dim encoding of its salient variables:
-
-    p(a, e | x) = p_PEM(a | x) * p_noise(e | x)^a,    a in {0, 1} (missed, detected), e = (dZ, dX) metres,
-
-the detection head any PEM (:class:`pemviz.pem.PEM`, :class:`pemviz.pem.TreePEM`: a logit of p(detected); Innes &
-Ramamoorthy 2022, Sec. IV-A) and the noise head a :class:`pemviz.pem.noise.NoiseModel`. A missed obstacle has no
-measurement, so its error does not enter the likelihood. ``pemviz.pem.store`` saves and loads the pair as one file.
+"""A perception model with two heads: whether an obstacle is detected, and if so how wrong its measurement is: p(a,
+e | x) = p_PEM(a | x) * p_noise(e | x)^a, a in {0, 1}, e = (dZ, dX) metres, x the 14-dim encoding; the detection
+head any PEM (Innes & Ramamoorthy 2022, Sec. IV-A), the noise head a :class:`pemviz.pem.noise.NoiseModel`.
+``pemviz.pem.store`` saves the pair as one file.
 """
 
 from __future__ import annotations
@@ -90,10 +85,8 @@ class NoisyPEM:
         return out
 
     def sample(self, features: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """One perception per row: ``(detected bool [R], errors float64 [R, 2])`` (metres; 0 where missed).
-
-        The uniforms of the detections, then the errors of every row, are drawn from ``rng`` whatever is detected, so
-        a seed fixes the errors' random numbers independently of the detections (common random numbers).
+        """One perception per row: ``(detected bool [R], errors float64 [R, 2])`` (metres; 0 where missed); the
+        errors' uniforms are drawn whatever is detected (common random numbers).
         """
         x = np.asarray(features, dtype=np.float64)
         detected = rng.random(x.shape[0]) < expit(self.logit(x))
@@ -104,11 +97,10 @@ class NoisyPEM:
 
 @dataclass(frozen=True, eq=False)
 class SalientDetector:
-    """A PEM as the detector of a scene's objects, reading each object row's 11 KITTI salient variables (raw
-    inputs, :data:`pemviz.pem.encoding.INPUT_COLUMNS`, in the columns ``salient`` of the row), with the noise PEM's
-    measurement errors when ``noise`` is given (a :class:`pemviz.core.detectors.NoisyDetector`): p(a, e | x) =
-    p_PEM(a | x) p_noise(e | x)^a (:class:`NoisyPEM`). Rows whose ``visible`` column holds 0 (an object the camera
-    cannot see: hidden, outside the image) are never detected (logit -inf), so they add nothing to any weight.
+    """A PEM as the detector of a scene's objects, reading each row's 11 KITTI salient variables (the columns
+    ``salient``), with the noise PEM's errors when ``noise`` is given (a
+    :class:`pemviz.core.detectors.NoisyDetector`, :class:`NoisyPEM`); rows whose ``visible`` column is 0 are never
+    detected (logit -inf).
 
     Args:
         detect: the detection PEM (:class:`pemviz.pem.PEM` or :class:`pemviz.pem.TreePEM`).
@@ -165,13 +157,10 @@ class SalientDetector:
         return a is b or (np.array_equal(a.mean, b.mean) and np.array_equal(a.std, b.std))
 
     def _evaluate(self, rows: np.ndarray) -> _Step:
-        """The detection head's work on rows [R, G]: which rows can be seen, their encoding (when :meth:`_encodes`)
-        and the logits. Kept for a read-only ``rows`` (:func:`pemviz.core.detectors.draw_step` hands each step's rows
-        to every detector as a new read-only view), recognised by identity when asked again (by the sampler, then the
-        target, then the noise head) within the step.
-
-        Rows that repeat (many rollouts in one state: :func:`repeated_rows`) are asked about once. A row's answer is
-        the same bit for bit: pemviz's PEMs compute each row on its own (:class:`pemviz.pem.network.GridMLP`)."""
+        """The detection head's work on rows [R, G] (visibility, encoding, logits), kept for a read-only ``rows``
+        and recognised by identity when the sampler, the target and the noise head ask again within the step;
+        repeated rows (:func:`repeated_rows`) are asked about once, with the same bits
+        (:class:`pemviz.pem.network.GridMLP`)."""
         kept = self._step
         if kept is not None and kept.rows is rows:
             return kept
@@ -235,11 +224,9 @@ class SalientDetector:
         return noise_log_density(self._noise.family, self._noise.df, *self.noise_params(rows), noise)
 
     def noise_draw(self, rows: np.ndarray, u: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The errors of the rows ``hit`` and their log density, the noise head evaluated once: exactly
-        ``e = noise_from_uniforms(rows[hit], u)`` and ``noise_log_prob(rows[hit], e)``.
-
-        The rows' encoded features are reused when the detection head just encoded these rows (the same read-only
-        array, every row of ``hit`` visible) with the noise head's z-score statistics.
+        """The errors of the rows ``hit`` and their log density, the noise head evaluated once: exactly ``e =
+        noise_from_uniforms(rows[hit], u)`` and ``noise_log_prob(rows[hit], e)``, reusing the detection head's
+        encoding where it fits.
 
         Args:
             rows: float64 [R, G] object rows.
@@ -294,13 +281,10 @@ rollouts' perceptions have set their egos apart, ask about a few hundred distinc
 
 
 def repeated_rows(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(first [D], inverse [S])`` with ``columns[:, first][:, inverse] == columns`` (exact equality) when the S rows
-    given feature by feature, float64 ``[K, S]``, hold few distinct ones, else None (they are asked about as they are).
-
-    Cheap when it declines: :data:`PROBE_ROWS` rows at fixed positions are looked at first, and more than
-    :data:`PROBE_DISTINCT` distinct ones among them decline. Otherwise rows are grouped by a float64 key (a fixed
-    combination of their values, elementwise: no BLAS) and every row is checked equal to its group's first row; a
-    key shared by unequal rows declines.
+    """``(first [D], inverse [S])`` with ``columns[:, first][:, inverse] == columns`` when the S rows (float64 ``[K,
+    S]``, feature by feature) hold few distinct ones, else None: :data:`PROBE_ROWS` rows are probed first (more than
+    :data:`PROBE_DISTINCT` distinct: None), then rows are grouped by a float64 key and checked equal to their
+    group's first.
     """
     s = columns.shape[1]
     if s < 4 * PROBE_ROWS:

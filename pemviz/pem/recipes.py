@@ -1,13 +1,7 @@
-"""Named PEMs: how ``pemviz pem train --model NAME`` (re)trains each shipped PEM.
-
-- ``ml-nn``: the paper's ML-NN (Innes & Ramamoorthy (2022), Table I), shipped as ``pemviz/assets/pem_ml-nn.pt``.
-- ``gbt``: gradient-boosted trees on the same 14 features, the best model of pemviz's 5-fold
-  cross-validation, shipped as ``pemviz/assets/pem_gbt.pt``.
-
-- ``hetero-t``: the noise PEM (heteroscedastic Student-t, :mod:`pemviz.pem.noise`), chosen by 5-fold cross-validated
-  NLL against Normal and Laplace heads and the homoscedastic baselines, shipped as ``pemviz/assets/noise_hetero-t.pt``.
-
-``seed`` is the seed of the shipped weights; ``pemviz/assets/README.md`` says why each was chosen.
+"""Named PEMs: how ``pemviz pem train --model NAME`` (re)trains each shipped PEM: ``ml-nn`` (the paper's ML-NN,
+Innes & Ramamoorthy (2022), Table I), ``gbt`` (gradient-boosted trees, the best by pemviz's 5-fold cross-validation)
+and the noise PEM ``hetero-t`` (a heteroscedastic Student-t, chosen by cross-validated NLL), in ``pemviz/assets/``.
+``seed`` is the shipped weights'; ``pemviz/assets/README.md`` says why each was chosen.
 """
 
 from __future__ import annotations

@@ -1,16 +1,11 @@
 """Store and find PEMs: the shipped ``pemviz/assets/pem_<name>.pt`` and ``noise_<name>.pt`` files (package data),
 atomic saves, and the authors' reference PEM.
 
-A PEM file is a ``torch.save`` of a plain dict that ``torch.load(weights_only=True)`` reads: format tag
-``pemviz-pem``, version, ``kind`` (``mlp`` for :class:`PEM`, ``gbt`` for :class:`TreePEM`), name, the
-z-score statistics (float64 tensors), the model's tensors and plain-value metadata. A noise PEM file
-(:func:`save_noise_pem`) is the same with tag ``pemviz-noise-pem``, kind ``mlp`` (:class:`NoisePEM`) or ``linear``
-(:class:`HomoscedasticNoise`), the family and its degrees of freedom. A :class:`NoisyPEM` file
-(:func:`save_noisy_pem`, tag ``pemviz-noisy-pem``) holds the two heads' dicts under ``detect`` and ``noise``.
-
-Loading does not import torch: :func:`pemviz.core.torch_payload.load_payload` reads the ``torch.save`` archive into
-numpy arrays (and asks torch only for a file it does not understand). Saving imports torch (``torch.save``).
-"""
+A PEM file is a ``torch.save`` of a plain dict readable with ``weights_only=True``: format tag ``pemviz-pem``,
+version, ``kind`` (``mlp`` :class:`PEM`, ``gbt`` :class:`TreePEM`), name, z-score statistics, the model's tensors
+and metadata; a noise PEM file has tag ``pemviz-noise-pem`` and kind ``mlp`` or ``linear``; a :class:`NoisyPEM` file
+(``pemviz-noisy-pem``) holds both heads under ``detect`` and ``noise``. Loading does not import torch
+(:func:`pemviz.core.torch_payload.load_payload`); saving does."""
 
 from __future__ import annotations
 
@@ -46,10 +41,8 @@ AnyPEM = PEM | TreePEM
 
 
 def assets_dir() -> Path:
-    """``$PEMVIZ_ASSETS_DIR`` if set, else the package's own ``pemviz/assets`` folder.
-
-    The shipped PEMs are package data (``importlib.resources``), so a wheel install finds them as a
-    checkout does.
+    """``$PEMVIZ_ASSETS_DIR`` if set, else the package's own ``pemviz/assets`` folder (package data, found by a
+    wheel install too).
     """
     env = os.environ.get(ASSETS_DIR_ENV)
     if env:
@@ -81,10 +74,8 @@ def _plain(value: Any) -> Any:
 
 
 def save_pem(pem: AnyPEM, path: str | os.PathLike[str]) -> Path:
-    """Write a PEM atomically (temporary file in the same folder, then ``os.replace``).
-
-    ``torch.load(path, weights_only=True)`` reads the file back (see the module docstring); about 10 KB
-    for the ML-NN, about 0.5 MB for the 300-tree ``gbt``.
+    """Write a PEM atomically (temporary file in the same folder, then ``os.replace``), readable with
+    ``torch.load(path, weights_only=True)``.
 
     Raises:
         OSError: the folder is not writable (nothing is left behind).
@@ -215,11 +206,8 @@ def _pem_from_payload(payload: Mapping[str, Any], p: Path) -> AnyPEM:
 
 
 def resolve_pem(ref: str | os.PathLike[str] | None) -> str | os.PathLike[str] | None:
-    """What ``--pem`` takes in every command, checked before any work: the name of a shipped PEM (``ml-nn``,
-    ``gbt``: :func:`shipped_pems`) or a PEM file, returned as given; None (the shipped default) stays None.
-
-    A name (no ``.pt`` suffix, no folder) is looked up among the shipped PEMs, anything else as a file, as
-    :func:`load_pem` does.
+    """What ``--pem`` takes in every command, checked before any work: a shipped PEM's name (no ``.pt`` suffix or
+    folder, :func:`shipped_pems`) or a PEM file, returned as given; None (the shipped default) stays None.
 
     Raises:
         FileNotFoundError: neither a shipped PEM nor a file; the message lists the shipped PEMs.
@@ -304,12 +292,9 @@ def reference_pem_dir() -> Path:
 
 
 def load_reference_pem(folder: str | os.PathLike[str] | None = None) -> PEM:
-    """The authors' ML-NN (CarlaStuff ``models/det_baseline_full/pem_class_train_full`` with
-    ``norm_stats_mu.pt`` / ``norm_stats_std.pt``) as a :class:`PEM` named ``authors``.
-
-    Their stats are float32 over all 11 columns; the pose columns 7..10 are used. The files are read as
-    ``torch.load(weights_only=True)`` reads them (:func:`pemviz.core.torch_payload.load_payload`: without torch when
-    it understands them).
+    """The authors' ML-NN (CarlaStuff ``models/det_baseline_full/pem_class_train_full`` with ``norm_stats_mu.pt`` /
+    ``norm_stats_std.pt``, pose columns 7..10) as a :class:`PEM` named ``authors``, read by
+    :func:`pemviz.core.torch_payload.load_payload`.
 
     Raises:
         FileNotFoundError: the folder or one of its three files is missing.

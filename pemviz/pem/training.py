@@ -1,9 +1,7 @@
-"""Training the network PEMs: the recipes' shared part (:class:`Recipe`: ``train`` with the recipe's seed and
-epochs; :class:`NetworkRecipe`: the settings of the training loop), the paper's ML-NN (Innes & Ramamoorthy 2022,
-Sec. IV-A: BCE with logits, Adam lr 1e-3, batch 1024, 300 epochs, eval mode; the authors' ``train_tp_pem_det.py``):
-:class:`PemRecipe`, :func:`train_pem`, and the training loop :func:`fit_network` that the noise PEM
-(:mod:`pemviz.pem.noise`) shares. Training imports torch (about 1 s); the :class:`~pemviz.pem.network.PEM` it returns
-is evaluated without it. The named recipes are in :mod:`pemviz.pem.recipes`.
+"""Training the network PEMs: the recipes' shared part (:class:`Recipe`, :class:`NetworkRecipe`), the paper's ML-NN
+(:class:`PemRecipe`, :func:`train_pem`; Innes & Ramamoorthy 2022, Sec. IV-A, the authors' ``train_tp_pem_det.py``)
+and the training loop :func:`fit_network` the noise PEM shares. Imports torch; the returned
+:class:`~pemviz.pem.network.PEM` is evaluated without it.
 """
 
 from __future__ import annotations
@@ -96,11 +94,8 @@ def train_pem(
     metadata: Mapping[str, Any] | None = None,
 ) -> PEM:
     """Train a PEM network with a recipe's architecture and optimiser settings (the paper's: Innes & Ramamoorthy
-    (2022), Sec. V; the authors' ``train_tp_pem_det.py``).
-
-    BCE with logits, Adam (lr 1e-3), mini-batches of 1024 reshuffled every epoch, 300 epochs, float32;
-    seeded (``torch.manual_seed(seed)`` for the initial weights, a seeded generator for the shuffles), so
-    the same seed gives the same weights on the same torch build.
+    (2022), Sec. V): BCE with logits, Adam (lr 1e-3), mini-batches of 1024 reshuffled every epoch, 300 epochs,
+    float32, seeded: the same seed gives the same weights on the same torch build.
 
     Args:
         recipe: the name, architecture (hidden, batch_norm, dropout), optimiser settings (epochs, batch_size, lr,
@@ -147,14 +142,10 @@ def fit_network(
     progress: bool = False,
     out_dim: int = 1,
 ) -> tuple[MLNN, float, dict[str, Any]]:
-    """The training loop of :func:`train_pem` (and of the noise PEM): an :class:`MLNN` with ``out_dim`` outputs on
-    float32 inputs ``x [N, 14]`` and targets ``t [N, ...]``, minimising ``loss_fn(module(x[batch]), t[batch])``.
-
-    Adam (lr, weight_decay) over the network's and the loss's own parameters (e.g. the noise PEM's Student-t degrees
-    of freedom), mini-batches reshuffled every epoch by a generator seeded with ``seed``, initial weights from
-    ``torch.manual_seed(seed)``, one CPU thread (tiny networks gain nothing from threads, and one is reproducible).
-    Returns the module in eval mode, the last epoch's mean training loss and the recipe's settings as metadata
-    (seed, epochs, batch_size, lr, weight_decay).
+    """The training loop of :func:`train_pem` and the noise PEM: an :class:`MLNN` with ``out_dim`` outputs on
+    float32 ``x [N, 14]`` and targets ``t [N, ...]`` minimising ``loss_fn(module(x[batch]), t[batch])`` by Adam over
+    the network's and the loss's parameters, seeded shuffles and weights, one CPU thread. Returns the module in eval
+    mode, the last epoch's mean loss and the settings as metadata.
     """
     import torch
     from tqdm.auto import tqdm

@@ -1,15 +1,10 @@
-"""A gradient-boosted-trees PEM (scikit-learn's HistGradientBoostingClassifier) on the same 14 features.
+"""A gradient-boosted-trees PEM (scikit-learn's HistGradientBoostingClassifier) on the same 14 features, pemviz's best
+by 5-fold cross-validation on the paper's folds (``pemviz.studies.pem_eval``).
 
-pemviz's better-than-the-paper PEM: chosen by 5-fold cross-validation on the paper's folds
-(see ``pemviz.studies.pem_eval`` and ``pemviz/assets/README.md``). scikit-learn fits the trees; pemviz exports them
-into flat float64 / int arrays (``torch.save``-able, no pickle) and evaluates them itself:
-
-- :meth:`TreePEM.logit` walks all trees at once, vectorised over rows (equal to scikit-learn's
-  ``decision_function`` to float64 summation order; tested against it);
-- along the braking scenario only the z-scored loc_z varies, so the model is an exactly piecewise-constant
-  function of it with steps at the trees' loc_z thresholds; :meth:`TreePEM.logit_at_gap` is one
-  ``searchsorted`` into that table, with the same ``<=`` comparisons as the trees themselves.
-"""
+scikit-learn fits the trees; pemviz exports them into flat float64 / int arrays (no pickle) and evaluates them
+itself: :meth:`TreePEM.logit` walks all trees at once (equal to scikit-learn's ``decision_function`` to summation
+order, tested), and :meth:`TreePEM.logit_at_gap` is one ``searchsorted`` into the piecewise-constant function of the
+gap."""
 
 from __future__ import annotations
 
@@ -135,10 +130,8 @@ class TreePEM:
         return self.logit_features(encode_salient(raw_inputs, self.norm))
 
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
-        """Logit of p(detect) of the braking scenario's lead car at ``gap_m`` metres (any shape; same shape out).
-
-        Exactly ``self.logit(braking_salient_inputs(gap_m))``: the same loc_z arithmetic and the same ``<=``
-        comparisons, looked up in the precomputed step table.
+        """Logit of p(detect) of the braking scenario's lead car at ``gap_m`` metres (any shape; same shape out):
+        exactly ``self.logit(braking_salient_inputs(gap_m))``, looked up in the precomputed step table.
         """
         zn = braking_z_scored(gap_m, self.norm)
         return self._gap_values[np.searchsorted(self._gap_z_thresholds, zn, side="left")]
@@ -174,11 +167,9 @@ def _max_depth(roots: np.ndarray, left: np.ndarray, right: np.ndarray, internal:
 def export_hist_gradient_boosting(
     model: Any, norm: NormStats, *, name: str, metadata: Mapping[str, Any] | None = None
 ) -> TreePEM:
-    """Flatten a fitted binary ``sklearn.ensemble.HistGradientBoostingClassifier`` (numeric features, no
-    missing values) into a :class:`TreePEM`.
-
-    Reads scikit-learn's fitted trees (``_predictors[i][0].nodes``, ``_baseline_prediction``); the test
-    suite checks the result against ``model.decision_function``.
+    """Flatten a fitted binary ``sklearn.ensemble.HistGradientBoostingClassifier`` (numeric features, no missing
+    values; its ``_predictors`` and ``_baseline_prediction``) into a :class:`TreePEM`, tested against
+    ``decision_function``.
 
     Raises:
         ValueError: a multi-class model or categorical splits.
