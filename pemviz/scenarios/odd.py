@@ -1,11 +1,7 @@
 """A scenario's parameters over an operating design domain: ``pemviz run --param NAME~DIST`` (``gap0_m~uniform(10,
-14)``) draws the parameter of each rollout from a distribution (:mod:`pemviz.core.odd`) instead of fixing it.
-
-A scenario says which of its parameters may be drawn per rollout (:attr:`pemviz.scenarios.registry.Scenario.
-random_params`, with the factory of its problem over an ODD, :attr:`~pemviz.scenarios.registry.Scenario.odd`); any
-other parameter is refused in one line. In the run's :attr:`pemviz.config.ExperimentConfig.scenario_params` a drawn
-parameter is the pair ``(name, "~uniform(10, 14)")``: :func:`odd_value` checks it (the distribution parses, its support
-lies in the parameter's range), :func:`split_odd` separates the fixed parameters from the :class:`pemviz.core.odd.ODD`.
+14)``) draws the parameter of each rollout from a distribution (:mod:`pemviz.core.odd`), where the scenario allows
+it (:attr:`pemviz.scenarios.registry.Scenario.random_params`); a drawn parameter travels as ``(name, "~uniform(10,
+14)")``, checked by :func:`odd_value` and separated by :func:`split_odd`.
 """
 
 from __future__ import annotations

@@ -1,9 +1,7 @@
-"""What a scenario's panel hooks return (:class:`pemviz.app.drawing.PanelDrawing`): plain data, no viser, no colours.
-
-The panel draws one of two kinds of scene. A :class:`LaneScene`: the ego and one object ahead of it in its lane, zones
-ahead of the ego's sensor (:class:`Zone`), a ruler from the sensor to the object's rear, the rollout explained step by
-step. An :class:`ObjectsScene`: several objects on a road of lanes, each seen from the ego. The hooks name the objects
-and the zones and give their sizes; the panel picks the colours by :attr:`Zone.role` and :attr:`Series.role`.
+"""What a scenario's panel hooks return (:class:`pemviz.app.drawing.PanelDrawing`): plain data, no viser, no
+colours: a :class:`LaneScene` (the ego and one object ahead, zones ahead of the sensor, a ruler, the rollout
+explained step by step) or an :class:`ObjectsScene` (several objects on a road of lanes); the panel colours by
+:attr:`Zone.role` and :attr:`Series.role`.
 """
 
 from __future__ import annotations

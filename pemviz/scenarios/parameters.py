@@ -1,18 +1,10 @@
 """Scenario parameters a user can set (``pemviz run --param NAME=VALUE``), derived from each scenario's dataclass.
 
-A scenario's parameters are the scalar fields (float, int, bool) of its params dataclass
-(:class:`pemviz.scenarios.braking.simulator.BrakingParams`, :class:`pemviz.scenarios.cut_in.scenario.CutInParams`), each
-with its default (the scenario's own: ``cut-in-rare`` starts its cut-in vehicle further back,
-``RARITY_SETTINGS["rare"]``), its type and its unit (read from the name's suffix: ``_m`` metres, ``_mps`` m/s, ``_mps2``
-m/s^2, ``_s`` seconds, ...). The range of a value is the dataclass's own check (its ``__post_init__``):
-:func:`apply_parameters` builds the dataclass and passes its one-line message on. Fields that are not scalars (the
-cut-in's traffic, IDM and tracker constants, the braking scenario's lead speed profile and brake curve) are not
-parameters.
-
-The run's parameters travel in :attr:`pemviz.config.ExperimentConfig.scenario_params` as ``(name, value)`` pairs;
-:func:`pemviz.scenarios.problems.problem_for` builds the scenario from them. This module imports the two scenario
-dataclasses and nothing heavier (no PEM, no torch; the cut-in's only for a cut-in): the config checks the pairs here.
-"""
+A scenario's parameters are the scalar fields (float, int, bool) of its params dataclass, each with its default,
+type and unit (from the name's suffix: ``_m`` metres, ``_mps`` m/s, ``_s`` seconds, ...); their range is the
+dataclass's own ``__post_init__`` check, whose one-line message :func:`apply_parameters` passes on. They travel in
+:attr:`pemviz.config.ExperimentConfig.scenario_params` as ``(name, value)`` pairs;
+:func:`pemviz.scenarios.problems.problem_for` builds the scenario from them. No PEM or torch is imported here."""
 
 from __future__ import annotations
 

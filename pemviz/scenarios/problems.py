@@ -1,16 +1,11 @@
 """The built-in scenarios' problems: each scenario as a :class:`pemviz.core.problems.Problem`.
 
-The braking scenario of Innes & Ramamoorthy (2022) (:func:`braking_problem`, its safety formula
-:func:`braking_formula`), the toy (:func:`toy_problem`), the crowd toy (:func:`crowd_problem`) and the cut-in
-(:func:`cut_in_problem` at a named setting :func:`cut_in_params`); the named problems with a known exact answer
-(:data:`PROBLEMS`, :data:`TOY_PROBLEMS`, :data:`CROWD_PROBLEMS`, built by :func:`build_problem`), the problem a run of
-a config estimates (:func:`problem_for`) and its alternative targets (:func:`with_alternatives`, :data:`PEM_SHIFTS`).
-Each scenario's problem lives in its package, its one import path (:mod:`pemviz.scenarios.braking.problem`,
-:mod:`pemviz.scenarios.cut_in.problem`, :mod:`pemviz.scenarios.toy.problem`, :mod:`pemviz.scenarios.crowd.problem`);
-this module builds them (the cut-in's modules imported by a cut-in run alone). The scene-neutral
-:class:`~pemviz.core.problems.Problem` and :func:`~pemviz.core.problems.rollout_functions` are in
-:mod:`pemviz.core.problems`.
-"""
+The braking scenario (:func:`braking_problem`, :func:`braking_formula`), the toy (:func:`toy_problem`), the crowd
+toy (:func:`crowd_problem`) and the cut-in (:func:`cut_in_problem`, :func:`cut_in_params`); the named problems with
+a known exact answer (:data:`PROBLEMS`, :data:`TOY_PROBLEMS`, :data:`CROWD_PROBLEMS`, :func:`build_problem`), the
+problem a run of a config estimates (:func:`problem_for`) and its alternative targets (:func:`with_alternatives`,
+:data:`PEM_SHIFTS`). Each problem lives in its scenario's package; the cut-in's modules are imported by a cut-in run
+alone."""
 
 from __future__ import annotations
 
@@ -67,10 +62,8 @@ CROWD_PROBLEMS: dict[str, CrowdParams] = {
 
 @functools.cache
 def build_problem(name: str, pem_path: str | None = None) -> Problem:
-    """The :class:`Problem` named ``name`` in :data:`PROBLEMS` (built once per process and argument pair).
-
-    ``pem_path``: the PEM of the braking problems (``latched``, ``main``; None: the shipped default), run on the
-    ``batched`` simulator.
+    """The :class:`Problem` named ``name`` in :data:`PROBLEMS` (built once per process and argument pair),
+    ``pem_path`` the braking problems' PEM (None: the shipped default).
 
     Raises:
         ValueError: an unknown name (allowed: :data:`PROBLEMS`).
@@ -86,9 +79,8 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
 
 def problem_for(config: Any) -> Problem:
     """The problem a run of ``config`` estimates: its scenario's registry factory called with the config
-    (:attr:`pemviz.scenarios.registry.Scenario.factory`: :func:`braking_run_problem`, :func:`cut_in_run_problem`, a
-    plugin's own), which reads the parameters ``config.scenario_params`` and the PEM ``pem``. Loads the PEM on
-    every call (a changed file is read again).
+    (:attr:`pemviz.scenarios.registry.Scenario.factory`), which reads ``config.scenario_params`` and the PEM ``pem``
+    (loaded on every call).
 
     Raises:
         pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
@@ -113,11 +105,9 @@ def braking_run_problem(config: Any, params: BrakingParams | None = None) -> Pro
 
 
 def cut_in_run_problem(config: Any, params: Any = None) -> Problem:
-    """A cut-in scenario's problem (the registry's factory of ``cut-in`` and ``cut-in-rare``) at ``params`` (a
-    :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`; None: the ``moderate`` setting), named after
-    ``config.scenario``, the PEMs ``pem`` (``config`` None: the shipped ones), with the plain Monte Carlo
-    reference of a rarity setting (:data:`pemviz.scenarios.cut_in.scenario.MONTE_CARLO_REFERENCE`) where the scene is
-    that setting's own and the PEMs the shipped ones, under which it was drawn."""
+    """A cut-in scenario's problem (the factory of ``cut-in`` and ``cut-in-rare``) at ``params`` (None: the
+    ``moderate`` setting), named after ``config.scenario``, with the PEMs ``pem`` and, for a rarity setting's own
+    scene under the shipped PEMs, its plain Monte Carlo reference."""
     from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
     from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE, RARITY_SETTINGS, CutInParams
 
@@ -138,10 +128,9 @@ PEM_SHIFTS = (-1.0, -0.5, 0.5, 1.0)
 
 
 def with_alternatives(problem: Problem, config: Any) -> Problem:
-    """``problem`` with the alternative targets ``config`` asks for (:mod:`pemviz.core.reweight`): with
-    ``pem_uncertainty`` every member of the PEM's ensemble (:func:`pemviz.pem.ensemble.ensemble_for`) and the shifts
-    :data:`PEM_SHIFTS`, and ``pem_shift`` D; each with its exact answer where the truth knows it (the braking
-    scenario's PEM fingerprints, :func:`pemviz.scenarios.braking.truth_known.known_log_failure_probability`).
+    """``problem`` with the alternative targets ``config`` asks for (:mod:`pemviz.core.reweight`): the PEM
+    ensemble's members and :data:`PEM_SHIFTS` with ``pem_uncertainty``, the shift ``pem_shift``; each with its exact
+    answer where known (:func:`pemviz.scenarios.braking.truth_known.known_log_failure_probability`).
 
     Raises:
         FileNotFoundError, pemviz.pem.network.PemFormatError: no ensemble for the PEM, or a damaged one.

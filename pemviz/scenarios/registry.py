@@ -1,21 +1,14 @@
 """The scenario registry: every scenario pemviz can build a problem for, by name (as Gymnasium's ``gymnasium.register``
 and ``gymnasium.make`` name environments).
 
-A :class:`Scenario` is a small record: its name, a one-line description, the dataclass of its parameters, a factory
-that builds its :class:`pemviz.core.problems.Problem`, whether that problem carries an exact answer, and optionally the
-single black-box simulator its batched twin must match. :func:`register` adds one, :func:`registered` lists the
-names, :func:`get` returns the record. The kit of :mod:`pemviz.testing` (``check_scenario(name)``) checks any
-registered scenario, so a scenario of one's own is checked by the same tests as pemviz's.
+A :class:`Scenario` is a small record: its name, a description, the dataclass of its parameters, a factory that
+builds its :class:`pemviz.core.problems.Problem`, whether that problem carries an exact answer, and optionally the
+single simulator its batched twin must match. :func:`register` adds one, :func:`registered` lists the names,
+:func:`get` returns the record; ``pemviz.testing.check_scenario(name)`` checks any registered one.
 
-The built-in scenarios are the run scenarios of :data:`pemviz.settings.SCENARIOS` (``braking``, ``cut-in``,
-``cut-in-rare``), the two toys with closed-form answers that ``pemviz validate`` uses (``toy``, ``crowd``), and the
-``crossing`` scene built on the library's perception stack (:mod:`pemviz.scenarios.crossing`, :mod:`pemviz.stack`).
-
-A factory, a parameters dataclass or a simulator may be given as an object or, as Gymnasium's ``entry_point``, as the
-text ``"package.module:name"``, imported when it is first used: this module imports no problem (the problems' module
-imports :mod:`pemviz.scenarios`, which imports :func:`registered` and :func:`register` from here, the user guide's
-import path), so listing the scenarios loads no PEM, no problem and no torch.
-"""
+A factory, a parameters dataclass or a simulator may be given as an object or as the text ``"package.module:name"``
+(as Gymnasium's ``entry_point``), imported when first used, so listing the scenarios loads no PEM, no problem and no
+torch."""
 
 from __future__ import annotations
 
@@ -57,47 +50,36 @@ class Scenario:
     Attributes:
         name: the registry's key (``braking``, ``toy``, ``my-robot``).
         description: one line saying what is simulated and what a failure is.
-        params: the dataclass of its parameters (a frozen dataclass whose ``__post_init__`` raises ValueError for a
-            value outside its range), or None: the scenario has no parameters. A :data:`Ref`.
-        factory: ``factory(config, params) -> Problem``: the :class:`pemviz.core.problems.Problem` of a run of
-            ``config`` (a :class:`pemviz.config.ExperimentConfig`: its PEM, simulator back-end; None where a caller
-            gives none: the defaults) with the parameters ``params`` (an instance of :attr:`params`, or None without
-            them). For a scenario of
-            :data:`pemviz.settings.SCENARIOS` the config also carries the parameters (``scenario_params``). A
-            :data:`Ref`.
+        params: the dataclass of its parameters (frozen, ``__post_init__`` raises ValueError for a value outside its
+            range), or None: no parameters. A :data:`Ref`.
+        factory: ``factory(config, params) -> Problem``: the problem of a run of ``config`` (a
+            :class:`pemviz.config.ExperimentConfig`, or None: the defaults) with the parameters ``params`` (an
+            instance of :attr:`params`, or None). A :data:`Ref`.
         exact: whether its problem carries an exact answer (``Problem.exact_log_p``) at its default parameters.
-        simulator: optional, ``simulator(params) -> Simulator``: the single black-box simulator (one rollout, the
-            :class:`pemviz.core.rollouts.Simulator` protocol) whose rollouts the problem's batched twin must reproduce
-            bit for bit; None: no separate simulator. A :data:`Ref`.
-        defaults: optional, ``defaults() -> params``: the parameters at the scenario's defaults (None: ``params()``;
-            ``cut-in-rare`` starts from another gap than the dataclass's). A :data:`Ref`.
+        simulator: optional, ``simulator(params) -> Simulator``: the single black-box simulator
+            (:class:`pemviz.core.rollouts.Simulator`) whose rollouts the batched twin must reproduce bit for bit. A
+            :data:`Ref`.
+        defaults: optional, ``defaults() -> params``: the parameters at the scenario's defaults (None:
+            ``params()``). A :data:`Ref`.
         drawing: optional, ``drawing(params) -> object``: the scenario's drawing object
-            (:class:`pemviz.core.drawing.Drawing`, also :attr:`pemviz.core.problems.Problem.drawing`), which the panel
-            draws before any run; None: the scenario has no scene of its own. A :data:`Ref`.
-        cost_factor: how many times the cost model's reference rollout step (:mod:`pemviz.engine.cost`, measured on
-            the braking scenario's batched twin) one rollout step of this scenario costs, > 0 (default 1): the run's
-            predicted seconds scale by it (:data:`pemviz.settings.SCENARIO_COST_FACTORS`).
-        cost_parts: how many times the cost model's reference the scene's other parts cost, each > 0, where they
-            are not the braking scenario's: ``step`` the fixed cost of a batch's time step (its objects, tracker and
-            the proposal's measurement-error head, whatever the batch's size), ``fit`` a proposal's fit; ``torch``
-            (any value > 0): its proposal's fits run on torch, which a first run in a process imports
-            (:func:`pemviz.engine.cost.stage_cost`; :data:`pemviz.settings.SCENARIO_COST_PARTS`); empty: none.
-        random_params: the parameters that may be drawn per rollout from a distribution over an operating design
-            domain (``--param NAME~DIST``, :mod:`pemviz.scenarios.odd`); empty: none.
-        odd: ``odd(config, params, odd) -> Problem``: the problem over the ODD (:class:`pemviz.core.odd.ODD`) of
-            the parameters in :attr:`random_params`, the others fixed at ``params``; each rollout draws its own
-            (:func:`pemviz.core.odd_rollouts.odd_rollout_functions`). A :data:`Ref`; None: no ODD.
-        n_objects: the objects its problem perceives a step at its defaults (``Problem.n_objects``), which a config
-            checks a method against before anything is loaded (a ``n_objects`` parameter, where it has one, wins).
-        run_defaults: the settings a run of it takes when neither a method nor a preset is asked for (``pemviz run
-            --scenario NAME``, the panel): e.g. ``{"method": "mc", "n_per_stage": 50_000}``; empty: the config's
-            defaults (:func:`pemviz.config.scene_defaults`).
-        odd_defaults: those settings over an operating design domain (a parameter drawn per rollout), in place of
-            :attr:`run_defaults`; empty: :attr:`run_defaults`.
-        beyond: one line saying why no method shipped today answers at the scene's rarity (its p, what each method
-            gives there), or empty: one does. A run of it whose verdict is not ``reliable`` then says so with the
-            bound it has (``next:``, :func:`pemviz.sinks.console.next_step`), in place of a method that cannot.
-    """
+            (:class:`pemviz.core.drawing.Drawing`), which the panel draws before any run. A :data:`Ref`.
+        cost_factor: the cost of one rollout step relative to the cost model's reference
+            (:mod:`pemviz.engine.cost`), > 0 (default 1).
+        cost_parts: the relative cost of the scene's other parts, each > 0: ``step`` (a batch's fixed cost per time
+            step), ``fit`` (a proposal's fit), ``torch`` (its fits run on torch); empty: none.
+        random_params: the parameters that may be drawn per rollout over an operating design domain (``--param
+            NAME~DIST``, :mod:`pemviz.scenarios.odd`); empty: none.
+        odd: ``odd(config, params, odd) -> Problem``: the problem over the ODD (:class:`pemviz.core.odd.ODD`) of the
+            parameters in :attr:`random_params` (:func:`pemviz.core.odd_rollouts.odd_rollout_functions`). A
+            :data:`Ref`; None: no ODD.
+        n_objects: the objects its problem perceives a step at its defaults, checked against a method before
+            anything is loaded.
+        run_defaults: the settings a run of it takes when neither a method nor a preset is asked for, e.g.
+            ``{"method": "mc", "n_per_stage": 50_000}``; empty: the config's defaults.
+        odd_defaults: those settings over an operating design domain, in place of :attr:`run_defaults`; empty:
+            :attr:`run_defaults`.
+        beyond: one line saying why no shipped method answers at the scene's rarity, shown with a run's ``next:``
+            advice when its verdict is not ``reliable``; empty: one does."""
 
     name: str
     description: str
@@ -192,15 +174,12 @@ class Scenario:
 
     def problem(self, config: Any = None, params: Mapping[str, object] | None = None) -> Any:
         """The :class:`pemviz.core.problems.Problem` of this scenario for ``config`` (a
-        :class:`pemviz.config.ExperimentConfig`: its PEM, back-end and parameters; None: the factory's own defaults)
-        with the parameters ``params`` (name -> value; None: the config's where it is one of this scenario, else the
-        scenario's defaults), the same for a built-in scenario and a plugin's. The registry sits below the config: it
-        takes one and never makes one.
+        :class:`pemviz.config.ExperimentConfig`; None: the factory's defaults) with the parameters ``params`` (name
+        -> value; None: the config's where it is one of this scenario, else the scenario's defaults).
 
         Raises:
             ValueError: parameters the scenario refuses (:class:`pemviz.scenarios.parameters.ParameterError`).
-            pemviz.pem.network.PemFormatError, OSError: the config's PEM cannot be read.
-        """
+            pemviz.pem.network.PemFormatError, OSError: the config's PEM cannot be read."""
         from pemviz.scenarios.odd import split_odd
         from pemviz.scenarios.parameters import representative
 
@@ -365,11 +344,9 @@ def known(name: str) -> Scenario | None:
 
 
 def no_method_answers(scenario: str, params: Any, est: Any) -> str | None:
-    """The ``next:`` line of a run of the scenario named ``scenario`` with the parameters ``params`` (a config's
-    ``scenario_params``: (name, value) pairs) whose estimate ``est``
-    (:class:`pemviz.core.estimate.Estimate`) is not ``reliable``, on a scene at its defaults at whose rarity no method
-    shipped today answers (:attr:`Scenario.beyond`): that, why, and the bound the run has (plain Monte Carlo's
-    Clopper-Pearson upper bound with no failure, an interval it backs, else its lower bound); None elsewhere."""
+    """The ``next:`` line of a non-``reliable`` run of ``scenario`` with ``params`` (a config's ``scenario_params``)
+    and estimate ``est`` on a scene at its defaults whose rarity no shipped method answers
+    (:attr:`Scenario.beyond`): that, why, and the bound the run has; None elsewhere."""
     from pemviz.core.estimate import format_probability
 
     record = known(scenario or "")
@@ -409,10 +386,8 @@ checks it)."""
 
 _CROSSING_COST_PARTS = {"step": 9.0, "fit": 1.55, "torch": 1.0}
 """A crossing batch's time step costs 9 braking ones whatever its size (two tracked pedestrians, the noise PEM's
-errors, and the proposal's measurement-error head on torch), its fits 1.55 braking's (the error head's): CPU seconds per
-part of its default run's stages against braking's in the same process, 4.2-5.2 (proposal steps), 2.8-4.4 (PEM
-steps) and 1.1-1.7 (CE fits) times braking's over the model's (3 readings) (2026-11-29, ``benchmarks/calibrate_cost.py
---parts``); the first of its fits imports torch (braking's run never does)."""
+errors, the measurement-error head on torch), its fits 1.55 braking's; its first fit imports torch
+(``benchmarks/calibrate_cost.py --parts``, docs/validation.md)."""
 
 
 def _cut_in(name: str, rarity: str, defaults: str, **more: Any) -> Scenario:

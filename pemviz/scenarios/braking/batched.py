@@ -1,37 +1,18 @@
 """The braking scenario's batched twin: N rollouts advance together in numpy float64.
 
-:class:`BrakingScenario` steps two highway-env vehicles per rollout (~100 us a step); here the N rollouts
-of one batch advance together, the detector is asked once per step for the whole batch, and 10^6
-rollouts stream through in chunks of bounded memory.
+The N rollouts of a batch step together, the detector is asked once per step for the whole batch, and 10^6 rollouts
+stream through in chunks of bounded memory. The arithmetic is :class:`BrakingScenario`'s, IEEE-754 operation for
+operation (:func:`pemviz.scenarios.braking.simulator.ego_acceleration`, highway-env's explicit Euler on a straight
+lane, the gap as :attr:`BrakingScenario.gap_m`), so both give bit-identical trajectories for the same detections
+(``tests/scenarios/test_batched.py``).
 
-Same scenario, same arithmetic. The ego's control step is :func:`pemviz.scenarios.braking.simulator.ego_acceleration`
-itself (already vectorised over rollouts); the motion is highway-env's ``Vehicle.step`` on a straight
-lane with zero steering and heading (explicit Euler: ``x += v dt`` and then ``v += a dt``, the slip angle
-and the heading change being exactly 0), the ego's speed is clamped at 0 after each step, the gap is
-``(x_lead - L_lead / 2) - (x_ego + camera_offset)`` as :attr:`BrakingScenario.gap_m` computes it, and the
-lead follows :attr:`BrakingParams.lead_accel_mps2`. The lead does not react to anything, so its state is
-one pair of scalars shared by all rollouts. Every operation is an IEEE-754 float64 operation in the same
-order as the black-box path, so the two give bit-identical trajectories for the same detections
-(``tests/scenarios/test_batched.py``). highway-env's speed clip at +-40 m/s never binds (speeds stay
-below 9 m/s) and is not repeated here.
+A detection happens iff ``log u <= log_expit(logit q)``, ``u`` the ``(t * n + i)``-th uniform of ``rng`` for rollout
+i at step t (one ``rng.random(n)`` per step, as :func:`pemviz.scenarios.simulate`). With a PCG64 / PCG64DXSM
+generator each chunk jumps to its uniforms (``bit_generator.advance``), so the rollouts do not depend on
+``chunk_size``; other generators draw chunk after chunk. An Array-RQMC sampler's rollouts are simulated block by
+block of :data:`pemviz.core.rng.RQMC_BLOCK` whatever ``chunk_size``.
 
-Random numbers (the only randomness is the detector's output): a detection happens iff
-``log u <= log_expit(logit q)``, ``u ~ U(0, 1)``, as in :func:`pemviz.scenarios.simulate`, which draws
-``rng.random(n)`` once per step, so rollout ``i`` at step ``t`` uses the ``(t * n + i)``-th uniform of
-the stream. With ``chunk_size >= n`` the batched path draws exactly those arrays, so the same seed gives
-the same :class:`RolloutBatch` on both back-ends. With ``chunk_size < n`` and a PCG64 / PCG64DXSM
-generator (``np.random.default_rng`` gives PCG64) each chunk jumps to its rollouts' uniforms with
-``bit_generator.advance``, so the rollouts do not depend on ``chunk_size`` and ``rng`` ends in the state
-``simulate`` leaves it in. Other bit generators cannot jump by draws: their chunks then draw one after
-the other (chunk 0's T arrays, then chunk 1's, ...), and the rollouts depend on ``chunk_size``.
-Detectors evaluated in numpy (the PEM, constants, windows) give the same bits at any batch size; a torch
-proposal may differ in the last bit between batch sizes. An Array-RQMC sampler couples the rollouts of each fixed
-block of :data:`pemviz.core.rng.RQMC_BLOCK` (= :data:`DEFAULT_CHUNK_SIZE`) rollouts, so its rollouts are simulated block
-by block whatever ``chunk_size`` (:func:`iter_batched` hands them out in chunks of ``chunk_size``): the same rollouts,
-bit for bit, for any chunk size and on any executor.
-
-Units: metres, seconds, m/s; log-probabilities in nats.
-"""
+Units: metres, seconds, m/s; log-probabilities in nats."""
 
 from __future__ import annotations
 
@@ -241,24 +222,21 @@ def simulate_batched(
     *,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> RolloutBatch:
-    """Run ``n`` braking rollouts together, detections drawn from ``sampler``, scored under ``target``.
-
-    The batched twin of ``simulate(lambda: BrakingScenario(params), n, sampler, target, rng, T)``: the
-    same seed gives the same batch (module docstring). The result holds ``n * T * 41`` bytes (4.1 GB for
-    10^6 x 100); use :func:`summarise_batched` or :func:`iter_batched` for very large ``n``.
+    """Run ``n`` braking rollouts together, detections drawn from ``sampler``, scored under ``target``: the batched
+    twin of ``simulate(lambda: BrakingScenario(params), n, sampler, target, rng, T)``, ``n * T * 41`` bytes (use
+    :func:`iter_batched` for very large ``n``).
 
     Args:
         params: scenario constants (None: :class:`BrakingParams` defaults); T = ``params.n_steps``.
         n: number of rollouts (>= 1).
-        sampler: the detector that draws the actions (proposal q, the PEM, a constant ...).
+        sampler: the detector that draws the actions.
         target: the PEM whose probabilities weight the rollouts (may be ``sampler`` itself).
         rng: numpy Generator, consumed as :func:`pemviz.scenarios.simulate` consumes it.
-        chunk_size: rollouts simulated together (bounds the working memory; not the result's).
+        chunk_size: rollouts simulated together (bounds the working memory).
     Returns:
         :class:`RolloutBatch` with observations [n, T, 3] and detected / log_p / log_q [n, T].
     Raises:
-        ValueError: for ``n`` or ``chunk_size`` not an integer >= 1.
-    """
+        ValueError: for ``n`` or ``chunk_size`` not an integer >= 1."""
     p = params or BrakingParams()
     return simulate_rollouts(lambda m: BatchedBraking(p, m), n, p.n_steps, sampler, target, rng, chunk_size=chunk_size)
 
@@ -295,26 +273,21 @@ def summarise_batched(
     failed: Callable[[RolloutBatch], np.ndarray],
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> RolloutSummary:
-    """Simulate ``n`` rollouts in chunks and keep per rollout only what an estimate needs.
-
-    Peak memory is one chunk (:func:`iter_batched`) plus 33 bytes a rollout: 10^6 rollouts x 100 steps
-    stay far below 1 GB. The rollouts (and so the summary) are those of :func:`simulate_batched` with
-    the same ``rng``.
+    """Simulate ``n`` rollouts in chunks and keep per rollout only what an estimate needs (one chunk plus 33 bytes a
+    rollout); the rollouts are those of :func:`simulate_batched` with the same ``rng``.
 
     Args:
-        params: scenario constants (None: :class:`BrakingParams` defaults), as :func:`simulate_batched`.
+        params: scenario constants (None: :class:`BrakingParams` defaults).
         n: number of rollouts (>= 1).
         sampler: the detector that draws the actions.
         target: the PEM whose probabilities weight the rollouts.
         rng: numpy Generator, consumed as :func:`simulate_batched` consumes it.
-        failed: the problem's failure event on a chunk, bool [m]: :meth:`pemviz.core.problems.Problem.failed` (classic
-            robustness of the safety formula < 0; for the braking problem the gap drops below the crash gap).
+        failed: the problem's failure event on a chunk, bool [m] (:meth:`pemviz.core.problems.Problem.failed`).
         chunk_size: rollouts simulated together (bounds the working memory).
     Returns:
         :class:`RolloutSummary` of the n rollouts, in order.
     Raises:
-        ValueError: for ``n`` or ``chunk_size`` not an integer >= 1, or a ``failed`` of the wrong shape.
-    """
+        ValueError: for ``n`` or ``chunk_size`` not an integer >= 1, or a ``failed`` of the wrong shape."""
     check_counts("summarise_batched", n=n, chunk_size=chunk_size)
     p = params or BrakingParams()
     n = int(n)

@@ -1,21 +1,15 @@
 """Why did a braking rollout fail: its severity, the controller's signals, the misses that decide it, in words.
 
-Everything here is a function of one rollout's detection sequence on the deterministic batched twin of the
-braking scenario (:func:`pemviz.scenarios.braking.batched.replay`: the same arithmetic as highway-env, bit for bit), so
-a counterfactual "had the detector seen the lead at these steps" is an exact replay, not a model of it. This is the
-"most likely failure and its causes" report of adaptive stress testing (Lee et al., "Adaptive Stress Testing:
-Finding Likely Failure Events with Reinforcement Learning", JAIR 69, 2020), with the search for a minimal cause of
-delta debugging (Zeller & Hildebrandt, "Simplifying and Isolating Failure-Inducing Input", IEEE TSE 28(2), 2002).
+Everything is a function of one rollout's detections on the deterministic batched twin
+(:func:`pemviz.scenarios.braking.batched.replay`), so a counterfactual detection is an exact replay: the "most
+likely failure and its causes" of adaptive stress testing (Lee et al., "Adaptive Stress Testing", JAIR 69, 2020)
+with delta debugging's minimal cause (Zeller & Hildebrandt, "Simplifying and Isolating Failure-Inducing Input", IEEE
+TSE 28(2), 2002).
 
-No I/O. Units: metres, seconds, m/s, m/s^2. A step ``t`` is at time ``t * dt``; the gap at step ``t`` is the one
-the detector was asked about at that step (before the step's motion), as the scenario reports it.
-
-Failure: the gap drops below ``BrakingParams.crash_gap_m`` (2 m) at some step, the classic robustness of
-``G (d >= 2 m)`` below 0 (Innes & Ramamoorthy 2022). Contact: the gap (from the ego's camera to the lead's rear) at
-or below ``BrakingParams.contact_gap_m`` (0.7 m), where the scenario stops the ego as CARLA's collision does (the
-authors' CARLA logs hold the gap at 0.69-0.72 m after a collision; the camera sits 2 m ahead of the ego's centre,
-0.48 m behind its front bumper). A breach of the 2 m margin without contact is a near miss, not a collision.
-"""
+Failure: the gap below ``BrakingParams.crash_gap_m`` (2 m) at some step (Innes & Ramamoorthy 2022). Contact: the gap
+at or below ``BrakingParams.contact_gap_m`` (0.7 m), where the scenario stops the ego as CARLA's collision does; a
+breach without contact is a near miss. The gap at step ``t`` is the one the detector was asked about. No I/O. Units:
+metres, seconds, m/s, m/s^2."""
 
 from __future__ import annotations
 
@@ -108,18 +102,14 @@ class Severity:
 
 
 def severity(gap_m: np.ndarray, params: BrakingParams | None = None) -> Severity:
-    """The severity of a rollout from its gaps alone.
-
-    The closing speed over the step into a threshold is ``(gap[t-1] - gap[t]) / dt``: highway-env moves each car by
-    its speed at the start of the step (explicit Euler, ``x += v dt``), so this is exactly ego minus lead speed at
-    step ``t - 1``, the speeds with which the cars reached the threshold.
+    """The severity of a rollout from its gaps alone; the closing speed over the step into a threshold is ``(gap[t-1] -
+    gap[t]) / dt``, exactly ego minus lead speed at step ``t - 1`` under highway-env's explicit Euler.
 
     Args:
         gap_m: float64 [T] the gap at each step (metres).
         params: the scenario's constants (``crash_gap_m``, ``contact_gap_m``, ``dt_s``).
     Raises:
-        ValueError: ``gap_m`` not a non-empty 1-D array.
-    """
+        ValueError: ``gap_m`` not a non-empty 1-D array."""
     p = params or BrakingParams()
     gap = np.asarray(gap_m, dtype=np.float64)
     if gap.ndim != 1 or gap.size == 0:
@@ -223,17 +213,13 @@ class Counterfactual:
         misses: int [M] the steps where the detector missed.
         flipped_min_gap_m: float64 [M] the smallest gap with that one miss flipped to a detection (metres).
         decisive: int [D] the misses whose flip alone avoids the failure.
-        last_saving_step: the latest decisive miss: the last step at which one detection still saves the rollout
-            (None: no single detection does).
-        minimal_set: int [k] misses whose flip together avoids the failure and none of which can be left out
-            (dropping any one brings the failure back); empty when the rollout does not fail or when even a
-            detection at every step fails.
+        last_saving_step: the latest decisive miss (None: no single detection saves the rollout).
+        minimal_set: int [k] misses whose flip together avoids the failure, none of which can be left out; empty
+            when the rollout does not fail or nothing saves it.
         minimal_set_min_gap_m: the smallest gap with ``minimal_set`` flipped (nan without a set).
-        smallest: no set of fewer misses avoids the failure (proved by an exhaustive search of the smaller sizes).
-        recovery_step: the last step s such that detecting at every step from s on (the misses before s kept) still
-            avoids the failure (None: no such step).
-        recovery_min_gap_m: the smallest gap of that replay (nan without one).
-    """
+        smallest: no set of fewer misses avoids the failure (exhaustive search of the smaller sizes).
+        recovery_step: the last step s from which detecting at every step still avoids the failure (None: none).
+        recovery_min_gap_m: the smallest gap of that replay (nan without one)."""
 
     failed: bool
     misses: np.ndarray
@@ -259,12 +245,10 @@ def minimal_miss_set(
 ) -> tuple[np.ndarray, float, bool]:
     """A set of misses whose flip to detections avoids the failure, none of which can be left out.
 
-    Search: every set of 1, 2, ... up to :data:`EXACT_MAX_SIZE` misses, while a size has at most
-    :data:`EXACT_MAX_ROWS` sets; the first size with a set that avoids the failure gives the one with the largest
-    smallest gap (ties: the first in step order), and it is the smallest such set. Else greedily: the latest k
-    misses for the smallest k that avoids the failure, then, while some miss of the set can be left out, the
-    earliest such miss is left out (delta debugging's 1-minimality: dropping any one miss of the result brings the
-    failure back). Misses at the last step are no candidates: the last action moves nothing.
+    Every set of 1, 2, ... up to :data:`EXACT_MAX_SIZE` misses is tried while a size has at most
+    :data:`EXACT_MAX_ROWS` sets (the first size that avoids the failure gives the smallest set, the largest smallest
+    gap first); else greedily the latest k misses, then any miss that can be left out is (delta debugging's
+    1-minimality). Misses at the last step are no candidates.
 
     Args:
         detected: bool [T] a failing rollout's detections.
@@ -272,8 +256,7 @@ def minimal_miss_set(
         candidates: int [M] the misses to consider (default: every miss before the last step).
     Returns:
         (int [k] the set's steps in order, the smallest gap with them flipped in metres, whether it is the
-        smallest); (int [0], nan, False) when even flipping every candidate fails, or the rollout does not fail.
-    """
+            smallest); (int [0], nan, False) when even flipping every candidate fails, or the rollout does not fail."""
     p = params or BrakingParams()
     d = np.asarray(detected, dtype=bool)
     miss = np.flatnonzero(~d[:-1]) if candidates is None else np.asarray(candidates, dtype=np.int64)
@@ -413,21 +396,18 @@ def describe(
     cf: Counterfactual,
     params: BrakingParams | None = None,
 ) -> str:
-    """What happened, in a few plain sentences: the outcome, the misses within braking distance before the breach
-    and what they did to the brake, and the smallest change that would have avoided the failure.
-
-    e.g. ``Breach 1.91 m, no contact (...). From 1.80 s, when the lead came within 10 m, to the breach the lead was
-    missed at 9 of 12 steps; each miss left the emergency brake off at the next step (it acted at 3 steps). One
-    detection at 2.10 s, the last that suffices alone, would have avoided it (min gap 2.80 m, 0.80 m clear of the
-    2 m margin).``
+    """What happened, in a few plain sentences: the outcome, the misses within braking distance before the breach and
+    what they did to the brake, and the smallest change that would have avoided the failure, e.g. ``Breach 1.91 m,
+    no contact (...). From 1.80 s, when the lead came within 10 m, to the breach the lead was missed at 9 of 12
+    steps; ... One detection at 2.10 s, the last that suffices alone, would have avoided it (min gap 2.80 m, 0.80 m
+    clear of the 2 m margin).``
 
     Args:
         detected: bool [T] the rollout's detections.
         sev: :func:`severity` of the rollout.
         ctrl: :func:`controller_trace` of the same rollout.
         cf: :func:`counterfactual` of the same rollout.
-        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
-    """
+        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`)."""
     p = params or BrakingParams()
     dt = p.dt_s
     d = np.asarray(detected, dtype=bool)
@@ -488,12 +468,11 @@ class FailureStory:
     """Everything above for one recorded rollout (what :func:`story` returns).
 
     Attributes:
-        severity, controller, counterfactual: :func:`severity` of the recorded gaps, :func:`controller_trace` and
-            :func:`counterfactual` of its detections.
-        replay_matches: the twin's replay of the detections reproduces the recorded gaps (to 1e-9 m); when it does
-            not, the controller and the counterfactual describe another rollout and must not be shown as its.
-        sentence: :func:`describe`, or the outcome and a note that the replay does not reproduce the rollout.
-    """
+        severity, controller, counterfactual: :func:`severity`, :func:`controller_trace` and :func:`counterfactual`
+            of it.
+        replay_matches: the twin's replay reproduces the recorded gaps (to 1e-9 m); else the controller and
+            counterfactual describe another rollout and are not shown.
+        sentence: :func:`describe`, or the outcome and a note that the replay does not reproduce the rollout."""
 
     severity: Severity
     controller: ControllerTrace

@@ -2,21 +2,12 @@
 until its gap first drops below a start gap (5 m), and from there every detection sequence is enumerated, so the
 rollout contributes its importance weight up to that step times the exact probability of a failure after it.
 
-Why: a gap below 0 m needs the ego to reach the contact gap with its gap just above it at full speed, a window of
-about 2 cm that the detections of the last 40 steps set (:func:`pemviz.scenarios.braking.problem.
-never_detected_min_gap_m`). A proposal of the state does not see that phase, and the weights of a run that targets
-0 m were heavy (ESS 1-13 of 1,000, up to 4 times off). Enumerating the last steps replaces that phase by its exact
-average: the estimator stays unbiased (a conditional expectation given the state at a stopping time: Asmussen & Glynn,
-Stochastic Simulation, Springer 2007, V.4, conditional Monte Carlo), and only the weights before the start gap vary.
-
-Rigour of the enumeration: a branch is dropped only (1) when it cannot fail any more, by a speed bound (a failure
-below the contact gap needs the ego faster than (contact gap - level) / (2 dt) at its last steps before contact, and
-the throttle accelerates it by at most ``throttle_accel0_mps2``; the bound is not used with a negative
-``throttle_accel_slope_per_s``), (2) once the ego is stopped in contact behind a stopped lead (its
-gap is final), or (3) when its probability is ``prune_nats`` below the failure probability found so far from the
-same rollout's state (the bias is at most e^-prune_nats times the number of dropped branches, relative: below 1e-12 at
-the default 40 nats).
-"""
+A gap below 0 m needs the ego at the contact gap at full speed, a window of about 2 cm set by the last detections
+(:func:`pemviz.scenarios.braking.problem.never_detected_min_gap_m`), which a state proposal does not see.
+Enumerating the last steps replaces that phase by its exact average: unbiased (conditional Monte Carlo at a stopping
+time: Asmussen & Glynn, Stochastic Simulation, Springer 2007, V.4). A branch is dropped only when it cannot fail any
+more (a speed bound), once the ego is stopped in contact behind a stopped lead, or when it is ``prune_nats`` below
+the failure probability found so far (a relative bias below 1e-12 at the default 40 nats)."""
 
 from __future__ import annotations
 
@@ -83,24 +74,21 @@ def log_exceedance_after(
     observed_gap_m: np.ndarray | None = None,
 ) -> np.ndarray:
     """log P(min gap < ``level_m`` over the steps from ``start[i]`` on | rollout i's state at ``start[i]``), float64
-    [N] (nats; -inf where no detection sequence fails, or ``start[i]`` = T), by enumerating every detection of the
-    lead from that step on (see the module's notes for the branches dropped).
+    [N] (nats; -inf where no detection sequence fails, or ``start[i]`` = T), by enumerating every detection from
+    that step on.
 
     Args:
         params: the scene's constants.
         logit_at_gap: logit of the PEM's p(detect) at gaps [K] (metres), e.g. ``pem.logit_at_gap``.
         detected: bool [N, T] the rollouts' detections (the steps before ``start`` set its state).
         start: int [N] the step each rollout is continued from (:func:`start_steps`).
-        level_m: the failure's gap (metres): a failure is a gap below it at a step 0..T-1.
+        level_m: the failure's gap (metres).
         prune_nats: see :data:`PRUNE_NATS`.
-        observed_gap_m: float64 [N] the gap each rollout reported at its start (metres), or None: checked against the
-            replayed one, so that rollouts of another scene are refused rather than weighed wrongly.
+        observed_gap_m: float64 [N] the gap each rollout reported at its start (metres), checked against the
+            replayed one; or None.
     Raises:
-        ValueError: ``detected`` not [N, T] with T = ``params.n_steps``, ``start`` not [N] in [0, T], or a replayed gap
-            more than 1e-6 m from ``observed_gap_m``.
-        ValueError: more than :data:`MAX_BRANCHES` branches at once (a start gap or level whose branches cannot be
-            dropped: e.g. a level above the contact gap, where no speed bound applies).
-    """
+        ValueError: ``detected`` not [N, T] with T = ``params.n_steps``, ``start`` not [N] in [0, T], a replayed gap
+            more than 1e-6 m from ``observed_gap_m``, or more than :data:`MAX_BRANCHES` branches at once."""
     p = params
     detected = np.asarray(detected, dtype=bool)
     start = np.asarray(start, dtype=np.int64)

@@ -1,9 +1,7 @@
-"""The braking scenario over an operating design domain: each rollout's gap to the lead and ego speed at the start
-(``gap0_m``, ``ego_speed0_mps``) drawn from distributions (``pemviz run --param gap0_m~uniform(10, 14)``), the other
-parameters fixed. The batched twin starts every rollout where its parameters say
-(:class:`pemviz.scenarios.braking.batched.BatchedBraking`'s ``starts``); the rollouts carry them as observation
-columns (:mod:`pemviz.core.odd_rollouts`); the problem is the braking one otherwise, without the exact answer and the
-look-ahead, which hold for one start only.
+"""The braking scenario over an operating design domain: each rollout's start gap and ego speed (``gap0_m``,
+``ego_speed0_mps``) drawn from distributions (``pemviz run --param gap0_m~uniform(10, 14)``), the batched twin
+starting each rollout there (``starts``); the problem is the braking one without the exact answer and the
+look-ahead.
 """
 
 from __future__ import annotations

@@ -1,15 +1,8 @@
 """The braking scenario's hooks of the panel (:class:`pemviz.app.drawing.PanelDrawing`), mixed into
-:class:`pemviz.scenarios.braking.drawing.BrakingDrawing`: its scene (two cars on one lane, the braking distance and
-the crash margin ahead of the ego's camera), the explanation of a rollout (:class:`BrakingExplanation`: what happened
-at each step, what the controller did and which misses decided it), its strip charts and captions. Plain data, no
-viser (:mod:`pemviz.scenarios.panel_data`).
-
-The explanation replays the rollout on the deterministic batched twin of the simulator
-(:func:`pemviz.scenarios.braking.batched.replay`, the same arithmetic as highway-env). A miss is *decisive* when
-flipping it alone avoids the failure (the gap stays at or above 2 m). This is the "most likely failure and its causes"
-report of adaptive stress testing (Lee et al. 2020, "Adaptive Stress Testing: Finding Likely Failure Events with
-Reinforcement Learning", JAIR 69).
-"""
+:class:`pemviz.scenarios.braking.drawing.BrakingDrawing`: its scene, the explanation of a rollout
+(:class:`BrakingExplanation`, by exact replays on the batched twin: a miss is *decisive* when flipping it alone
+avoids the failure; Lee et al. 2020, "Adaptive Stress Testing", JAIR 69), its strip charts and captions. Plain data,
+no viser (:mod:`pemviz.scenarios.panel_data`)."""
 
 from __future__ import annotations
 

@@ -52,12 +52,9 @@ def never_detected_min_gap_m(params: BrakingParams) -> float:
 
 def verdict_cap(params: BrakingParams) -> tuple[str, str] | None:
     """("doubtful", why) when the crash gap lies below :func:`never_detected_min_gap_m` (e.g. contact, 0 m), else
-    None: no failure there is a run of misses; each needs detections at the steps that bring the ego to the contact
-    gap at full speed with its gap a few centimetres above it. The estimate enumerates the detections below
-    :data:`~pemviz.scenarios.braking.lookahead.LOOK_AHEAD_GAP_M` exactly (:mod:`pemviz.scenarios.braking.lookahead`),
-    but the proposal draws the steps before it, and its weights can look reliable while the interval misses: in 40
-    runs of ``pemviz run --margin 0`` (seeds 0-39), 2 of the 10 whose weights said reliable had the exact answer
-    outside their interval (x0.77 and x0.73); the median relative error was 0.074, and 37 of 40 intervals held it."""
+    None: there a failure needs detections that bring the ego to the contact gap at full speed, which the proposal
+    draws before the exact look-ahead (:mod:`pemviz.scenarios.braking.lookahead`) takes over, and its weights can
+    look reliable while the interval misses (docs/validation.md)."""
     floor = never_detected_min_gap_m(params)
     if params.crash_gap_m >= floor:
         return None

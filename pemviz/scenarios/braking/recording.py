@@ -1,8 +1,7 @@
 """The braking scenario's hooks of the recording (:class:`pemviz.sinks.drawing.RecordingDrawing`), mixed into
-:class:`pemviz.scenarios.braking.drawing.BrakingDrawing`: the run's description, each rollout's severity in words and
-numbers (:func:`pemviz.scenarios.braking.failures.severity`), a rollout as a lane of two cars seen from above, and the
-most likely failure's story (:func:`pemviz.scenarios.braking.failures.story`: the controller, the speeds and the exact
-replays with the minimal miss set or the last saving detection). Plain data, no rerun: the recording draws it."""
+:class:`pemviz.scenarios.braking.drawing.BrakingDrawing`: the description, each rollout's severity
+(:func:`pemviz.scenarios.braking.failures.severity`), a rollout as a lane of two cars, and the most likely failure's
+story (:func:`pemviz.scenarios.braking.failures.story`). Plain data, no rerun."""
 
 from __future__ import annotations
 
@@ -22,13 +21,9 @@ if TYPE_CHECKING:
 def car_positions(
     gap_m: np.ndarray, ego_speed_mps: np.ndarray, params: BrakingParams | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Centre x of the ego and of the lead at every step, float64 [T] each (metres along the road; ego starts at 0).
-
-    The ego moves by explicit Euler on its recorded speed, as highway-env's ``Vehicle.step`` does
-    (``x[t+1] = x[t] + v[t] * dt``, a speed of NaN counts as 0); the lead's rear is the camera
-    (``camera_offset_m`` ahead of the ego's centre) plus the gap, so
-    ``lead = ego + camera_offset_m + gap_m + lead_length_m / 2``
-    (:class:`pemviz.scenarios.braking.simulator.BrakingScenario`).
+    """Centre x of the ego and of the lead at every step, float64 [T] each (metres; ego starts at 0): the ego by
+    explicit Euler on its recorded speed (NaN counts as 0), the lead at ``ego + camera_offset_m + gap_m +
+    lead_length_m / 2``.
 
     Args:
         gap_m: float64 [T] gaps (metres).

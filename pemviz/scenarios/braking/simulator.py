@@ -1,24 +1,16 @@
 """The automated-braking scenario of Innes & Ramamoorthy (2022) on highway-env vehicles.
 
-A lead car drives at 8.04 m/s and stops for a red light; the ego follows with a stripped-down CARLA
-BasicAgent: each step it asks a detector whether the lead is seen, and brakes hard (brake 0.5) when
-the lead is detected within 10 m; otherwise a PID speed controller drives it toward 27 km/h. The
-brake does not latch. The only randomness is the detector's output, so the scenario's state
-``(step, ego position, ego speed, PID integral, last emergency-brake command)`` makes it a
-deterministic function of the detection sequence.
+A lead car drives at 8.04 m/s and stops for a red light; the ego follows with a stripped-down CARLA BasicAgent: it
+brakes hard when the detector sees the lead within 10 m, else a PID drives it toward 27 km/h; the brake does not
+latch. The only randomness is the detector's output, so a rollout is a deterministic function of the detection
+sequence.
 
-The ego's longitudinal response is fitted to the authors' CARLA logs
-(``shared/spec/carla_calibration_rollouts.csv``; see ``scripts/calibrate_braking.py``):
+The ego's longitudinal response is fitted to the authors' CARLA logs (``scripts/calibrate_braking.py``): one step of
+actuation lag on the emergency brake, brake deceleration as a function of speed (``brake_decel_mps2`` at
+``brake_knots_mps``), throttle acceleration ``(a0 - a1 * v) * throttle / max_throttle``, and the PID's integral as
+an exponentially-windowed sum of km/h errors (leak 0.9).
 
-- one step of actuation lag on the emergency brake (a command at step t acts on step t+1);
-- brake deceleration as a function of speed (``brake_decel_mps2`` at ``brake_knots_mps``):
-  ~3.7 m/s^2 at cruise, ~9 m/s^2 near 6 m/s, ~27 m/s^2 below 5 m/s (CARLA's non-linear brake);
-- throttle acceleration ``(a0 - a1 * v) * throttle / max_throttle`` (4 m/s^2 from standstill);
-- the PID's integral term as an exponentially-windowed sum of km/h errors (leak 0.9: the same
-  total weight as CARLA's 10-sample error buffer) so that the state stays low-dimensional.
-
-Units: metres, seconds, m/s.
-"""
+Units: metres, seconds, m/s."""
 
 from __future__ import annotations
 
@@ -285,12 +277,9 @@ def braking_replay(params: BrakingParams, detected: np.ndarray) -> np.ndarray:
 
 
 class BrakingScenario:
-    """One rollout of the braking scenario on highway-env vehicles, stepped as a black box.
-
-    Usage: ``obs = sim.observation()`` (a float64 [4] vector, :data:`OBSERVATION_NAMES`), ask a
-    detector, then ``sim.step(detected)``; after ``params.n_steps`` steps the rollout is over.
-    The lead and the ego are :class:`highway_env.vehicle.kinematics.Vehicle` objects on a straight
-    single-lane :class:`highway_env.road.road.Road`; their ``step(dt)`` integrates the motion.
+    """One rollout of the braking scenario on highway-env vehicles, stepped as a black box: ``obs =
+    sim.observation()`` (float64 [4], :data:`OBSERVATION_NAMES`), ask a detector, ``sim.step(detected)``, for
+    ``params.n_steps`` steps.
     """
 
     observation_names = OBSERVATION_NAMES

@@ -2,29 +2,17 @@
 probability under the PEM times an approximate committor V (the probability of a crash after it), mixed defensively
 with the PEM, every weight p / q exact.
 
-The committor. The scene is a Markov chain on (step, gap, ego speed, PID integral, pending brake) whose only
-randomness is the detector, so V solves the backward equation V_t(s) = sum_a p(a | s) V_{t+1}(s'_a), V = 1 once the
-gap is below the crash gap and V_T = 0 (Kollman, Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2)).
-:func:`solve_committor` solves it by dynamic programming on a (gap, speed) grid per step and pending flag, log V
-interpolated bilinearly between the nodes, the integral taken at its steady value for the node's speed
-(:func:`steady_integral`). The interpolation smears V's jumps (the truth code's notes:
-:mod:`pemviz.scenarios.braking.truth`), so V is approximate: at the branching start it is 12 times below the exact
-answer; ``benchmarks/braking_committor.py`` measures it on the states a run visits.
+V solves the backward equation V_t(s) = sum_a p(a | s) V_{t+1}(s'_a), V = 1 below the crash gap, V_T = 0 (Kollman,
+Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2)); :func:`solve_committor` solves it on a (gap, speed) grid per
+step and pending flag, log V interpolated bilinearly, the PID integral at its steady value
+(:func:`steady_integral`), so V is approximate (``benchmarks/braking_committor.py``). A detection is drawn with
+probability p V(s'_detect) / (p V(s'_detect) + (1 - p) V(s'_miss)) (L'Ecuyer & Tuffin 2008, "Approximate
+zero-variance simulation", WSC), mixed with a share :data:`TILT_EPS` of the PEM (Hesterberg 1995, Technometrics
+37(2)), so each step's weight is at most 1 / :data:`TILT_EPS` and the estimate stays unbiased whatever V's errors.
+The solve is reused within a process (:func:`solved_committor`); each rollout adds one look-ahead step per step
+inside the braking distance.
 
-The proposal. At a step inside the braking distance the detector's two outcomes lead to the states s'_detect and
-s'_miss (with the actuation lag of one step they share the gap and speed and differ in the pending brake only: one
-look-ahead step, counted). The zero-variance choice draws a detection with probability p V(s'_detect) / (p
-V(s'_detect) + (1 - p) V(s'_miss)) (L'Ecuyer & Tuffin 2008, "Approximate zero-variance simulation", WSC); it is
-mixed with a share :data:`TILT_EPS` of the PEM (Hesterberg 1995, Technometrics 37(2)), so each step's importance
-weight p / q is at most 1 / :data:`TILT_EPS`. The estimate stays unbiased whatever V's errors, which cost variance
-only.
-
-Cost. The solve evaluates one step of the scene's dynamics per grid node, pending flag and step (10,240
-rollout-equivalents with the default grid, 0.2 s); a later run of the same scene and PEM in the process reuses it
-(:func:`solved_committor`). Each rollout adds one look-ahead step per step inside the braking distance.
-
-Units: metres, m/s, seconds; log-probabilities in nats.
-"""
+Units: metres, m/s, seconds; log-probabilities in nats."""
 
 from __future__ import annotations
 
@@ -211,12 +199,9 @@ def solved_committor(
 
 @dataclass
 class BrakingTiltDetector:
-    """q(detect | state) of the braking tilt, a :class:`~pemviz.core.detectors.Detector` (module docstring): inside
-    the braking distance, from the committor's first step on, q = (1 - eps) q* + eps p with q* the detection's share
-    of p V(s'_detect) + (1 - p) V(s'_miss); elsewhere, and where no crash can follow either outcome, p itself.
-
-    The state beyond the observation (the step and the PID integral) is read off the simulator that asked
-    (:attr:`sim`, set by the simulator :func:`draw_tilted` builds)."""
+    """q(detect | state) of the braking tilt (module docstring): inside the braking distance, q = (1 - eps) q* + eps
+    p with q* the detection's share of p V(s'_detect) + (1 - p) V(s'_miss); elsewhere p. The step and PID integral
+    are read off the simulator that asked (:attr:`sim`)."""
 
     committor: GridCommittor
     logit_at_gap: LogitFn

@@ -1,35 +1,18 @@
-"""Exact failure probabilities: closed forms and exact enumeration.
+"""Exact failure probabilities of the braking scenario by enumeration.
 
-Three problems with a known answer judge the sampler:
+The only randomness is the detector and the dynamics are deterministic, so p_fail is a sum over detection sequences.
+:func:`braking_exact` follows every sequence exactly from the first step inside the braking distance and drops one
+only when a rigorous bound on all it could still contribute is below a threshold: a dynamic program on a (gap,
+speed) grid of the least number of misses that can still lead to a crash (:func:`miss_bound`; below a 1 m crash gap
+the cell version :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`; :func:`exact_bound` picks). The
+result is a bracket [enumerated, enumerated + dropped bound], refined until narrower than the tolerance
+(:func:`braking_truth`). A value-function grid with interpolation smears V's jumps
+(``benchmarks/truth_braking.py``).
 
-1. the toy 1-D braking model: ``p_fail = prod_{d=safe}^{braking} (1 - p(d))`` in closed form
-   (:func:`pemviz.scenarios.toy.simulator.toy_log_failure_probability`, beside the toy);
-2. the latched-brake braking scenario: the first effective detection decides everything, so p_fail is a
-   finite sum over the step of the first detection, each term from the deterministic simulator
-   (:func:`latched_log_failure_probability`);
-3. the main (non-latched) braking scenario: the only randomness is the detector and the dynamics are
-   deterministic, so p_fail is a sum over detection sequences. :func:`braking_exact` follows every
-   sequence exactly from the first step inside the braking distance (no grid, no merging) and drops a
-   sequence only when a rigorous bound on all it could still contribute is below a threshold; the bound is
-   a dynamic program on a (gap, speed) grid of the least number of misses that can still lead to a crash
-   (:func:`miss_bound`; below a 1 m crash gap, where its order argument fails at the contact gap, the same
-   program over cells, :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`; :func:`exact_bound`
-   picks). The result is a bracket [enumerated, enumerated + dropped bound], refined by
-   lowering the threshold until it is narrower than the tolerance (:func:`braking_truth`).
-
-Why not a grid DP of the value function with interpolation: V is a sum of step functions of the state and
-interpolation smears its jumps; on the latched problem it stays 45 % off on a 401 x 401 grid while moving
-by 50 % from 201 x 201 (``benchmarks/truth_braking.py`` prints both tables).
-
-The braking dynamics are the scenario's own, written on the gap instead of positions
-(:func:`pemviz.scenarios.braking.simulator.braking_step`). Probabilities are natural logs (nats) in float64 and sums are
-log-sum-exps.
-
-This module holds the main scenario's enumeration (3.); the latched scenario's closed form and value function (2.)
-are :mod:`pemviz.scenarios.braking.truth_latched`'s, the answers kept for the shipped PEMs
-:mod:`pemviz.scenarios.braking.truth_known`'s, the cell bound :mod:`pemviz.scenarios.braking.truth_cells`'s: each name
-has one import path, its module's.
-"""
+The dynamics are :func:`pemviz.scenarios.braking.simulator.braking_step`; probabilities are natural logs (nats) in
+float64. The toy's closed form is :func:`pemviz.scenarios.toy.simulator.toy_log_failure_probability`, the latched
+scenario's :mod:`pemviz.scenarios.braking.truth_latched`, the shipped PEMs' answers
+:mod:`pemviz.scenarios.braking.truth_known`."""
 
 from __future__ import annotations
 
@@ -89,12 +72,9 @@ def branching_start(params: BrakingParams) -> BrakingStart:
 
 
 def _relaxed_step(params: BrakingParams, lead_speed_mps: float, gap_m, speed_mps, pending, detected):
-    """:func:`braking_step` of a controller that is never gentler: the PID integral at its largest
-    reachable value (the most throttle) and no PID brake (which, above 7.5 m/s, makes the true next speed
-    fall as the speed rises). Its next speed is at least the true one from the same gap and speed, whatever
-    the integral, and it is monotone: next gap non-increasing and next speed non-decreasing in the speed
-    (checked in tests/scenarios/test_truth.py). So a state that is no safer (gap no larger, speed no smaller) stays
-    no safer under the same action, which is what :class:`MissBound` rests on.
+    """:func:`braking_step` of a controller that is never gentler (the PID integral at its largest, no PID brake):
+    its next speed is at least the true one, and it is monotone in the speed (tests/scenarios/test_truth.py), so a
+    state no safer stays no safer under the same action, which :class:`MissBound` rests on.
     """
     relaxed = dataclasses.replace(params, max_pid_brake=0.0)
     i_max = np.full(np.shape(gap_m), params.target_speed_kmh * params.dt_s / (1.0 - params.integral_leak))
@@ -138,21 +118,17 @@ class MissBound:
 
 MISS_BOUND_MIN_GAP_M = 1.0
 """The smallest crash gap (metres) for which :func:`miss_bound` is valid; below it :func:`exact_bound` takes
-:func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`. A crash gap below the contact gap (0.7 m, where the
-scene stops the ego) breaks the order the table rests on: a state just above 0.7 m that stops there is safer than
-one further back or slower that arrives faster, so rounding to a smaller gap or a larger speed can raise the bound.
-At 0.5 m and 0 m the failures of targeted runs (``pemviz run --margin 0.5``) need fewer misses than it says (85 and
-466 of the rollout-steps of seed 0's final failures), and so do 25 and 23 of 2,000 random states 8 steps before
-the end against all 256 detection sequences (201-node grid; ``tests/scenarios/test_truth_cells.py``); at 1 m, 1.5 m and
-2 m none of 2,542 failures violates it (``tests/sinks/test_severity.py`` checks 1 m)."""
+:func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`: below the contact gap a state that stops just above
+it is safer than one arriving faster, which breaks the table's order (checked in
+``tests/scenarios/test_truth_cells.py``; docs/validation.md)."""
 
 
 def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) -> MissBound:
     """Backward DP of the least number of misses to a crash on a (gap, speed) grid (see :class:`MissBound`).
 
-    m_{T-1} = NO_CRASH (no step left to observe a crash); m_t(node) = min over the action of
-    [1 if a miss] + (0 if the next gap < 2 else m_{t+1}(next state rounded to the more dangerous node)),
-    under :func:`_relaxed_step`. By induction it is at most the true least number from any state it bounds.
+    m_{T-1} = NO_CRASH; m_t(node) = min over the action of [1 if a miss] + (0 if the next gap < 2 else m_{t+1}(next
+    state rounded to the more dangerous node)), under :func:`_relaxed_step`: by induction at most the true least
+    number from any state it bounds.
 
     Raises:
         ValueError: if the gap can come back to the braking distance after ``start`` (then missing is not
@@ -194,8 +170,8 @@ the node table; at 2,000 x 400 cells its 1 m table equals :func:`miss_bound`'s a
 def exact_bound(params: BrakingParams, start: BrakingStart, bound_grid: int = 401) -> MissBound | CellMissBound:
     """The miss bound the enumeration uses for ``params``: :func:`miss_bound` on a ``bound_grid`` x ``bound_grid``
     grid where it is valid (crash gap >= :data:`MISS_BOUND_MIN_GAP_M`), else
-    :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound` on ``CELL_GAP_REFINE * (bound_grid - 1)`` gap
-    cells by ``bound_grid - 1`` speed cells (about 20 s and 0.3 GB at the default 401).
+    :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound` on ``CELL_GAP_REFINE * (bound_grid - 1)`` by
+    ``bound_grid - 1`` cells.
 
     Raises:
         ValueError: see :func:`miss_bound` and :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`.
@@ -268,14 +244,10 @@ def braking_exact(
 ) -> ExactResult:
     """p_fail of the braking scenario (latched or not) by enumerating detection sequences.
 
-    From the branching start (:func:`branching_start`) every live sequence is split into its miss and its
-    detection (probabilities 1 - p and p, p = sigmoid(logit_at_gap(gap)), in log-space) and stepped exactly
-    with :func:`braking_step`; a sequence whose next gap is below the crash gap adds its probability to
-    p_fail and ends. A live sequence of log-probability L at step t is dropped when
-    ``L + log P(Binomial(n_left, q_max) >= m) < log_prune``, where m is the miss bound of its
-    state (:func:`exact_bound`), n_left the actions still to come and q_max the largest miss probability inside
-    the braking distance; that quantity bounds every crash it could still lead to, and the bounds of all dropped
-    sequences add up to ``log_pruned_bound``. No state is merged or rounded.
+    From :func:`branching_start` every live sequence splits into its miss and its detection and is stepped with
+    :func:`braking_step`, adding to p_fail below the crash gap; a sequence of log-probability L is dropped when ``L
+    + log P(Binomial(n_left, q_max) >= m) < log_prune`` (m its miss bound, :func:`exact_bound`), its bound added to
+    ``log_pruned_bound``.
 
     Args:
         logit_at_gap: logit p_PEM(detect | gap) (e.g. ``pem.logit_at_gap``).
@@ -284,14 +256,12 @@ def braking_exact(
         bound_grid: points per axis of the miss-bound grid (:func:`exact_bound`).
         bound: a miss bound already computed, reused (None: computed on ``bound_grid``).
         max_paths: refuse to go on beyond this many live sequences (memory).
-        start: the state to enumerate from (None: :func:`branching_start`), a state at or after the branching start
-            (``bound``, when given, made from a start no later): the result is then the committor of that state,
-            P(failure | state) (Kollman, Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2)).
+        start: the state to enumerate from (None: :func:`branching_start`); the result is then the committor of that
+            state (Kollman, Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2)).
     Returns:
         :class:`ExactResult`: p_fail in [exp(log_p_fail), exp(log_p_fail_upper)].
     Raises:
-        ValueError: see :func:`miss_bound`; RuntimeError: beyond ``max_paths`` live sequences.
-    """
+        ValueError: see :func:`miss_bound`; RuntimeError: beyond ``max_paths`` live sequences."""
     t_start = time.perf_counter()
     p = params or BrakingParams()
     start = start or branching_start(p)
@@ -409,14 +379,9 @@ def braking_truth(
     stop_when_converged: bool = True,
     on_result: Callable[[ExactResult], None] | None = None,
 ) -> Refinement:
-    """Refine :func:`braking_exact` over ``log_prunes`` until (upper - lower) / lower < ``tolerance``.
-
-    The default 0.5 % stops the main scenario at -58 nats: a bracket of
-    0.07 % in ~20-40 s and ~3.4 million live sequences (a few hundred MB) at most; P(min gap < 0.5 m)
-    (``crash_gap_m=0.5``) stops at -70 nats (bracket 0.02 %, 96 s, 14.8 million live sequences, 5 GB), contact
-    (``crash_gap_m=0``) at -90 nats (0.03 %, 37 s, most of it the cell bound). The miss bound
-    (:func:`exact_bound`) is computed once and shared. Returns every step of the refinement (its table is the
-    "refinement table"). ``converged`` is False if the thresholds ran out first.
+    """Refine :func:`braking_exact` over ``log_prunes`` until (upper - lower) / lower < ``tolerance`` (the miss
+    bound computed once and shared); returns every step of the refinement, ``converged`` False if the thresholds ran
+    out first (timings: docs/validation.md).
     """
     p = params or BrakingParams()
     start = branching_start(p)

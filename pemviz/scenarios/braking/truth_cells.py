@@ -1,31 +1,14 @@
 """A miss bound for the braking enumeration that needs no monotone dynamics: a dynamic program over cells.
 
-:class:`pemviz.scenarios.braking.truth.MissBound` reads a grid node "at least as dangerous" as a state (smaller gap,
-larger speed), which is valid only while a smaller gap and a larger speed are never safer. Below the contact gap
-(0.7 m, :attr:`BrakingParams.contact_gap_m`) the scene stops the ego, so a state that creeps to just above 0.7 m and
-stops is safer than one further back that arrives faster: the order fails, and crash gaps of 0.5 m and 0 m (the
-exceedance curve's deepest points) need a bound that does not rest on it.
-
-:func:`cell_miss_bound` bounds sets instead of points. The state space inside the braking distance and above the
-contact gap is cut into cells (a gap interval times a speed interval, per brake-pending flag); every state with its
-PID integral anywhere in its reachable range is in some cell. For each cell and detector output the DP encloses all
-next states of all states of the cell in a box (gap: exact, the gap moves by ``(v_lead - v) dt``; speed: the true
-step's range over the cell's speeds and the integral's range, :func:`speed_ranges`) and takes the least bound over the
-cells the box touches, plus the states of the box that are decided at once: a gap below the crash gap (0 misses) or
-a gap at or below the contact gap, where the ego stops and the outcome is known one step later (0 misses if the gap
-it moves on the way is enough to cross the crash gap, else no crash). By induction over the steps, a cell's bound is
-at most the least number of misses with which any state in the cell (or within 1e-12 of it: every box is widened by
-``_EPS`` = 1e-9, more than float64 rounding moves a state or a cell index) can still crash. This is the enclosure
-argument of interval analysis (an inclusion function of the step map: Moore, Kearfott & Cloud, *Introduction to
-Interval Analysis*, SIAM 2009) carried through the dynamic program; no monotonicity of the dynamics or of the bound
-is used anywhere. The price is the wrapping effect (same book): a box one cell wide touches the next cell down nearly
-every step, so the bound loses up to a gap cell per step, and the gap needs finer cells than the node table
-(:data:`pemviz.scenarios.braking.truth.CELL_GAP_REFINE`).
-
-Measured (shipped PEM, 2,000 x 400 cells, about 20 s and 0.3 GB to build): 9 misses at the start of the 1 m problem,
-as the node table; P(min gap < 0.5 m) = 5.0523e-21 with bracket width 0.02 % at -70 nats, contact (0 m) 8.0581e-33
-(``truth_known.KNOWN_BRAKING_MARGIN_LOG_P``).
-"""
+:class:`pemviz.scenarios.braking.truth.MissBound` takes a smaller gap and a larger speed as never safer, which fails
+below the contact gap (:attr:`BrakingParams.contact_gap_m`), where the scene stops the ego; crash gaps of 0.5 m and
+0 m need a bound that does not rest on it. :func:`cell_miss_bound` bounds sets instead of points: the states inside
+the braking distance and above the contact gap are cut into (gap, speed) cells per brake-pending flag; for each cell
+and detector output the DP encloses all next states in a box (widened by ``_EPS`` = 1e-9, :func:`speed_ranges`) and
+takes the least bound over the cells it touches, plus the states decided at once. By induction a cell's bound is at
+most the least number of misses with which any of its states can still crash: the enclosure argument of interval
+analysis (Moore, Kearfott & Cloud, *Introduction to Interval Analysis*, SIAM 2009). Its wrapping effect needs finer
+gap cells (:data:`pemviz.scenarios.braking.truth.CELL_GAP_REFINE`)."""
 
 from __future__ import annotations
 
@@ -65,11 +48,9 @@ def largest_gap_after(params: BrakingParams, step: int, gap_m: float, who: str) 
 
 
 def integral_range(params: BrakingParams, start_integral: float, speed_top_mps: float) -> tuple[float, float]:
-    """The PID integral's reachable range (km/h s) from a start with ``start_integral`` while the speed stays in
-    [0, ``speed_top_mps``].
-
-    The integral is ``I' = leak I + e dt`` with the error ``e = target_kmh - 3.6 v`` in [target - 3.6 top, target],
-    so it stays between ``e dt / (1 - leak)`` at the two ends of that range (and the start).
+    """The PID integral's reachable range (km/h s) from ``start_integral`` while the speed stays in [0,
+    ``speed_top_mps``]: ``I' = leak I + e dt`` with ``e`` in [target - 3.6 top, target] stays between ``e dt / (1 -
+    leak)`` at the two ends (and the start).
 
     Raises:
         ValueError: ``integral_leak`` = 1 (no bounded range).
@@ -83,14 +64,10 @@ def integral_range(params: BrakingParams, start_integral: float, speed_top_mps: 
 
 
 def speed_lipschitz(params: BrakingParams, speed_top_mps: float) -> float:
-    """A bound on |d v' / d v| of the ego's one-step speed map (:func:`braking_step`) for speeds in
-    [0, ``speed_top_mps``] at any integral, brake command and detector output, gap inside the braking distance and
-    above the contact gap.
-
-    ``v' = max(v + a dt, 0)`` with the acceleration ``a`` the throttle's ``(a0 - a1 v) thr / max_thr`` or the PID
-    brake's ``-decel(v) pb / eb`` (thr, pb: the command ``c = kp e + ki (leak I + e dt)``, ``e = target - 3.6 v``,
-    clipped) or the emergency brake's ``-decel(v)``; clipping only flattens a slope. So
-    ``|dv'/dv| <= 1 + dt (|a'_throttle| + |a'_pid| + |decel'|)`` with each slope bounded from its formula.
+    """A bound on |d v' / d v| of the ego's one-step speed map (:func:`braking_step`) for speeds in [0,
+    ``speed_top_mps``], any integral, command and detector output, inside the braking distance and above the contact
+    gap: ``1 + dt (|a'_throttle| + |a'_pid| + |decel'|)``, each slope bounded from its formula (clipping only
+    flattens).
     """
     p = params
     kc = 3.6 * (p.kp + p.ki * p.dt_s)  # |dc/dv|
@@ -114,6 +91,10 @@ def speed_ranges(
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """The range of the ego's next speed over each speed cell and the integral's range, and the next brake command.
 
+    The next speed is non-decreasing in the integral, so its extremes over the integral are at ``integral_lo`` and
+    ``integral_hi``; over the cell's speeds it is Lipschitz (:func:`speed_lipschitz`, L), so each cell's range is
+    the samples' range widened by ``L h / 2`` and ``_EPS``.
+
     Args:
         params: the scenario's constants.
         speed_edges: cell edges (m/s), float64 [S + 1], increasing.
@@ -123,19 +104,11 @@ def speed_ranges(
         detected: this step's detector output.
         samples: speeds evaluated per cell.
     Returns:
-        (lo [S], hi [S]) in m/s with lo <= v' <= hi for every speed of the cell and integral of the range (gap inside
-        the braking distance and above the contact gap, where the next speed does not depend on the gap), and the
-        next brake command.
-
-    The next speed is non-decreasing in the integral (a larger integral is a larger command, so more throttle or less
-    PID brake; the throttle's acceleration ``a0 - a1 v`` is >= 0 below ``a0 / a1``), so its least value over the
-    integral is at ``integral_lo`` and its largest at ``integral_hi``. Over the cell's speeds it is Lipschitz
-    (:func:`speed_lipschitz`, L), so between two samples h apart it is within ``L h / 2`` of the larger (smaller)
-    sample: each cell's range is the samples' range widened by that and by ``_EPS``.
-
+        (lo [S], hi [S]) in m/s with lo <= v' <= hi for every speed of the cell and integral of the range, and the
+            next brake command.
     Raises:
-        ValueError: a speed above ``a0 / a1``, where more throttle would slow the ego and the integral's order fails.
-    """
+        ValueError: a speed above ``a0 / a1``, where more throttle would slow the ego and the integral's order
+            fails."""
     p = params
     top = float(speed_edges[-1])
     if p.throttle_accel_slope_per_s > 0 and top > p.throttle_accel0_mps2 / p.throttle_accel_slope_per_s:
@@ -267,14 +240,11 @@ def cell_miss_bound(
         n_speed: cells along the ego's speed.
         speed_margin_mps: the speed axis reaches max(start speed, target speed) plus this.
     Returns:
-        :class:`CellMissBound`. M_{T-1} = no crash; M_t(cell, b) = min over the detector output of
-        [1 if a miss] + the least value over the box of next states (0 where a next gap is below the crash gap, the
-        contact rule where it is at or below the contact gap, the table M_{t+1} of every cell the box touches, 0
-        for any part of the box beyond the grid).
+        :class:`CellMissBound`: M_t(cell, b) = min over the detector output of [1 if a miss] + the least value over
+            the box of next states.
     Raises:
-        ValueError: if the gap can come back to the braking distance after ``start`` (then a miss is not always a
-            cost), a grid of fewer than 2 cells, or see :func:`integral_range` and :func:`speed_ranges`.
-    """
+        ValueError: if the gap can come back to the braking distance after ``start``, a grid of fewer than 2 cells,
+            or see :func:`integral_range` and :func:`speed_ranges`."""
     p = params
     if n_gap < 2 or n_speed < 2:
         raise ValueError(f"cell_miss_bound: n_gap and n_speed must be >= 2, got {n_gap}, {n_speed}")

@@ -1,10 +1,7 @@
 """Exact answers of the braking scenarios known without computing them: the main scenario's answers for the shipped
-PEMs (:data:`KNOWN_BRAKING_LOG_P`, :data:`KNOWN_BRAKING_MARGIN_LOG_P`), kept by the PEM's fingerprint
-(:func:`pem_fingerprint`), and :func:`known_log_failure_probability`, which gives them (or the latched scenario's
-closed form) where they are cheap to know.
-
-The kept answers come from :func:`pemviz.scenarios.braking.truth.braking_truth` (20-40 s each);
-``tests/scenarios/test_truth.py`` and the benchmarks named beside each table recompute them.
+PEMs by PEM fingerprint (:data:`KNOWN_BRAKING_LOG_P`, :data:`KNOWN_BRAKING_MARGIN_LOG_P`, :func:`pem_fingerprint`),
+from :func:`pemviz.scenarios.braking.truth.braking_truth` and recomputed by ``tests/scenarios/test_truth.py`` and
+the benchmarks, and :func:`known_log_failure_probability`.
 """
 
 from __future__ import annotations
@@ -51,11 +48,9 @@ KNOWN_BRAKING_LOG_P: dict[str, float] = {
     "45816c12490d672f": -42.8015576615671,  # shift +1: 2.5794e-19, bracket width 0.14%, 1 s
 }
 """PEM fingerprint (:func:`pem_fingerprint`) -> natural log of the exact crash probability of the main braking
-scenario (default :class:`BrakingParams`), from :func:`~pemviz.scenarios.braking.truth.braking_truth` (bracket width <
-0.1 %): the enumeration takes 20-40 s, so the answers for the shipped PEMs are kept here
-(``tests/scenarios/test_truth.py`` recomputes them), and those of the shipped PEM's ensemble members and logit shifts,
-for ``pemviz run --pem-uncertainty`` (from :func:`~pemviz.scenarios.braking.truth.braking_exact` with drop thresholds
-below each one's p, bracket widths 0.04-2.3 %; ``benchmarks/pem_uncertainty.py --exact`` recomputes them)."""
+scenario (default :class:`BrakingParams`), from :func:`~pemviz.scenarios.braking.truth.braking_truth` (bracket < 0.1
+%), for the shipped PEMs and, for ``pemviz run --pem-uncertainty``, its ensemble members and logit shifts
+(``benchmarks/pem_uncertainty.py --exact``)."""
 
 
 KNOWN_BRAKING_MARGIN_LOG_P: dict[tuple[str, float], float] = {
@@ -65,11 +60,9 @@ KNOWN_BRAKING_MARGIN_LOG_P: dict[tuple[str, float], float] = {
     ("915fec568bb72b65", 0.5): -46.73444328937785,  # 5.0523e-21, bracket [5.0523, 5.0534]e-21 (0.02 %), 96 s, 5 GB
     ("915fec568bb72b65", 0.0): -73.89863599760004,  # contact: 8.0581e-33, bracket width < 1e-9 at -100 nats, 36 s
 }
-"""(PEM fingerprint, crash gap in metres) -> natural log of the exact probability that the gap of the main braking
-scenario drops below that crash gap (the points of the exceedance curve, :mod:`pemviz.core.severity`; 0 m is
-contact), from :func:`~pemviz.scenarios.braking.truth.braking_truth` with ``BrakingParams(crash_gap_m=...)`` and drop
-thresholds down to -110 nats (``benchmarks/severity.py --exact`` recomputes them; ``tests/sinks/test_severity.py``
-checks the 0.5 m and 0 m ones against coarser brackets)."""
+"""(PEM fingerprint, crash gap in metres) -> natural log of the exact probability that the main braking scenario's
+gap drops below that gap (the exceedance curve's points, :mod:`pemviz.core.severity`; 0 m is contact), from
+:func:`~pemviz.scenarios.braking.truth.braking_truth` (``benchmarks/severity.py --exact``)."""
 
 
 def pem_fingerprint(logit_at_gap: LogitFn) -> str:
@@ -79,11 +72,9 @@ def pem_fingerprint(logit_at_gap: LogitFn) -> str:
 
 
 def known_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams | None = None) -> float | None:
-    """The exact log p_fail (nats) of a braking problem when it is cheap to know, else None.
-
-    The latched-brake scenario is computed (:func:`latched_log_failure_probability`, milliseconds); the main
-    scenario with default parameters is looked up in :data:`KNOWN_BRAKING_LOG_P` by the PEM's fingerprint, and with
-    another crash gap in :data:`KNOWN_BRAKING_MARGIN_LOG_P`.
+    """The exact log p_fail (nats) of a braking problem when it is cheap to know, else None: the latched scenario
+    computed (:func:`latched_log_failure_probability`), the main scenario looked up by PEM fingerprint in
+    :data:`KNOWN_BRAKING_LOG_P` or, with another crash gap, :data:`KNOWN_BRAKING_MARGIN_LOG_P`.
     """
     p = params or BrakingParams()
     if p.latched_brake:

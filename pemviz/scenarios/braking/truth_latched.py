@@ -1,11 +1,7 @@
 """The latched-brake braking scenario's exact answer: its failure probability in closed form
-(:func:`latched_log_failure_probability`) and its value function V, the zero-variance sampler's (:func:`latched_value`);
-and :data:`LogitFn`, the detector curve every exact answer of :mod:`pemviz.scenarios.braking.truth` takes.
-
-With a latched brake the first effective detection decides everything, so p_fail is a finite sum over the step of
-the first detection, each term from the deterministic simulator
-(:func:`pemviz.scenarios.braking.simulator.braking_replay`). Probabilities are natural logs (nats) in float64 and sums
-are log-sum-exps.
+(:func:`latched_log_failure_probability`: the first effective detection decides everything, a finite sum of
+deterministic replays) and its value function V (:func:`latched_value`); and :data:`LogitFn`, the detector curve
+every exact answer takes. Natural logs in float64.
 """
 
 from __future__ import annotations
@@ -79,14 +75,12 @@ def _latched_path(p: BrakingParams) -> _LatchedPath:
 def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams | None = None) -> LatchedTruth:
     """Exact p_fail of the latched-brake braking scenario.
 
-    Before the first effective detection (one at gap < braking distance) the ego follows the all-miss
-    path; after it the brake never releases and the rest is deterministic. So, with ``E`` the effective
-    steps of the all-miss path before its crash step c,
+    Before the first effective detection the ego follows the all-miss path; after it the brake never releases. With
+    ``E`` the effective steps of the all-miss path before its crash step c,
 
-        p_fail = sum_{t in E} [prod_{s in E, s < t} (1 - p_s)] p_t crash(t) + prod_{s in E} (1 - p_s) [c exists]
+        p_fail = sum_{t in E} [prod_{s in E, s < t} (1 - p_s)] p_t crash(t) + prod_{s in E} (1 - p_s) [c exists],
 
-    where crash(t) is the deterministic outcome of a first detection at step t; every term is evaluated in
-    log-space.
+    crash(t) the deterministic outcome of a first detection at step t; in log-space.
 
     Args:
         logit_at_gap: logit p_PEM(detect | gap) (e.g. ``pem.logit_at_gap``).
@@ -127,27 +121,17 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
 
 @dataclass(frozen=True)
 class LatchedValue:
-    """V of the latched-brake scenario along its all-miss path.
-
-    Before the first effective detection the ego follows the all-miss path; a detection at effective step t
-    latches the brake, after which everything is deterministic: V = crash(t) in {0, 1} from then on, so the action
-    matters only on the all-miss path. There ``V_t = p_t crash(t) + (1 - p_t) V_{t+1}`` at effective steps and
-    ``V_t = V_{t+1}`` elsewhere, with ``V = 1`` from the crash step of the all-miss path on (0 at the last step
-    when it never crashes); ``V_0`` is :func:`latched_log_failure_probability`.
-
-    A state is recognised as on the all-miss path by its observation: within ``tolerance`` of the all-miss
-    rollout's observation at some step (every column; the batched simulator replays it bit for bit). Off the
-    path both actions give the same V. One step after a detection the observation is still the all-miss one
-    (the brake acts one step late, and the observation does not show a pending brake); :func:`latched_value`
-    checks that q* = p there wherever a rollout can reach such a state, so that q* read from the observation is
-    still the zero-variance sampler.
+    """V of the latched-brake scenario along its all-miss path: a detection at effective step t latches the brake, so V
+    = crash(t) in {0, 1} after it, and on the path ``V_t = p_t crash(t) + (1 - p_t) V_{t+1}`` at effective steps,
+    ``V_{t+1}`` elsewhere, 1 from the path's crash step on; ``V_0`` is :func:`latched_log_failure_probability`. A
+    state is on the path when its observation is within ``tolerance`` of the all-miss rollout's
+    (:func:`latched_value` checks that q* read from the observation stays zero-variance one step after a detection).
 
     Attributes:
         observations: the all-miss rollout's observations, float64 [T, F] (gap m, ego speed m/s, lead speed m/s).
         log_v_detect, log_v_miss: log V after a detection / a miss at step t of the all-miss path, [T] (nats).
         log_v0: log V at the start (= log p_fail).
-        tolerance: the largest difference per column that still counts as the same state.
-    """
+        tolerance: the largest difference per column that still counts as the same state."""
 
     observations: np.ndarray = field(repr=False)
     log_v_detect: np.ndarray = field(repr=False)

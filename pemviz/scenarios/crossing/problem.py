@@ -24,10 +24,9 @@ CROSSING_WINDOW_M = 35.0
 (16 m); a pedestrian further away is seen in time whatever the camera does at that step."""
 
 MONTE_CARLO_REFERENCE: tuple[int, int] = (3_575, 12_000_000)
-"""(failures, rollouts) of plain Monte Carlo of the crossing at its default parameters under the shipped PEMs: p =
-2.98e-4, 95 % Clopper-Pearson interval [2.88e-4, 3.08e-4], relative standard error 1.7 %, made by ``pemviz run
---scenario crossing --method mc --n 2000000 --seed S --no-record`` for S = 1..6 (616, 611, 546, 604, 591 and 607
-failures; about 80 s each on one core, 2026; ``docs/realistic-stack.md``)."""
+"""(failures, rollouts) of plain Monte Carlo of the crossing at its defaults under the shipped PEMs: p = 2.98e-4
+[2.88e-4, 3.08e-4] (``pemviz run --scenario crossing --method mc --n 2000000 --seed S --no-record``, S = 1..6;
+``docs/realistic-stack.md``)."""
 
 
 def crossing_problem(

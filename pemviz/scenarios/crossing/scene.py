@@ -1,27 +1,18 @@
 """The crossing scenario's scene: an ego car approaching a pedestrian crossing, pedestrians stepping out, an emergency
-brake acting on tracked pedestrians. Built only from the library's perception stack (:mod:`pemviz.stack`), as a scene
-of one's own would be: this module writes the geometry and the controller, nothing else.
+brake acting on tracked pedestrians. Built only from the library's perception stack (:mod:`pemviz.stack`), as a
+scene of one's own would be.
 
-A straight road, x along it, y to the right, the ego's lane centred at y = 0. The ego (a car 4.5 m x 1.8 m, its
-camera ``camera_offset_m`` ahead of its centre and 1.65 m above the road) drives at ``ego_speed_mps`` towards a
-crossing whose centre line is ``crossing_m`` ahead of its front at t = 0. Pedestrian 0 stands at the left kerb
-(``kerb_m`` left of the lane's centre) and steps out at ``step_out_s``, walking across at ``walk_speed_mps``;
-pedestrian 1 (``n_pedestrians = 2``) does the same from the right kerb ``second_delay_s`` later, 1.5 m further along
-the crossing. They do not react to the ego: their paths are one function of the parameters, shared by every rollout.
+The ego (4.5 m x 1.8 m) drives at ``ego_speed_mps`` towards a crossing ``crossing_m`` ahead; pedestrian 0 steps out
+from the left kerb at ``step_out_s`` and walks across at ``walk_speed_mps``, pedestrian 1 (``n_pedestrians = 2``)
+from the right kerb ``second_delay_s`` later; they do not react to the ego. The camera (:mod:`pemviz.stack.camera`)
+perceives each pedestrian through the detection and noise PEMs (:func:`pemviz.stack.detector.camera_detector`) and a
+Kalman tracker per pedestrian (:mod:`pemviz.stack.tracker`) estimates it. The **emergency brake** brakes at
+``brake_mps2`` from the first step a confirmed track threatens: ``ttc = gap / speed`` at most ``brake_ttc_s`` and
+the track, moved on for ``ttc``, within ``corridor_m`` of the lane's centre.
 
-Each step the camera perceives each pedestrian (:mod:`pemviz.stack.camera`: the salient variables of a KITTI
-``pedestrian`` box) through the detection PEM and the noise PEM (:func:`pemviz.stack.detector.camera_detector`); a
-constant-velocity Kalman tracker per pedestrian (:mod:`pemviz.stack.tracker`) turns the measurements into estimates.
-The **emergency brake** (AEB) brakes at ``brake_mps2`` until standstill from the first step at which a CONFIRMED track
-threatens: the time the ego needs to reach it, ``ttc = gap / speed``, is at most ``brake_ttc_s`` and the track,
-moved on at its estimated lateral velocity for ``ttc``, is then (or is now) within ``corridor_m`` of the lane's
-centre. A missed, unconfirmed or mislocated pedestrian is therefore braked for late, or not at all.
+The failure: ``G(clearance >= 0)``, the signed separation of the ego's and a pedestrian's boxes (``clearance_m``).
 
-The failure: the signed separation of the ego's box and a pedestrian's box (``clearance_m``: the larger of their
-longitudinal and lateral gaps, negative when they overlap) drops below 0, a collision: ``G(clearance >= 0)``.
-
-Units: metres, seconds, m/s, m/s^2, radians.
-"""
+Units: metres, seconds, m/s, m/s^2, radians."""
 
 from __future__ import annotations
 
@@ -56,10 +47,9 @@ OBJECT_NAMES: tuple[str, ...] = (
     "braking",
     "ego_speed_mps",
 )
-"""Each pedestrian's row [G]: its ground-plane range from the camera (the window's column), the 11 salient variables
-(:data:`pemviz.stack.camera.SALIENT_NAMES`), 1.0 if the camera can see it, its position across the road (m, from the
-lane's centre), the time the ego would take to reach it at its speed (s, at most 10), 1.0 if its track is confirmed,
-and the ego's state (braking, speed)."""
+"""Each pedestrian's row [G]: its range from the camera (the window's column), the 11 salient variables
+(:data:`pemviz.stack.camera.SALIENT_NAMES`), visible, its lateral position (m), the time for the ego to reach it (s,
+at most 10), track confirmed, and the ego's state (braking, speed)."""
 
 FEATURE_NAMES: tuple[str, ...] = ("ego_speed_mps", "ego_braking", "time_s")
 """The ego's state features [F] (:meth:`BatchedCrossing.state_features`): its speed (m/s), 1.0 once the AEB brakes,

@@ -1,22 +1,17 @@
-"""The toy braking model with several obstacles and a mislocating detector: a multi-object problem with an exact answer.
+"""The toy braking model with several obstacles and a mislocating detector: a multi-object problem with an exact
+answer.
 
-A car starts ``total`` units from the nearest of M obstacles (obstacle m is ``offsets[m]`` units further) and moves 1
-unit per step. Each step the detector sees each obstacle with probability ``p_detect`` and, when it does, measures its
-distance with an error e ~ N(0, ``noise_sd``^2) (units). The car stops for good at the first step where some obstacle
-is detected at a measured distance of at most ``braking``; it fails if it ever reaches a distance below ``safe`` from
-the nearest obstacle. Detections and errors are independent across obstacles and steps, so the car fails iff at every
-step t before the failure no obstacle triggers the brake, each with probability
+A car starts ``total`` units from the nearest of M obstacles (obstacle m ``offsets[m]`` further) and moves 1 unit
+per step. Each step the detector sees each obstacle with probability ``p_detect`` and measures its distance with an
+error e ~ N(0, ``noise_sd``^2); the car stops for good at the first detection measured at most ``braking`` away, and
+fails below ``safe``. So
 
     P(trigger_m(t)) = p_detect * Phi((braking - d_m(t)) / noise_sd),     d_m(t) = total + offsets[m] - t,
 
-    p_fail = prod_{t < t_fail} prod_m (1 - P(trigger_m(t)))     (:func:`crowd_log_failure_probability`),
+    p_fail = prod_{t < t_fail} prod_m (1 - P(trigger_m(t)))     (:func:`crowd_log_failure_probability`).
 
-t_fail the first step at which the nearest distance is below ``safe``. With ``noise_sd`` = 0 and one obstacle this is
-the authors' toy (:mod:`pemviz.scenarios.toy`). It checks what the braking scenario cannot: M object rows per step,
-their measurement errors in the importance weights, and the proposal's per-object inputs, against a closed form.
-
-Units: abstract distance units, one step per unit of travel.
-"""
+It checks M object rows per step, their measurement errors in the weights and the proposal's per-object inputs
+against a closed form. Units: abstract distance units, one step per unit of travel."""
 
 from __future__ import annotations
 

@@ -1,18 +1,11 @@
 """The cut-in scenario's batched twin: N rollouts advance together in numpy float64.
 
-:class:`~pemviz.scenarios.cut_in.highway.CutInScenario` steps highway-env vehicles one rollout at a time (~0.5 ms a
-step); here the traffic, which never reacts to the ego, is computed once (:func:`cached_trajectory`, with the same
-highway-env vehicles) and shared by every rollout, and the ego, its trackers and its ACC advance for all N rollouts
-with one call of each array function of :mod:`pemviz.scenarios.cut_in.scene` per step.
+The traffic, which never reacts to the ego, is computed once with highway-env's vehicles (:func:`cached_trajectory`)
+and shared by every rollout; the ego, its trackers and its ACC advance for all N rollouts with the array functions
+of :mod:`pemviz.scenarios.cut_in.scene` that the single simulator calls with N = 1, and highway-env's explicit Euler
+update, so both give the same observations and object rows bit for bit (``tests/scenarios/test_cut_in_batched.py``).
 
-Same scenario, same arithmetic: the perception, the tracker and the ACC are the very functions the highway-env
-simulator calls with N = 1, and the ego's motion is highway-env ``Vehicle.step``'s explicit Euler update with no
-steering (``x += v dt``, then ``v += a dt``, the acceleration clipped by ``Vehicle.clip_actions``), so for the same
-detections and measurement errors both give the same observations and object rows bit for bit
-(``tests/scenarios/test_cut_in_batched.py``).
-
-Units: metres, seconds, m/s.
-"""
+Units: metres, seconds, m/s."""
 
 from __future__ import annotations
 
@@ -43,13 +36,10 @@ FEATURE_NAMES: tuple[str, ...] = (
     "time_s",
 )
 """The ego's state features [F] (:meth:`BatchedCutIn.state_features`): its speed (m/s) and last acceleration
-(m/s^2), then what the ACC (:func:`~pemviz.scenarios.cut_in.scenario.acc_control`) reads on the tracks predicted for
-this step, before the step's measurements: 1.0 if it has a lead (a confirmed track ahead in the ego's lane), the lead
-track's estimated centre distance ahead of the ego's centre (m, :data:`NO_VEHICLE_M` without a lead) and closing speed
-(m/s, 0 without), the acceleration it would command were no car measured this step (m/s^2), and the time since the
-scene's start (s). Each car's are the tracker's (:data:`pemviz.stack.tracker.FEATURE_NAMES`), its range measured from
-the ego's front plus half a car's length (the bumper-to-bumper gap of a car straight ahead), so that its predicted time
-to collision is to contact."""
+(m/s^2), then what the ACC reads on the tracks predicted for this step: whether it has a lead, the lead track's
+centre distance (m, :data:`NO_VEHICLE_M` without) and closing speed (m/s), the acceleration it would command without
+a measurement (m/s^2), and the time since the start (s). Each car's are the tracker's
+(:data:`pemviz.stack.tracker.FEATURE_NAMES`), its range from the ego's front plus half a car's length."""
 
 
 @functools.lru_cache(maxsize=8)
@@ -119,21 +109,16 @@ class CutInBatchState:
 
 
 class BatchedCutIn:
-    """N cut-in rollouts in lockstep (module docstring).
+    """N cut-in rollouts in lockstep: ``objects()`` float64 ``[N, M, G]``, ``observation()`` float64 ``[N, F]``,
+    ``step(detected bool [N, M], noise float64 [N, M, 2] | None)``.
 
-    Protocol (the batched form of :class:`~pemviz.scenarios.cut_in.highway.CutInScenario`): ``objects()`` float64
-    ``[N, M, G]``, ``observation()`` float64 ``[N, F]``, ``step(detected bool [N, M], noise float64 [N, M, 2] | None)``.
-
-    ``gap_shift_m`` float64 ``[N]`` (None: none) moves the cut-in vehicle (object 0) of each rollout that many metres
-    along the road from where ``params`` start it, at every step: its start gap is ``params.cut_in_gap_m +
-    gap_shift_m``. The traffic never reacts to the ego and, where :func:`translation_error` is small, the cut-in
-    vehicle's highway-env trajectory from another start gap is this one translated (the other vehicles the same), so
-    rollouts with their own start gaps share one traffic trajectory (an operating design domain over
-    ``cut_in_gap_m``, :mod:`pemviz.scenarios.cut_in.odd`).
+    ``gap_shift_m`` float64 ``[N]`` (None: none) moves each rollout's cut-in vehicle that many metres along the road
+    (start gap ``params.cut_in_gap_m + gap_shift_m``); its trajectory from another start gap is this one translated
+    where :func:`translation_error` is small, so rollouts of an ODD over ``cut_in_gap_m``
+    (:mod:`pemviz.scenarios.cut_in.odd`) share one traffic trajectory.
 
     Raises:
-        ValueError: ``n`` not an integer >= 1; ``gap_shift_m`` not finite of shape ``[n]``.
-    """
+        ValueError: ``n`` not an integer >= 1; ``gap_shift_m`` not finite of shape ``[n]``."""
 
     observation_names = OBSERVATION_NAMES
     object_names = OBJECT_NAMES

@@ -2,10 +2,9 @@
 level G (:func:`level`, :func:`continuous_level`) and U_t(G, k), the probability of failure from level G at step t with
 the track in regime k (:class:`LevelChain`), which :mod:`pemviz.scenarios.cut_in.tilt` tilts each step's events by.
 
-The zero-variance change of measure of a Markov chain draws each step's events x from q(x | s) = p(x | s) Q(s, x) /
-V(s), Q(s, x) the probability of failure after x and V(s) its mean under p (Kollman, Baggerly, Cox & Picard 1999, Ann.
-Appl. Probab. 9(2); L'Ecuyer & Tuffin 2008, "Approximate zero-variance simulation", WSC). Here Q is U_{t+1} at the
-level and regime an event leads to: an approximation, which costs variance only, since every weight p / q is exact.
+The zero-variance change of measure draws each step's events x from q(x | s) = p(x | s) Q(s, x) / V(s) (Kollman,
+Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2); L'Ecuyer & Tuffin 2008, WSC); here Q is U_{t+1} at the level
+and regime an event leads to, an approximation that costs variance only.
 
 Units: metres; levels count steps of late braking (:data:`STEP_M`); probabilities in nats where logged.
 """

@@ -1,8 +1,7 @@
-"""The cut-in scenario's drawing object (:class:`pemviz.core.drawing.Drawing`): what the recording
+"""The cut-in scenario's drawing object (:class:`pemviz.core.drawing.Drawing`) for the recording
 (:class:`~pemviz.scenarios.cut_in.recording.CutInRecording`) and the panel
-(:class:`~pemviz.scenarios.cut_in.panel.CutInPanel`) draw of its rollouts: several cars on a three-lane road, the
-story of the car that cuts in and the ACC, the outcome in words
-(:func:`pemviz.scenarios.cut_in.story.cut_in_severity`)."""
+(:class:`~pemviz.scenarios.cut_in.panel.CutInPanel`): cars on a three-lane road, the cut-in's story, the outcome in
+words (:func:`pemviz.scenarios.cut_in.story.cut_in_severity`)."""
 
 from __future__ import annotations
 

@@ -1,20 +1,12 @@
 """The cut-in scenario on highway-env vehicles and roads, one rollout stepped as a black box.
 
-The road is highway-env's ``RoadNetwork.straight_road_network`` with 3 lanes; the ego is a
-:class:`highway_env.vehicle.kinematics.Vehicle` driven by the ACC's acceleration (no steering: it keeps its lane);
-the other vehicles are :class:`highway_env.vehicle.controller.ControlledVehicle` objects with their own speed and
-lane controllers. The cut-in vehicle (object 0) is told ``"LANE_LEFT"`` or ``"LANE_RIGHT"`` at
-``CutInParams.cut_in_step``, with its lateral controller's time constant set to ``cut_in_lateral_time_s``. The
-vehicles are stepped one by one (``act`` then ``step(dt)``), not by ``Road.step``, so highway-env applies no collision
-response: collisions are read from the geometry (``clearance_m``).
+The ego is a :class:`highway_env.vehicle.kinematics.Vehicle` driven by the ACC (no steering); the others are
+:class:`highway_env.vehicle.controller.ControlledVehicle` objects, the cut-in vehicle told ``"LANE_LEFT"`` or
+``"LANE_RIGHT"`` at ``CutInParams.cut_in_step``. Vehicles are stepped one by one (``act`` then ``step(dt)``), so
+highway-env applies no collision response: collisions are read from the geometry. Perception, tracker and ACC are
+the array functions of :mod:`pemviz.scenarios.cut_in.scene` with N = 1, so the batched twin gives the same bits.
 
-Each step: :meth:`CutInScenario.objects` (the M object rows) and :meth:`CutInScenario.observation` (the scene
-signals), then :meth:`CutInScenario.step` with the detections and measurement errors. The perception, the tracker
-and the ACC are the array functions of :mod:`pemviz.scenarios.cut_in.scene` with N = 1, so the batched twin
-(:mod:`pemviz.scenarios.cut_in.batched`) gives the same bits.
-
-Units: metres, seconds, m/s.
-"""
+Units: metres, seconds, m/s."""
 
 from __future__ import annotations
 

@@ -1,21 +1,15 @@
 """The cut-in's look-ahead: a state's events tried and continued with nominal perception, and the chain of
 :mod:`pemviz.scenarios.cut_in.committor` solved from them (:class:`CutInLookAhead`).
 
-A **look-ahead** applies each of a few events of the cut-in car (object 0: a miss, a central draw, a range or lateral
-error at a grid edge) to copies of a rollout's state and continues them with nominal perception (every visible car
-detected, no error) until the ACC follows the cut-in car; from there the ego's closest approach is the IDM's kinematics
-on the cut-in car's true trajectory (:meth:`CutInLookAhead.extrap`). Its robustness gives the branch's level G
-(:func:`~pemviz.scenarios.cut_in.committor.continuous_level`). With the default traffic no other car enters the ego's
-lane, so the look-ahead runs on :class:`OneCar`, the twin with the cut-in car alone (0.16 us a rollout-step against
-9.0 us for a rollout drawn from the PEMs; the same level as the whole twin in 99.9997 % of 344,400 branches).
+A **look-ahead** applies each of a few events of the cut-in car to copies of a rollout's state and continues them
+with nominal perception until the ACC follows the cut-in car, then extrapolates the IDM's closest approach
+(:meth:`CutInLookAhead.extrap`); its robustness is the branch's level G
+(:func:`~pemviz.scenarios.cut_in.committor.continuous_level`). With the default traffic it runs on :class:`OneCar`,
+the twin with the cut-in car alone. :meth:`CutInLookAhead.solve_beam` builds the chain U_t(G, k) from a beam over
+the cut-in car's events and an extra-trees regression of the events' shifts of G (scikit-learn
+``ExtraTreesRegressor``). Every simulated step counts in :attr:`CutInLookAhead.steps`.
 
-:meth:`CutInLookAhead.solve_beam` builds the chain U_t(G, k) on the nominal path: a beam over the cut-in car's events
-finds the representatives of each (regime, bin of G) cell, each is looked ahead with every event of the grid, and an
-extra-trees regression of the events' shifts of G on the state (scikit-learn ``ExtraTreesRegressor``) is fitted on
-those look-aheads. Every simulated step counts in :attr:`CutInLookAhead.steps`.
-
-Units: metres, seconds, m/s.
-"""
+Units: metres, seconds, m/s."""
 
 from __future__ import annotations
 
@@ -229,9 +223,8 @@ class CutInLookAhead:
 
     def continue_nominal(self, bsim: BatchedCutIn, lo: np.ndarray, before: np.ndarray | None = None) -> np.ndarray:
         """Continue every rollout of ``bsim`` with nominal perception until the ACC follows the cut-in car, then by
-        :meth:`extrap`, lowering ``lo`` [N] (metres) to the operand's minimum; returns (follow step, the track's
-        lateral margin outside the lane there and a step before), float64 [N, 3] (``before`` [N]: the margin a step
-        before the first, else 5 m)."""
+        :meth:`extrap`, lowering ``lo`` [N] (metres) to the operand's minimum; returns float64 [N, 3] (follow step,
+        the track's lateral margin there and a step before; ``before`` [N] else 5 m)."""
         n = lo.size
         live = np.arange(n)
         graded = np.tile([float(self.end), 5.0, 5.0], (n, 1))
@@ -357,13 +350,11 @@ class CutInLookAhead:
         return p0s, nominal
 
     def solve_beam(self, width: float, beam: int = BEAM_SIZE, h: float = 0.01, gmax: float = LMAX) -> LevelChain:
-        """:class:`~pemviz.scenarios.cut_in.committor.LevelChain` on cells of (regime, bin of G ``width`` wide), its
-        representatives found by a beam over the cut-in car's events: from step window start - :data:`DP_DEPTH` on,
-        every representative is looked ahead with every grid event (its effects, when inside the window); its
-        branches for the events of :meth:`beam_events` are the next step's candidates, the likeliest of each cell
-        kept (at most ``beam``, the likeliest; a failed branch ends). Every look-ahead step counts (:attr:`steps`).
-        With ``effect_model``, :attr:`effect_model` is fitted on the look-aheads (inputs :meth:`effect_inputs`,
-        targets each branch's shift of G). The look-ahead must run on :class:`OneCar`.
+        """:class:`~pemviz.scenarios.cut_in.committor.LevelChain` on cells of (regime, bin of G ``width`` wide),
+        their representatives found by a beam over the cut-in car's events from :data:`DP_DEPTH` steps before the
+        window: each looked ahead with every grid event, the likeliest branch of each cell kept (at most ``beam``).
+        With ``effect_model`` the shift regression is fitted on the look-aheads. Runs on :class:`OneCar`; every step
+        counts (:attr:`steps`).
 
         Raises:
             ValueError: not ``one_car`` (the representatives are states of the cut-in car alone).

@@ -1,16 +1,12 @@
 """The cut-in scenario over an operating design domain: each rollout's start gap to the cut-in vehicle
-(``cut_in_gap_m``) drawn from a distribution (``pemviz run --scenario cut-in --param "cut_in_gap_m~uniform(19.5,
-21.5)"``), the other parameters fixed.
+(``cut_in_gap_m``) drawn from a distribution (``pemviz run --scenario cut-in --param
+"cut_in_gap_m~uniform(19.5,21.5)"``), the other parameters fixed.
 
-The traffic never reacts to the ego, and the cut-in vehicle's highway-env trajectory from another start gap is the same
-trajectory moved along the road (its lane change is timed, not triggered by the other cars): the batched twin moves it
-per rollout (:class:`pemviz.scenarios.cut_in.batched.BatchedCutIn`'s ``gap_shift_m``) and the rollouts share one
-traffic trajectory. :func:`cut_in_odd_problem` checks that at five points of the support, its ends included
-(:func:`pemviz.scenarios.cut_in.batched.translation_error`) and refuses an ODD where it fails. The problem is the
-cut-in one otherwise, without its tilted proposal and look-ahead (solved for one start gap) and without the plain
-Monte Carlo reference (drawn at one setting's gap): over an ODD the cut-in runs plain Monte Carlo, whose
-Clopper-Pearson interval holds at any budget.
-"""
+The cut-in vehicle's trajectory from another start gap is the same trajectory moved along the road, so the batched
+twin moves it per rollout (``gap_shift_m``) and the rollouts share one traffic trajectory;
+:func:`cut_in_odd_problem` checks that at five points of the support
+(:func:`pemviz.scenarios.cut_in.batched.translation_error`) and refuses an ODD where it fails. The problem has no
+tilted proposal, look-ahead or reference (each made for one gap): over an ODD the cut-in runs plain Monte Carlo."""
 
 from __future__ import annotations
 

@@ -102,12 +102,10 @@ class CutInPanel:
 
 
 def start_positions(params: CutInParams) -> tuple[tuple[float, float], ...]:
-    """Each of the M cars at step 0 seen from the ego's camera, in object order (the cut-in car first): (to the right,
-    ahead) in metres, the object rows' ``loc_x`` and ``loc_z`` (the problem's ``objects_xy``) at the start of every
-    rollout. The scenario's own geometry (:func:`pemviz.scenarios.cut_in.scene.traffic_at` and
-    :func:`~pemviz.scenarios.cut_in.scene.camera_view`) at the start, each car placed as
-    :func:`pemviz.scenarios.cut_in.highway.build_road` places it (its rear ``gap_m`` ahead of the ego's front, the ego's
-    centre at 0, its lane's centre, heading along the road), without highway-env."""
+    """Each of the M cars at step 0 seen from the ego's camera, in object order: (right, ahead) in metres, the rows'
+    ``loc_x`` and ``loc_z`` at every rollout's start, from the scenario's own geometry
+    (:func:`pemviz.scenarios.cut_in.scene.traffic_at`, :func:`~pemviz.scenarios.cut_in.scene.camera_view`) without
+    highway-env."""
     from pemviz.scenarios.cut_in.scenario import LANE_WIDTH_M
     from pemviz.scenarios.cut_in.scene import CutInMemory, camera_view, traffic_at
 

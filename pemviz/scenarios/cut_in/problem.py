@@ -33,9 +33,8 @@ CUT_IN_SIGNALS = {"margin": "safe_margin_m", "grace": "cut_in_recent", "clearanc
 
 CUT_IN_FORMULA = "G((margin + 1000 * grace >= 0) & (clearance >= 0))"
 """The cut-in failure over :data:`CUT_IN_SIGNALS`: R_G1 of Maierhofer et al. 2020, waived after a cut-in, and no
-collision; robustness in metres. Under classic semantics it is :data:`pemviz.scenarios.cut_in.scenario.FAILURE_FORMULA`
-(``G a & G b`` = ``G (a & b)``), written as one safety formula ``G(state predicate)``, whose first violation stops the
-importance weights and which adaptive multilevel splitting needs."""
+collision (metres); classically :data:`pemviz.scenarios.cut_in.scenario.FAILURE_FORMULA` written as one ``G(state
+predicate)``, which the weights' stop and splitting need."""
 
 
 CUT_IN_SEVERITY_LEVELS_M = (2.0, 1.0, 0.0)
@@ -58,14 +57,12 @@ def cut_in_params(setting: str) -> CutInParams:
 def cut_in_problem(
     pem: object, params: CutInParams | None = None, noise: NoiseModel | None = None, name: str = "cut-in"
 ) -> Problem:
-    """The cut-in scenario (:mod:`pemviz.scenarios.cut_in`) as a :class:`Problem` on its batched twin
-    (:class:`~pemviz.scenarios.cut_in.batched.BatchedCutIn`): M cars, each detected by ``pem`` from its 11 KITTI
-    salient variables and, when detected, mislocated in range and laterally by the noise PEM ``noise``
-    (:class:`pemviz.pem.perception.SalientDetector`); a car the camera cannot see is never detected. The failure is
-    a negative classic robustness of :data:`CUT_IN_FORMULA` (Innes & Ramamoorthy, "Adaptive Splitting of Reusable
-    Temporal Monitors for Rare Traffic Violations", arXiv 2405.15771: a cut-in, the rule R_G1). The proposal reads
-    each car's object row (its range first, scaled by 50 m) within :data:`CUT_IN_WINDOW_M`. No exact answer is
-    known; plain Monte Carlo of the same twin gives the reference (``benchmarks/cut_in_mc.py``).
+    """The cut-in scenario as a :class:`Problem` on its batched twin
+    (:class:`~pemviz.scenarios.cut_in.batched.BatchedCutIn`): M cars, each detected by ``pem`` and mislocated by the
+    noise PEM ``noise`` (:class:`pemviz.pem.perception.SalientDetector`), failing on :data:`CUT_IN_FORMULA` (Innes &
+    Ramamoorthy, "Adaptive Splitting of Reusable Temporal Monitors for Rare Traffic Violations", arXiv 2405.15771);
+    the proposal reads each car's row (range first, scaled by 50 m) within :data:`CUT_IN_WINDOW_M`. The reference is
+    plain Monte Carlo of the same twin (``benchmarks/cut_in_mc.py``).
 
     Args:
         pem: the detection PEM (``pemviz.pem.load_pem()``).

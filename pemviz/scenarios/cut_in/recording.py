@@ -1,8 +1,7 @@
 """The cut-in scenario's hooks of the recording (:class:`pemviz.sinks.drawing.RecordingDrawing`), mixed into
-:class:`pemviz.scenarios.cut_in.drawing.CutInDrawing`. The recording draws the cut-in's scene from the rollouts'
-object rows (:attr:`pemviz.core.problem_view.ProblemView.objects_xy`), so these add no lanes and no story, and the
-run's description is the recording's own; each rollout's outcome is the cut-in's severity
-(:func:`pemviz.scenarios.cut_in.story.cut_in_severity`), in the words the panel shows too."""
+:class:`pemviz.scenarios.cut_in.drawing.CutInDrawing`: the scene is drawn from the object rows
+(:attr:`pemviz.core.problem_view.ProblemView.objects_xy`), so these add each rollout's outcome as the cut-in's
+severity (:func:`pemviz.scenarios.cut_in.story.cut_in_severity`)."""
 
 from __future__ import annotations
 
@@ -31,10 +30,9 @@ class CutInRecording:
         return None
 
     def outcome_values(self, batch: RolloutBatch, i: int) -> dict[str, Any] | None:
-        """Rollout ``i``'s :class:`~pemviz.scenarios.cut_in.story.CutInSeverity`: ``outcome`` (its words, e.g.
-        ``contact at 2.8 m/s closing speed at 3.10 s · minimum clearance -0.66 m ...``), ``min_clearance_m``
-        (metres; negative: the boxes overlap), ``contact``, ``closing_speed_mps`` (m/s; NaN: no contact, or none in
-        front); None where the rollouts lack the scene columns the severity reads."""
+        """Rollout ``i``'s :class:`~pemviz.scenarios.cut_in.story.CutInSeverity` (``outcome`` words,
+        ``min_clearance_m`` in metres, ``contact``, ``closing_speed_mps`` in m/s, NaN without contact); None where
+        the rollouts lack its columns."""
         from pemviz.scenarios.cut_in.story import has_story_columns
 
         names, object_names = tuple(batch.observation_names), tuple(batch.object_names or ())

@@ -1,27 +1,14 @@
 """The cut-in scenario: constants, names, the ego's ACC on tracked objects, and the safe-distance rule R_G1.
 
-A straight three-lane highway (highway-env's ``RoadNetwork.straight_road_network``: lanes 4 m wide at y = 0, 4 and
-8 m, lane 0 the leftmost; x along the road, y to the right). The ego drives in the middle lane with an adaptive
-cruise control (ACC). M other vehicles drive ahead of it: vehicle 0 changes lanes from an adjacent lane into the
-ego's lane in front of it (the **cut-in**) at a scripted time; the others keep their lanes and speeds. None of them
-reacts to the ego, so their trajectories are one deterministic function of the parameters, shared by every rollout.
+A straight three-lane highway (highway-env's ``straight_road_network``). The ego drives in the middle lane with an
+adaptive cruise control; vehicle 0 of the M others changes lanes in front of it (the **cut-in**) at a scripted time;
+none reacts to the ego. Its camera detects each object and measures it with range and lateral errors (a PEM draws
+both), a Kalman tracker per object (:mod:`pemviz.stack.tracker`) estimates it, and the ACC follows the nearest
+tracked vehicle ahead in its lane with highway-env's IDM (:func:`idm_acceleration`). The failure
+(:data:`FAILURE_FORMULA`): a collision, or a violation of the safe-distance rule R_G1 of Maierhofer et al. 2020
+(:func:`safe_distance`) outside ``cut_in_grace_s`` after a cut-in.
 
-Each step the ego's camera perceives each object: detected or missed, and, when detected, measured with an error in
-range and lateral position (a perception error model, PEM, draws both). A constant-velocity Kalman tracker per
-object (:mod:`pemviz.stack.tracker`) turns the measurements into estimates, and the ACC follows the nearest
-TRACKED vehicle whose ESTIMATED position is ahead in the ego's lane with highway-env's IDM acceleration
-(:func:`idm_acceleration`). A missed or laterally mislocated cut-in is therefore not followed, and the ego closes in.
-
-The failure (:data:`FAILURE_FORMULA`): a collision, or a violation of the safe-distance rule R_G1 of Maierhofer et
-al. 2020 (:func:`safe_distance`) towards the vehicle in front, except during ``cut_in_grace_s`` after that vehicle
-cut in.
-
-Modules: this one (parameters, names, controller, rule); :mod:`pemviz.scenarios.cut_in.scene` (the geometry each
-step: camera view, occlusion, measurements, object rows, scene signals); :mod:`pemviz.scenarios.cut_in.highway` (the
-simulator on highway-env vehicles); :mod:`pemviz.scenarios.cut_in.batched` (the batched twin).
-
-Units: metres, seconds, m/s, m/s^2, radians.
-"""
+Units: metres, seconds, m/s, m/s^2, radians."""
 
 from __future__ import annotations
 
@@ -96,34 +83,19 @@ OBJECT_NAMES: tuple[str, ...] = (
     "ego_speed_mps",
     "ego_accel_mps2",
 )
-"""Columns of one object row, [G]:
-
-- ``range_m``: distance from the camera to the object's centre in the ground plane, ``sqrt(loc_x^2 + loc_z^2)``;
-- the 11 salient variables (:data:`SALIENT_NAMES`): class 0 (Car), truncation (fraction of the 2D box outside the
-  image), occlusion level (0, 1, 2 from ``occluded_fraction``), alpha, dimensions, camera-frame loc_x (right),
-  loc_y (down: the camera height), loc_z (forward), rot_y (KITTI's camera frame, radians);
-- ``gap_m``: object rear minus ego front along the road (negative when beside or behind);
-- ``rel_speed_mps``: the object's velocity along the road minus the ego's speed; ``lateral_speed_mps``: its
-  velocity across the road (positive to the right);
-- ``occluded_fraction``: the share of its 2D image box covered by nearer objects' boxes;
-- ``visible``: 1.0 if the camera can see it at all (ahead, not wholly outside the image, not hidden), else 0.0: a
-  detection of an invisible object is ignored (a PEM detector should give such rows p(detect) = 0);
-- ``in_ego_lane``: 1.0 if its box overlaps the ego's lane;
-- ``tracked``: 1.0 if the tracker has a confirmed track of it (one the ACC may follow); ``track_err_x_m``,
-  ``track_err_y_m``: the track's predicted position minus the true one (0 without a track);
-- ``followed``: 1.0 if the ACC followed it at the last step;
-- ``ego_speed_mps``, ``ego_accel_mps2``: the ego's state (as in the observation)."""
+"""Columns of one object row, [G]: ``range_m`` (camera to the object's centre on the ground); the 11 salient
+variables (:data:`SALIENT_NAMES`, KITTI's camera frame); ``gap_m`` (object rear minus ego front, negative beside or
+behind); ``rel_speed_mps`` and ``lateral_speed_mps``; ``occluded_fraction``; ``visible`` (1.0 if the camera can see
+it at all: a PEM detector gives other rows p(detect) = 0); ``in_ego_lane``; ``tracked`` (a confirmed track the ACC
+may follow) and its errors ``track_err_x_m``, ``track_err_y_m`` (0 without a track); ``followed`` (by the ACC at the
+last step); ``ego_speed_mps``, ``ego_accel_mps2``."""
 
 
 FAILURE_FORMULA = "G(safe_margin_m + 1000 * cut_in_recent >= 0) & G(clearance_m >= 0)"
-"""The failure, in pemviz's STL (:func:`pemviz.stl.parse`) over :data:`OBSERVATION_NAMES`: the rollout fails when its
-robustness is negative, i.e. at some step the ego is closer to the vehicle in front than the safe distance while that
-vehicle did not cut in within ``cut_in_grace_s`` (R_G1 of Maierhofer et al. 2020), or it collides with a vehicle.
-
-The first conjunct is R_G1, ``G(cut_in_recent > 0.5 | safe_margin_m >= 0)``, written with arithmetic: both fail on
-the same traces (``|safe_margin_m| < 1000`` m), but this robustness stays the distance in metres by which the rule
-holds, where the disjunction's would stop at 0.5 (the robustness of ``cut_in_recent > 0.5``) during every waiver and
-give a sampler nothing to climb. Robustness in metres (classic semantics)."""
+"""The failure, in pemviz's STL over :data:`OBSERVATION_NAMES`: at some step the ego is closer to the vehicle in
+front than the safe distance while that vehicle did not cut in within ``cut_in_grace_s`` (R_G1 of Maierhofer et al.
+2020), or it collides. R_G1 is written with arithmetic, ``G(cut_in_recent > 0.5 | safe_margin_m >= 0)`` failing on
+the same traces, so that its robustness stays the margin in metres during a waiver (classic semantics)."""
 
 
 @dataclass(frozen=True)
@@ -184,26 +156,21 @@ class CutInParams:
         cut_in_gap_m: the gap from the ego's front bumper to the cut-in vehicle's rear at t = 0.
         cut_in_speed_mps: its speed (kept through the lane change).
         cut_in_time_s: when it starts to change lanes.
-        cut_in_lateral_time_s: the time constant of its lateral position controller (highway-env
-            ``ControlledVehicle.TAU_LATERAL``, 0.6 s there): larger is a slower lane change.
+        cut_in_lateral_time_s: the time constant of its lateral controller (highway-env's ``TAU_LATERAL``).
         traffic: the other vehicles (:data:`DEFAULT_TRAFFIC`).
-        vehicle_length_m, vehicle_width_m: every vehicle's box (highway-env ``Vehicle.LENGTH``, ``WIDTH``).
-        vehicle_height_m: their height, for the camera view (a KITTI car is ~1.5 m high).
-        camera_offset_m: the camera ahead of the ego's centre (2.0 m, as in the braking scenario).
-        camera_height_m: the camera above the road (KITTI's camera: 1.65 m).
-        occlusion_partly, occlusion_largely, occlusion_hidden: the occluded fractions of the 2D box from which an
-            object is partly occluded (KITTI level 1), largely occluded (level 2), and hidden (not visible); the
-            bins of the Caltech pedestrian benchmark (Dollar et al. 2012, "Pedestrian Detection: An Evaluation of the
-            State of the Art", IEEE TPAMI 34(4), Sec. 2.2: partial 1-35 %, heavy 35-80 %, full > 80 %).
+        vehicle_length_m, vehicle_width_m, vehicle_height_m: every vehicle's box.
+        camera_offset_m, camera_height_m: the camera ahead of the ego's centre and above the road.
+        occlusion_partly, occlusion_largely, occlusion_hidden: the occluded shares of the 2D box from which an
+            object is partly occluded (KITTI level 1), largely (level 2) and hidden; the Caltech bins (Dollar et al.
+            2012, "Pedestrian Detection: An Evaluation of the State of the Art", IEEE TPAMI 34(4), Sec. 2.2).
         idm: the ACC's IDM constants.
         tracker: the tracker's noise model and track management (:data:`CUT_IN_TRACKER`).
-        ego_a_min_mps2, other_a_min_mps2, reaction_time_s, cut_in_grace_s: R_G1's parameters (:func:`safe_distance`):
-            the braking capabilities assumed for the ego (-10.0) and the vehicle in front (-10.5), the ego's
-            reaction time (0.3 s) and the time ``t_c`` after a cut-in during which the rule is waived (3 s).
+        ego_a_min_mps2, other_a_min_mps2, reaction_time_s, cut_in_grace_s: R_G1's parameters
+            (:func:`safe_distance`): the assumed braking of the ego and of the vehicle in front, the ego's reaction
+            time and the time ``t_c`` after a cut-in during which the rule is waived.
 
     Raises:
-        ValueError: a value outside its range (the message names the field, what is allowed and what was given).
-    """
+        ValueError: a value outside its range (the message names the field, what is allowed and what was given)."""
 
     dt_s: float = 0.1
     n_steps: int = 100
@@ -326,13 +293,9 @@ RARITY_SETTINGS: dict[str, RaritySetting] = {
     "moderate": {"cut_in_gap_m": 20.0, "cut_in_speed_mps": 17.4},
     "rare": {"cut_in_gap_m": 22.5, "cut_in_speed_mps": 17.4},
 }
-"""The rarity knob's two settings (:class:`CutInParams` fields; ``moderate`` is the default): the cut-in vehicle's gap
-to the ego at t = 0 with its speed 7.6 m/s below the ego's. Under the shipped PEMs (ml-nn detection, hetero-t noise)
-the failure probability is 7.95e-5 [7.50e-5, 8.41e-5] at ``moderate`` (plain Monte Carlo by the engine's rollouts,
-1.48 x 10^7 of them: :data:`MONTE_CARLO_REFERENCE`) and about 1e-7 at ``rare``: 10 runs of the tilted proposal give
-a geometric mean of 1.8e-7 and, being unbiased, p >= 1.3e-7 at 95 % (Markov's inequality:
-:func:`pemviz.core.confidence.markov_lower_bound`); splitting ranked by the same committor gives 8.8e-8
-(``research/cut-in-notes.md``)."""
+"""The rarity knob's two settings (:class:`CutInParams` fields; ``moderate`` is the default): the cut-in vehicle's
+gap to the ego at t = 0, its speed 7.6 m/s below the ego's. Under the shipped PEMs p is 7.95e-5 at ``moderate``
+(:data:`MONTE_CARLO_REFERENCE`) and about 1e-7 at ``rare`` (docs/validation.md)."""
 
 
 def moderate_params() -> CutInParams:
@@ -347,12 +310,9 @@ def rare_params() -> CutInParams:
 
 MONTE_CARLO_REFERENCE: dict[str, tuple[int, int]] = {"moderate": (1176, 14_800_000)}
 """The plain Monte Carlo reference of a rarity setting under the shipped PEMs: (failures, rollouts) of the engine's
-own plain rollouts (``pemviz run --method mc``'s): ``benchmarks/cut_in_mc.py`` seeds 1000-1007 (5 x 10^4 rollouts
-each) and 1008-1029 (2 x 10^5 each), 396 failures in 4.8 x 10^6, with the plain Monte Carlo of ten ``--method
-adaptive`` runs (seeds 0-9, 10^6 rollouts each), 780 failures in 10^7 (the Validation page; every failure a
-collision). The reference p = failures / rollouts with its Clopper-Pearson interval (7.95e-5 [7.50e-5, 8.41e-5] at
-``moderate``; the benchmark's former loop gave 8.66e-5 [8.09e-5, 9.26e-5] from 10^7); the ``rare`` setting has none
-(about 1e-7: plain Monte Carlo would need some 10^9 rollouts)."""
+own plain rollouts (``benchmarks/cut_in_mc.py`` and ten adaptive runs' plain Monte Carlo, every failure a collision;
+docs/validation.md), 7.95e-5 [7.50e-5, 8.41e-5] at ``moderate``; ``rare`` has none (it would need some 10^9
+rollouts)."""
 
 
 def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mps: np.ndarray) -> np.ndarray:
@@ -360,11 +320,10 @@ def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mp
 
         d_safe = v_ego^2 / (2 |a_ego|) - v_front^2 / (2 |a_front|) + v_ego t_react.
 
-    Keeping at least this gap lets the ego stop behind the vehicle in front if it brakes fully after the ego's
-    reaction time. Source: Maierhofer et al. 2020, "Formalization of Interstate Traffic Rules in Temporal Logic", IEEE
-    IV, the predicate ``keeps_safe_distance_prec`` of rule R_G1; the parameters (a_ego -10.0, a_front -10.5 m/s^2,
-    t_react 0.3 s) are those of the authors' CommonRoad traffic-rule monitor (commonroad-stl-monitor,
-    ``crmonitor/config.yaml``).
+    Keeping at least this gap lets the ego stop behind the vehicle in front if it brakes fully after its reaction
+    time. Source: Maierhofer et al. 2020, "Formalization of Interstate Traffic Rules in Temporal Logic", IEEE IV,
+    rule R_G1's ``keeps_safe_distance_prec``, with the parameters of the authors' CommonRoad monitor
+    (commonroad-stl-monitor, ``crmonitor/config.yaml``).
     """
     v, vf = ego_speed_mps, front_speed_mps
     ego_stop = v * v / (2.0 * -params.ego_a_min_mps2)
@@ -378,15 +337,13 @@ def idm_acceleration(
     distance_m: np.ndarray,
     closing_speed_mps: np.ndarray,
 ) -> np.ndarray:
-    """The IDM acceleration of highway-env's ``IDMVehicle.acceleration`` and ``desired_gap``, elementwise, clipped to
-    ``+-acc_max`` as ``IDMVehicle.act`` clips it:
+    """The IDM acceleration of highway-env's ``IDMVehicle.acceleration``, elementwise, clipped to ``+-acc_max``:
 
         a = a_max (1 - (v / v0)^delta - (d* / d)^2),  d* = d0 + v T + v dv / (2 sqrt(a_max b)),
 
-    with ``d`` the centre-to-centre distance to the vehicle followed (``inf``: none, the free-road term alone), ``dv``
-    the closing speed (ego minus front), ``a_max``/``b`` the comfort acceleration and deceleration. Source: Treiber,
-    Hennecke & Helbing 2000, "Congested traffic states in empirical observations and microscopic simulations", Phys.
-    Rev. E 62, eq. (1)-(2), as highway-env 1.12 writes it (no ``max(0, .)`` on ``d*``; ``d`` at least 0.01 m).
+    ``d`` the centre-to-centre distance to the vehicle followed (``inf``: none), ``dv`` the closing speed. Source:
+    Treiber, Hennecke & Helbing 2000, "Congested traffic states in empirical observations and microscopic
+    simulations", Phys. Rev. E 62, eq. (1)-(2), as highway-env 1.12 writes it.
 
     Args:
         idm: the IDM's constants (:class:`IDMParams`).
@@ -395,8 +352,7 @@ def idm_acceleration(
         distance_m: float64 ``[N]``, d (metres; ``inf``: no vehicle followed).
         closing_speed_mps: float64 ``[N]``, dv (m/s).
     Returns:
-        float64 ``[N]``, m/s^2.
-    """
+        float64 ``[N]``, m/s^2."""
     a_max = idm.comfort_acc_max_mps2
     acc = a_max * (1.0 - np.power(np.maximum(speed_mps, 0.0) / target_speed_mps, idm.delta))
     ab = -a_max * idm.comfort_acc_min_mps2

@@ -1,36 +1,14 @@
 """The cut-in scenario's geometry at one step: the traffic, the ego camera's view of it, the measurements, the object
 rows and the scene signals, for N rollouts at once in numpy float64.
 
-The other vehicles' state at a step (:class:`Traffic`, arrays ``[M]``) is the same in every rollout; the ego's
-position along the road (``[N]``) is not, so the view is ``[M, N]`` (object-major: each object's row is contiguous).
-Both simulators call these functions, the highway-env one with N = 1, so their arithmetic is the same element by
-element.
+The other vehicles' state (:class:`Traffic`, ``[M]``) is the same in every rollout, the ego's position (``[N]``) is
+not, so the view is ``[M, N]``. Both simulators call these functions (the highway-env one with N = 1), so their
+arithmetic is the same element by element. The camera is :mod:`pemviz.stack.camera`'s KITTI pinhole,
+``camera_offset_m`` ahead of the ego's centre and ``camera_height_m`` above the road; truncation, the occluded share
+(:func:`pemviz.stack.camera.occluded_share`) and its level, visibility and measurement (:func:`measure`) follow that
+module, with the thresholds of :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`.
 
-The camera (pinhole, KITTI's camera 2: :data:`pemviz.pem.camera.KITTI_FOCAL_PX`, principal point and the
-1242 x 375 image) sits ``camera_offset_m`` ahead of the ego's centre, ``camera_height_m`` above the road, looking
-along the road: camera x = road y minus the ego's y (right), camera y = down, camera z = along the road (forward).
-An object's 2D image box is the box around the projections of the 8 corners of its 3D box (Geiger et al. 2013,
-"Vision meets robotics: the KITTI dataset", IJRR, eq. 5), the 3D box being the vehicle's axis-aligned bounding box
-on the road (exact for a vehicle driving along the road, a little larger for one changing lanes): in normalised image
-coordinates ``u = X / Z`` and ``v = Y / Z`` it spans ``[min u, max u]`` over its 4 ground corners and
-``[(h_cam - H) / Z_far, h_cam / Z_near]`` vertically. From the boxes:
-
-- **truncation** (KITTI's sense: the share of the object outside the image): ``1 - area(box & image) / area(box)``;
-- **occluded fraction** (:func:`pemviz.stack.camera.occluded_share`): ``sum over nearer objects (smaller centre
-  depth) of area(box_i & box) / area(box)``, at most 1; exact when the nearer objects' boxes do not overlap each
-  other on the box, an upper bound otherwise. Its level (:func:`pemviz.stack.camera.occlusion_level`)
-  (KITTI's 0 fully visible, 1 partly, 2 largely occluded) and whether it is hidden follow the thresholds of
-  :class:`~pemviz.scenarios.cut_in.scenario.CutInParams`;
-- **visible**: centre depth at least :data:`pemviz.pem.camera.MIN_RANGE_M`, some of the box inside the image, not
-  hidden.
-
-A detected object is **measured** (:func:`measure`) at its true position moved by the range error along the camera
-ray and by the lateral error across it, as a pinhole camera reads a box whose height is off (the range, bearing
-kept) and whose centre is off (the bearing): ``Z_m = Z + dZ``, ``X_m = (X + dX) Z_m / Z``
-(:mod:`pemviz.pem.camera`: ``dZ`` along the optical axis, ``dX`` back-projected at the true range).
-
-Units: metres, seconds, m/s, radians.
-"""
+Units: metres, seconds, m/s, radians."""
 
 from __future__ import annotations
 
@@ -67,27 +45,23 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Traffic:
-    """The M other vehicles at one step, the same in every rollout: arrays ``[M]``, or ``[M, 1]`` where marked (a
-    column, to broadcast against the rollouts' ``[M, N]`` arrays). ``x_m``, ``rear_m`` and ``front_m`` may instead be
-    ``[M, N]``, each rollout's own (the cut-in vehicle moved per rollout: ``BatchedCutIn(gap_shift_m=)``).
+    """The M other vehicles at one step, the same in every rollout: arrays ``[M]``, or ``[M, 1]`` where marked;
+    ``x_m``, ``rear_m`` and ``front_m`` may be ``[M, N]`` (the cut-in vehicle moved per rollout).
 
     Attributes:
-        x_m, y_m, heading_rad, speed_mps: highway-env's vehicle state (centre; heading from the road's direction,
-            positive to the right; speed along the heading).
-        vx_mps, vy_mps: velocity along and across the road (``speed * cos, sin heading``, highway-env
-            ``Vehicle.velocity``).
-        half_x_m, half_y_m: half extents of the box's axis-aligned bounding box in the ground plane.
-        rear_m, front_m: ``[M, 1]`` the box's extent along the road (``x -+ half_x``).
-        loc_x_lo_m, loc_x_hi_m: ``[M, 1]`` its lateral extent in the camera frame (``y - y_ego -+ half_y``).
+        x_m, y_m, heading_rad, speed_mps: highway-env's vehicle state (centre; heading from the road's direction).
+        vx_mps, vy_mps: velocity along and across the road.
+        half_x_m, half_y_m: half extents of the box's axis-aligned bounding box on the ground.
+        rear_m, front_m: ``[M, 1]`` the box's extent along the road.
+        loc_x_lo_m, loc_x_hi_m: ``[M, 1]`` its lateral extent in the camera frame.
         rot_y_rad: KITTI's rotation of the object about the camera's y axis (``heading - pi / 2``).
         in_ego_lane: bool, the box overlaps the ego's lane.
-        beside_ego: bool ``[M, 1]``, the box overlaps the ego's box laterally (a longitudinal overlap is a collision).
-        cutting_in: bool, R_G1's cut-in predicate: the box overlaps the ego's lane and another lane and moves towards
-            the ego's lane centre.
-        cut_in_recent: bool, a cut-in began (``cutting_in`` rose) within the last ``cut_in_grace_steps`` steps.
-        occluder_pairs: ``(i, j)`` pairs of objects such that ``i`` is nearer the camera than ``j`` (smaller x) and
-            their image boxes can overlap (not on opposite sides of the camera's axis), in a fixed order.
-    """
+        beside_ego: bool ``[M, 1]``, the box overlaps the ego's box laterally.
+        cutting_in: bool, R_G1's cut-in predicate: in the ego's lane and another, moving towards the ego's lane
+            centre.
+        cut_in_recent: bool, a cut-in began within the last ``cut_in_grace_steps`` steps.
+        occluder_pairs: ``(i, j)`` pairs with ``i`` nearer the camera than ``j`` whose image boxes can overlap, in a
+            fixed order."""
 
     x_m: np.ndarray
     y_m: np.ndarray
@@ -132,10 +106,8 @@ def traffic_at(
     memory: CutInMemory,
 ) -> tuple[Traffic, CutInMemory]:
     """The :class:`Traffic` of vehicles in the given state (float64 ``[M]`` each) at ``step``, and the cut-in memory
-    to pass at the next step.
-
-    A cut-in begins at the steps where ``cutting_in`` rises (False at the step before; False before step 0), and is
-    recent while ``step - start <= cut_in_grace_steps`` (R_G1's ``once[0, t_c](cut_in & prev(!cut_in))``).
+    for the next step: a cut-in begins where ``cutting_in`` rises and is recent while ``step - start <=
+    cut_in_grace_steps`` (R_G1's ``once[0, t_c](cut_in & prev(!cut_in))``).
     """
     x, y, h, s = (np.asarray(a, dtype=np.float64) for a in (x_m, y_m, heading_rad, speed_mps))
     cos, sin = np.cos(h), np.sin(h)
@@ -211,12 +183,9 @@ def _column(x: np.ndarray) -> np.ndarray:
 
 
 def camera_view(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray) -> CameraView:
-    """The camera's view of the traffic from ego positions ``ego_x_m`` ``[N]`` (module docstring).
-
-    The 2D box is that of the vehicle's axis-aligned bounding box in the ground plane (:attr:`Traffic.half_x_m`,
-    ``half_y_m``): exact for a vehicle driving along the road, slightly larger for one changing lanes. Over its
-    corners ``u = X / Z`` is largest at the right edge ``X_hi`` and smallest at the left edge ``X_lo``, at the near or
-    far face: ``u_hi = max(X_hi / Z_near, X_hi / Z_far)``, ``u_lo = min(X_lo / Z_near, X_lo / Z_far)``.
+    """The camera's view of the traffic from ego positions ``ego_x_m`` ``[N]`` (module docstring), the 2D box that
+    of the vehicle's axis-aligned footprint (:attr:`Traffic.half_x_m`, ``half_y_m``): ``u_hi = max(X_hi / Z_near,
+    X_hi / Z_far)``, ``u_lo = min(X_lo / Z_near, X_lo / Z_far)``.
     """
     cam_x = ego_x_m + params.camera_offset_m
     loc_z = _column(traffic.x_m) - cam_x

@@ -1,23 +1,13 @@
 """The cut-in's committor as the score of adaptive multilevel splitting (``pemviz run --method ams --ams-score
-committor``): the same V that tilts the cut-in's importance sampler (:mod:`pemviz.scenarios.cut_in.tilt`) ranks the
-particles, so splitting gives a second, independent estimate to check the tilt's against.
+committor``): the V that tilts the cut-in's importance sampler (:mod:`pemviz.scenarios.cut_in.tilt`) ranks the
+particles, a second, independent estimate to check the tilt's.
 
-A rollout's score at step t is -log V(s_t) (nats; lower = closer to failure), V(s_t) = sum_c p(c | s_t) Q(s_t, c) the
-tilt's probability of failure from the state (its chain and effect model: :meth:`CutInTilt.branch_log_q
-<pemviz.scenarios.cut_in.tilt.CutInTilt.branch_log_q>`), at the steps of the tilt's window where the cut-in car is
-visible and the rollout has not failed; +inf at the other steps, and the failure formula's operand robustness
-(metres, < 0) at a step that fails. The prefix score is the running minimum, so a failure scores below 0 and every
-other rollout at least :data:`pemviz.estimators.ams.SCORE_FLOOR`. A graded score: V takes a continuum of values
-where the robustness sits on one plateau in about 97 % of rollouts, so no level ties there.
-
-Splitting is unbiased for any score that is a function of the state and the step (Brehier, Gazeau, Goudenege, Lelievre
-& Rousset, Ann. Appl. Probab. 26(6), 2016): V's errors cost variance only, as they do the tilt's. Each score is
-computed while the rollout is simulated (its look-ahead sees the simulator's state), so nothing is replayed; a
-branched rollout takes its parent's scores up to its branching step (the same state) and is scored after it.
-
-Cost: the rollouts' steps (counted by :class:`pemviz.estimators.ams.Splitting`) plus every look-ahead step
-(:attr:`CommittorScore.steps`) and the tilt's solve when this run solved it.
-"""
+A rollout's score at step t is -log V(s_t) (nats) at the steps of the tilt's window where the cut-in car is visible
+(:meth:`CutInTilt.branch_log_q <pemviz.scenarios.cut_in.tilt.CutInTilt.branch_log_q>`), +inf at the others, the
+failure formula's robustness (metres, < 0) at a failing step; the prefix score is the running minimum. Splitting is
+unbiased for any score that is a function of the state and the step (Brehier, Gazeau, Goudenege, Lelievre & Rousset,
+Ann. Appl. Probab. 26(6), 2016). Scores are computed while the rollout is simulated; a branched rollout takes its
+parent's up to its branching step. Every look-ahead step is counted (:attr:`CommittorScore.steps`)."""
 
 from __future__ import annotations
 

@@ -1,22 +1,14 @@
 """What happened in one cut-in rollout, in words, and how bad it was: pure functions of the rollout's scene signals
 (:data:`pemviz.scenarios.cut_in.scenario.OBSERVATION_NAMES`) and object rows
-(:data:`pemviz.scenarios.cut_in.scenario.OBJECT_NAMES`). Nothing is simulated or drawn; the rows are read as the
-simulators wrote them.
+(:data:`pemviz.scenarios.cut_in.scenario.OBJECT_NAMES`).
 
-The story follows the cut-in car (object 0, :attr:`pemviz.scenarios.cut_in.scenario.CutInParams.vehicles`): when it
-began to change lanes (its lateral speed), when its box entered the ego's lane (``in_ego_lane``), when the camera first
-detected it and how often it was missed after it entered, when the tracker confirmed a track of it and where the
-track placed it (``track_err_y_m``: a track outside the ego's lane is not followed), when the ACC first followed it
-and braked (``followed``, ``ego_accel_mps2``), and the outcome: the failure of
-:data:`pemviz.scenarios.cut_in.scenario.FAILURE_FORMULA` (a collision, or R_G1's safe distance violated after its cut-in
-waiver, Maierhofer et al. 2020) at its first step, and the severity: the smallest clearance (metres, bumper to bumper;
-negative: the boxes overlap) and, at contact, the closing speed (m/s).
+The story follows the cut-in car (object 0): its lane change, its entry into the ego's lane, its first detection and
+misses, its confirmed track and where it lay, when the ACC followed it and braked, and the outcome
+(:data:`pemviz.scenarios.cut_in.scenario.FAILURE_FORMULA`, Maierhofer et al. 2020) with its severity: the smallest
+clearance (metres) and, at contact, the closing speed (m/s). The rows' ``followed`` and ``ego_accel_mps2`` at step t
+are the ACC's decision at step t - 1: :class:`AccTrace` shifts them back.
 
-The rows' ``followed`` and ``ego_accel_mps2`` at step t are the ACC's decision at step t - 1 (applied over the step
-before the row, :mod:`pemviz.scenarios.cut_in.scene`): :class:`AccTrace` shifts them back to the step of the decision.
-
-Units: metres, seconds, m/s, m/s^2.
-"""
+Units: metres, seconds, m/s, m/s^2."""
 
 from __future__ import annotations
 
@@ -160,24 +152,22 @@ class CutInStory:
     never happened.
 
     Attributes:
-        lane_change_step: the first step car 0 moves across the road (its lateral speed).
+        lane_change_step: the first step car 0 moves across the road.
         lane_entry_step: the first step its box overlaps the ego's lane.
         first_detected_step: the first step the camera detected it.
         misses_after_entry, steps_after_entry: its misses and the steps from its lane entry up to the ACC's first
-            decision to follow it (or up to the failure, or the end).
+            decision to follow it (or the failure, or the end).
         track_step: the first step the tracker held a confirmed track of it.
-        outside_steps: steps after its lane entry, before the ACC followed it, at which its confirmed track lay outside
-            the ego's lane (estimated centre ``|y - y_ego| >= 2 m``: the ACC follows none such).
+        outside_steps: steps after its lane entry, before the ACC followed it, at which its track lay outside the
+            ego's lane.
         worst_track_error_m: the largest lateral error of its track in those steps (metres; nan: none).
         follow_step: the first step the ACC decided to follow it.
-        brake_step: the first decision at or below :data:`BRAKING_MPS2` after its lane entry (from step 0 if it
-            never entered).
+        brake_step: the first decision at or below :data:`BRAKING_MPS2` after its lane entry.
         hardest_accel_mps2, hardest_step: the ACC's lowest commanded acceleration (m/s^2) and its step.
         acc: the ACC's decisions (:class:`AccTrace`).
         in_lane: bool [T] car 0's box overlaps the ego's lane at each step.
         severity: :class:`CutInSeverity`.
-        sentences: the story in words.
-    """
+        sentences: the story in words."""
 
     lane_change_step: int | None
     lane_entry_step: int | None

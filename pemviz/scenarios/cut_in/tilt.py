@@ -2,20 +2,12 @@
 proportion to p(event) U(after it)^beta, mixed defensively with the PEMs, every weight p / q exact
 (:class:`CutInTilt`).
 
-At each step of the window at which the cut-in car is visible and the rollout has not failed, its three uniforms
-(detection, range error, lateral error; density 1 under the PEMs) fall in one class of the
-:class:`~pemviz.scenarios.cut_in.committor.Grid`. One look-ahead of the central draw gives the state's own continuous
-level G; each class's level after it is G plus the class's shift, from a regression fitted on the chain's look-aheads
-(the shifts of the state's chain cell without one), and its value Q = U_{t+1}(level, regime) comes from the
-:class:`~pemviz.scenarios.cut_in.committor.LevelChain` solved once per scene (:meth:`CutInLookAhead.solve_beam
-<pemviz.scenarios.cut_in.lookahead.CutInLookAhead.solve_beam>`). The class is drawn from q(c) = (1 - eps) p(c)
-Q(c)^beta / Z + eps p(c) (Hesterberg 1995, Technometrics 37(2): the weights are at most 1 / eps), the uniforms
-uniformly inside it. The estimate is unbiased whatever Q is (Kollman, Baggerly, Cox & Picard 1999, Ann. Appl. Probab.
-9(2); L'Ecuyer & Tuffin 2008, WSC): Q's errors cost variance only.
-
-Cost, in rollout-equivalents of T steps: the rollouts, plus every step the look-aheads simulate (the chain's, once a
-scene, and one continuation a tilted step of each rollout), on the cut-in car alone.
-"""
+At each step of the window where the cut-in car is visible, its three uniforms (detection, range error, lateral
+error) fall in one class of the :class:`~pemviz.scenarios.cut_in.committor.Grid`; each class's value Q comes from
+the level after it and the :class:`~pemviz.scenarios.cut_in.committor.LevelChain` solved once per scene
+(:meth:`CutInLookAhead.solve_beam <pemviz.scenarios.cut_in.lookahead.CutInLookAhead.solve_beam>`). The class is
+drawn from q(c) = (1 - eps) p(c) Q(c)^beta / Z + eps p(c) (Hesterberg 1995, Technometrics 37(2)), the uniforms
+uniformly inside it; unbiased whatever Q is (L'Ecuyer & Tuffin 2008, WSC). Every look-ahead step counts in the cost."""
 
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
-"""The toy braking model of the authors' code, one package: the model, its detector, batched twin and closed-form answer
-(:mod:`~pemviz.scenarios.toy.simulator`) and its problem (:mod:`~pemviz.scenarios.toy.problem`). Importing the package
-loads the simulator module only.
-
-The three names the user guide builds a toy scenario and its zero-variance sampler from are imported from here
-(:class:`ToyBraking`, :class:`ToyParams`, :class:`ToyValue`); every other name has one import path, its module's."""
+"""The toy braking model of the authors' code, one package: the model, detector, batched twin and closed-form answer
+(:mod:`~pemviz.scenarios.toy.simulator`) and its problem (:mod:`~pemviz.scenarios.toy.problem`). The user guide
+imports :class:`ToyBraking`, :class:`ToyParams` and :class:`ToyValue` from here."""
 
 from pemviz.scenarios.toy.simulator import ToyBraking, ToyParams, ToyValue
 

@@ -1,23 +1,15 @@
 """The toy 1-D braking model of the authors' code (``adaptiveImportanceSampler.py``), as a scenario with an exact
 answer.
 
-A car starts ``total`` units from an obstacle and moves 1 unit per step. Each step a detector fires
-with probability ``p(distance)``; a detection at distance <= ``braking`` stops the car for good. The
-car fails if it ever reaches a distance < ``safe``. The only randomness is the detector, and failure
-happens iff the detector misses at every distance ``braking, braking - 1, ..., safe``, so
+A car starts ``total`` units from an obstacle and moves 1 unit per step; each step a detector fires with probability
+``p(distance)``, and a detection at distance <= ``braking`` stops the car for good. It fails iff the detector misses
+at every distance ``braking .. safe``:
 
-    p_fail = prod_{d = safe}^{braking} (1 - p(d))      (= (1 - p)^(braking - safe + 1) for constant p)
+    p_fail = prod_{d = safe}^{braking} (1 - p(d))      (:func:`toy_log_failure_probability`).
 
-(:func:`toy_log_failure_probability`). Source: ``SimParams``/``step_state``/``car_rollout``
-in craigiedon/CarlaStuff ``adaptiveImportanceSampler.py`` and ``approxDP.py``. The authors end a rollout
-at its failure; here every rollout has the fixed length ``total - safe + 2`` (a
-:class:`~pemviz.core.rollouts.RolloutBatch` has one T), which is exactly long enough for a failure to be
-observed at the last step, so a failing rollout also ends at its failure. A car that has stopped stays
-stopped (and reports ``stopped = 1``); its later detector outputs change nothing.
-
-Units: abstract distance units (the ``gap_m`` column, so that every detector and the proposal read
-the distance like the braking scenario's gap), one step per unit of travel.
-"""
+Source: craigiedon/CarlaStuff ``adaptiveImportanceSampler.py`` and ``approxDP.py``. Every rollout has the fixed
+length ``total - safe + 2``, just long enough to observe a failure. Units: abstract distance units (the ``gap_m``
+column), one step per unit of travel."""
 
 from __future__ import annotations
 
@@ -197,10 +189,9 @@ def simulate_toy(
     target: Detector,
     rng: np.random.Generator,
 ) -> RolloutBatch:
-    """``n`` toy rollouts, vectorised (:class:`BatchedToy`, :func:`pemviz.core.lockstep.run_batched`); the same draws
-    and batch as :func:`pemviz.scenarios.simulate` with :class:`ToyBraking` (one ``rng.random(n)`` per step, detect
-    iff ``log u <= log q(detect)``). Its branches are :func:`pemviz.core.lockstep.branch_rollouts` on
-    :class:`BatchedToy`.
+    """``n`` toy rollouts, vectorised (:class:`BatchedToy`, :func:`pemviz.core.lockstep.run_batched`): the same
+    draws and batch as :func:`pemviz.scenarios.simulate` with :class:`ToyBraking`; branches by
+    :func:`pemviz.core.lockstep.branch_rollouts`.
 
     Returns:
         :class:`~pemviz.core.rollouts.RolloutBatch` with observations [n, T, 2] (distance, stopped).
@@ -217,11 +208,9 @@ def simulate_toy(
 
 
 def toy_log_failure_probability(params: ToyParams) -> float:
-    """log p_fail of the toy model, exact: ``sum_{d=safe}^{braking} log(1 - p(d))`` (nats).
-
-    The car fails iff every detection at the distances ``braking .. safe`` (each visited once while
-    moving) misses. For constant p: ``(braking - safe + 1) log(1 - p)``; (100, 50, 30, 0.9) gives
-    log(1e-21). Source: the authors' ``adaptiveImportanceSampler.py``.
+    """log p_fail of the toy model, exact: ``sum_{d=safe}^{braking} log(1 - p(d))`` (nats); for constant p
+    ``(braking - safe + 1) log(1 - p)``, e.g. (100, 50, 30, 0.9) gives log(1e-21). Source: the authors'
+    ``adaptiveImportanceSampler.py``.
     """
     d = np.arange(params.safe, params.braking + 1, dtype=np.float64)
     logit = params.detect_logit(d)
@@ -230,12 +219,8 @@ def toy_log_failure_probability(params: ToyParams) -> float:
 
 @dataclass(frozen=True)
 class ToyValue:
-    """V of the toy in closed form: the probability of failing from a state (the zero-variance proposal's value).
-
-    A moving car at distance d >= safe fails iff every detection at the distances ``min(d, braking) .. safe``
-    misses: ``V(d) = prod_{k=safe}^{min(d, braking)} (1 - p(k))`` (1 when d < safe: the failure was observed); a
-    stopped car never fails (V = 0). A detection at ``safe <= d <= braking`` stops the car; elsewhere it changes
-    nothing.
+    """V of the toy in closed form, the zero-variance proposal's value: a moving car at distance d >= safe fails
+    with ``V(d) = prod_{k=safe}^{min(d, braking)} (1 - p(k))`` (1 when d < safe); a stopped car never fails (V = 0).
     """
 
     params: ToyParams

@@ -1,12 +1,8 @@
 """The toy's tilted proposal (``method = "tilt"``) with a deliberately poor committor: the check that the tilted
-estimator is unbiased whatever its V (:func:`pemviz.testing.check_estimator`).
-
-The toy's exact committor of a moving car at distance d is V(d) = prod_{d' = safe}^{min(d, braking)} (1 - p(d')), and a
-detection within the braking distance stops the car for good (V = 0 after it), so the zero-variance proposal misses
-every time inside the window (Kollman, Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2)). :class:`ToyTilt` tilts by
-a V that is wrong on purpose: p(detect) guessed as :data:`P_GUESS` instead of the toy's, and a stopped car's V taken
-as :data:`STOPPED_V` instead of 0, mixed with a share :data:`EPS` of the PEM (Hesterberg 1995, Technometrics 37(2)). Its
-weights p / q are exact, so its estimates average to the exact answer all the same; they only vary more.
+estimator is unbiased whatever its V (:func:`pemviz.testing.check_estimator`). :class:`ToyTilt` tilts by a V that is
+wrong on purpose (p(detect) guessed as :data:`P_GUESS`, a stopped car's V taken as :data:`STOPPED_V`, not 0), mixed
+with a share :data:`EPS` of the PEM (Kollman, Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2); Hesterberg 1995,
+Technometrics 37(2)); its exact weights p / q keep its estimates unbiased, only more variable.
 """
 
 from __future__ import annotations
