@@ -1,8 +1,6 @@
-"""Sinks: listeners of the experiment engine's events (console table, rerun recording, rollout file, viser panel).
-
-A sink only listens; it never drives the engine (the viser panel may set the cancel token). :class:`Sink` is their
-base: one method per event of :mod:`pemviz.engine.events` and one dispatch. :class:`StageClock` is the one clock of a
-run that the console and the panel predict a stage's and the whole run's time left from.
+"""Sinks: listeners of the engine's events (console table, rerun recording, rollout file, viser panel), which never
+drive it. :class:`Sink` is their base (one method per event of :mod:`pemviz.engine.events`); :class:`StageClock` is
+the clock the console and the panel predict time left from.
 """
 
 from __future__ import annotations
@@ -85,33 +83,22 @@ class StageClock(Sink):
     """The wall clock of a run as its events arrive, and the time its stages and the whole run have left (``now``:
     seconds, default ``time.perf_counter``).
 
-    Each stage of the run's plan (:class:`~pemviz.engine.events.RunStarted`) has a predicted time to simulate its
-    rollouts and to finish after them, its fit included (:func:`pemviz.engine.cost.plan_costs`; the problem's
-    look-ahead, :attr:`~pemviz.core.problem_view.ProblemView.look_ahead_s` a rollout, counts as simulating). As stages
-    end the clock measures both (from the stage's start to its :class:`~pemviz.engine.events.RolloutsSampled`, over all
-    of its rollouts, a streamed stage's too; then to its :class:`~pemviz.engine.events.StageFinished`) and scales the
-    predictions of what is left by measured / predicted so far, separately for the two parts: simulating over every
-    stage (the machine's speed), what follows per kind of stage (a pretraining fit says little of a CE stage's, which
-    grows with the pool of failures), a kind not yet measured by the simulating scale. Before any stage has run the
-    predictions are the model's times the machine's load at the run's start (``slowdown()``, default
-    :func:`pemviz.engine.resources.load_slowdown`: 1 on an idle machine, 1.5 with two busy processes on two CPUs).
-
-    What may follow the planned stages on the run's scene (:func:`pemviz.engine.cost.follow_on`: the stages once
-    more, then plain Monte Carlo up to its cap, each where the method would draw it there) gives the upper end,
-    :meth:`run_most_s`; once it runs, its stages are what is left. The plain rollouts' simulating is measured on its
-    own (their speed is not a proposal's); while they run, the rollouts still to draw are those the precision target
-    needs at the failure rate seen so far (about z^2 / (rel_error^2 p), :func:`pemviz.engine.cost.mc_rollouts`, times
-    the target's margin, :data:`pemviz.estimators.precision.MARGIN`; with no failure yet, at p = 3 / n, its 95 %
-    upper bound), at most the cap.
+    Each stage of the plan has a predicted time to simulate and to finish after it
+    (:func:`pemviz.engine.cost.plan_costs`). As stages end the clock measures both and scales what is left by
+    measured / predicted, separately: simulating over every stage, what follows per kind of stage. Before any stage
+    the predictions are scaled by the machine's load (``slowdown()``, default
+    :func:`pemviz.engine.resources.load_slowdown`). What may follow the planned stages
+    (:func:`pemviz.engine.cost.follow_on`) gives the upper end, :meth:`run_most_s`; plain Monte Carlo's remaining
+    rollouts are those its precision target needs at the failure rate seen so far
+    (:func:`pemviz.engine.cost.mc_rollouts`), at most the cap.
 
     Attributes:
-        t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were sampled
-            (None before).
-        simulate_scale: measured / predicted seconds of simulating over the stages so far (:attr:`load` before any);
-            :meth:`after_scale` the same of what follows (fits), per kind of stage.
+        t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were
+            sampled (None before).
+        simulate_scale: measured / predicted seconds of simulating so far (:attr:`load` before any);
+            :meth:`after_scale` the same of what follows, per kind of stage.
         done: the finished stages' results.
-        follow: what may follow the planned stages (None: nothing).
-    """
+        follow: what may follow the planned stages (None: nothing)."""
 
     def __init__(
         self,

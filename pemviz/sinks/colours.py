@@ -1,11 +1,8 @@
-"""One colour scheme for the panel (``pemviz serve``) and the rerun recordings, as RGB 0..255: every colour pemviz
-draws with is named here (HTML takes :func:`css` or :func:`hex_colour` of one, rerun :func:`rgba`).
-
-A detection is green and a miss orange at every step, in the 3D scene, the recording's scene and the
-strip charts; a failure (e.g. a gap below the crash gap) and the failure threshold are red; the sampler window
-(e.g. the braking distance) is yellow; the object the ego reacts to is blue-grey; a car before any step (idle) is
-neutral grey; stages go from blue (early) to orange (late). The panel's text (status, verdicts) uses :data:`BLUE`,
-:data:`GREEN`, :data:`AMBER`, :data:`RED` and :data:`GREY`; kept runs take :data:`RUN_COLOURS` in turn.
+"""One colour scheme for the panel and the rerun recordings, as RGB 0..255 (HTML: :func:`css`, :func:`hex_colour`;
+rerun: :func:`rgba`): a detection green and a miss orange everywhere; a failure and the failure threshold red; the
+sampler window yellow; the object the ego reacts to blue-grey; an idle car neutral grey; stages from blue (early) to
+orange (late). The panel's text uses :data:`BLUE`, :data:`GREEN`, :data:`AMBER`, :data:`RED` and :data:`GREY`; kept
+runs take :data:`RUN_COLOURS` in turn.
 """
 
 from __future__ import annotations

@@ -2,33 +2,13 @@
 (:attr:`pemviz.core.problem_view.ProblemView.drawing`), on top of the outcome every sink shares
 (:class:`pemviz.core.drawing.Drawing`).
 
-The hooks return data (words, numbers, arrays, names of entities, Markdown), never rerun objects: the sinks draw it
-with their colours and name no scene themselves. A scenario's package implements them
-(e.g. :class:`pemviz.scenarios.braking.recording.BrakingRecording`); a hook returns None where the scenario has
-nothing of that kind to draw, and the recording then draws only the problem's signals, as for a problem without a
-drawing object.
-
-Colours are named by role, as words the recording maps onto :mod:`pemviz.sinks.colours` (:data:`ROLES`).
-
-Shapes of what the hooks return (T = the rollout's steps):
-
-- a scene lane (:meth:`RecordingDrawing.scene_lane`): ``(boxes, sight, end_m)``. ``boxes``: one
-  ``(name, centre_x, half_size, alarm)`` per object, drawn in that order as an entity ``<lane>/<name>``:
-  ``centre_x`` float64 [T] metres along the road, ``half_size`` (half length, half width) in metres, ``alarm`` bool
-  [T] (the object turns red where True, else :data:`pemviz.sinks.colours.OBJECT`) or None (the object is green
-  while detected, orange while missed: the ego). ``sight``: ``(from_x, to_x)`` float64 [T] each, a line of sight
-  coloured like the ego, or None. ``end_m``: where the lane must reach (metres, e.g. past the last object's front).
-- an explanation (:meth:`RecordingDrawing.explanation`): a mapping with ``words`` (str: the outcome in a few words),
-  ``props`` (dict: values added to the failure's properties, in order), ``lines`` (list of Markdown lines for the
-  summary), ``series`` (tuple of ``(key, name, role, values [T])``: a line on ``step`` at ``explain/<key>``) and
-  ``markers`` (tuple of ``(key, name, role, marker, steps [k], values [k] or None, size)``: points at those steps;
-  values None: on the row under the p(detect) curves).
-
-One hook is optional (read with ``getattr``): ``contacts(batch, rows)``, whether each of the rollouts ``rows``
-(int [k]) made contact, bool [k] (the ``contact`` of :meth:`RecordingDrawing.outcome_values` for all of them at once;
-None: ask :meth:`RecordingDrawing.outcome_values` rollout by rollout), for the failures' share of contact
-(:func:`pemviz.sinks.rerun_views.contact_share`).
-"""
+The hooks return data (words, numbers, arrays, entity names, Markdown), never rerun objects, so the sinks name no
+scene themselves; a hook returns None where the scenario has nothing of that kind to draw. A scenario's package
+implements them (e.g. :class:`pemviz.scenarios.braking.recording.BrakingRecording`). Colours are named by role
+(:data:`ROLES`), mapped onto :mod:`pemviz.sinks.colours`. The shapes returned are those of
+:meth:`RecordingDrawing.scene_lane` and :meth:`RecordingDrawing.explanation`; one hook is optional (read with
+``getattr``): ``contacts(batch, rows)``, bool [k] whether each of the rollouts ``rows`` made contact
+(:func:`pemviz.sinks.rerun_views.contact_share`)."""
 
 from __future__ import annotations
 

@@ -19,9 +19,8 @@ if TYPE_CHECKING:
 
 class MostLikelyFailure(Sink):
     """A run's listener that keeps its most likely failure (:func:`pemviz.core.counterfactuals.most_likely_failure`,
-    chosen by its log p in nats over T - 1 steps: :func:`pemviz.core.counterfactuals.failure_log_p`) for the console's
-    *why* line: ``best`` (None until a failure is seen), its ``stage``, ``rollout`` number and ``log_p`` (-inf until
-    then), and ``batch``, the rollout as a batch of one."""
+    by log p over T - 1 steps) for the console's *why* line: ``best``, its ``stage``, ``rollout``, ``log_p`` (-inf
+    until a failure) and ``batch`` (the rollout as a batch of one)."""
 
     def __init__(self) -> None:
         self.best: LikelyFailure | None = None
@@ -47,14 +46,10 @@ class MostLikelyFailure(Sink):
 
     def why(self, problem: Problem) -> str | None:
         """The console's line saying which perception errors decided the most likely failure
-        (:func:`pemviz.core.counterfactuals.counterfactuals`, replayed through ``problem``); None before a failure or
-        for rollouts without object rows. It states the failure's log p as its two parts (:meth:`parts`): the
-        log-probability of its detections and, where the PEM mislocates, the log-density of its measurement errors,
-        e.g. ``why: the most likely failure (stage 5; over all 99 steps: log-probability of its detections -63.2
-        nats, log-density of its measurement errors +12.4 nats): ...``: the log p by which the failure was chosen
-        (:func:`pemviz.core.counterfactuals.failure_log_p`), not the NLL column's, which sums the steps before the
-        failure only. Where every failure drawn is impossible under the PEM (log p = -inf), the line says so instead
-        of calling one of them the most likely."""
+        (:func:`pemviz.core.counterfactuals.counterfactuals`), with its log p in its two parts (:meth:`parts`), e.g.
+        ``why: the most likely failure (stage 5; over all 99 steps: log-probability of its detections -63.2 nats,
+        log-density of its measurement errors +12.4 nats): ...``; None before a failure or without object rows.
+        Where every failure is impossible under the PEM (log p = -inf), the line says so."""
         if self.batch is None or self.batch.objects is None:
             return None
         cf = counterfactuals(problem, self.batch, 0)

@@ -1,15 +1,10 @@
 """Groups of the failures of a run's final estimate (:mod:`pemviz.core.population`) for the listeners that show them:
 which rollout of which stage's kept batch each failure is, and the key of the decisive events it shares with others.
 
-Groups: the keys the scenario's drawing object gives its failures (``failure_keys``; e.g. for the braking
-scenario the last step at which one detection alone still saves the rollout, from exact replays on its deterministic
-twin). Without one, with the run's problem at hand, the step at which the rollout fails
-(:func:`pemviz.estimators.base.failure_steps`), which the labels say; without it, one group. No I/O.
-
-Severity: with the run's problem at hand (and its severity scale), each located failure's min distance and impact
-speed (:func:`pemviz.core.severity.rollout_severity`), weighed by the shares into p(severity | failure)
-(:class:`pemviz.core.severity.FailureSeverity`, :func:`failures_severity`).
-"""
+Groups: the keys the drawing object gives (``failure_keys``), else the step at which the rollout fails
+(:func:`pemviz.estimators.base.failure_steps`), else one group. Severity: each located failure's min distance and
+impact speed (:func:`pemviz.core.severity.rollout_severity`) weighed by the shares (:func:`failures_severity`). No
+I/O."""
 
 from __future__ import annotations
 
@@ -151,17 +146,13 @@ def group_failures(
 
     Args:
         shares: the final estimate's failures (``FinalEstimate.failures``).
-        sampled: stage -> the stage's :class:`RolloutsSampled` (its batch, or a sample of it when streamed).
-        drawing: the scenario's drawing object (``ProblemView.drawing``): with ``failure_keys(detected [F, T]) ->
-            (basis, keys, labels)`` it groups the failures (e.g. by the last step one detection still saves them),
-            else they are grouped by the step they fail at.
-        problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step; the failures' severity), or
-            None.
-        keys_wanted: False: one group (``basis`` says so), no replays; the severity is read all the same (a run's
-            console prints it, its groups go only to its files).
+        sampled: stage -> the stage's :class:`RolloutsSampled`.
+        drawing: the scenario's drawing object: with ``failure_keys(detected [F, T]) -> (basis, keys, labels)`` it
+            groups the failures, else they are grouped by failure step.
+        problem: the run's :class:`pemviz.core.problems.Problem`, or None.
+        keys_wanted: False: one group, no replays (the severity is read all the same).
     Raises:
-        ValueError: a failure in contact at its first step (:func:`failures_severity`).
-    """
+        ValueError: a failure in contact at its first step (:func:`failures_severity`)."""
     rows = locate_rows(shares, sampled)
     found = [(sampled[s], r) if r >= 0 else None for s, r in zip(shares.stage.tolist(), rows.tolist(), strict=False)]
     keys: list[Hashable] = [NOT_KEPT] * shares.n
@@ -315,12 +306,10 @@ class FailureGroups:
 
 
 def grouping_document(g: FailureGrouping, most: int = 20) -> dict:
-    """The groups (every one, largest share first) and the ``most`` failures with the largest shares, as plain
-    numbers for a result document: ``{"basis", "n", "groups": [{"label", "count", "share"}], "largest": [{"stage",
-    "rollout", "share", "log_p", "group"}]}`` (shares are fractions of mu_hat; log p in nats); with the failures'
-    severity (:attr:`FailureGrouping.severity`) each of ``largest`` adds ``min_distance`` (metres, null where not kept)
-    and ``impact_speed`` (m/s, null: no contact or not kept), and ``"severity"`` holds their distribution
-    (:func:`severity_document`; absent without failures)."""
+    """The groups (largest share first) and the ``most`` failures with the largest shares as plain numbers for a
+    result document: ``{"basis", "n", "groups": [{"label", "count", "share"}], "largest": [{"stage", "rollout",
+    "share", "log_p", "group"}]}`` (shares of mu_hat; log p in nats), with severity each of ``largest`` adds
+    ``min_distance`` (m) and ``impact_speed`` (m/s) and ``"severity"`` holds :func:`severity_document`."""
     share = g.shares.share()
     sev = g.severity
     largest = []
@@ -353,11 +342,8 @@ def _finite(x: float) -> float | None:
 
 def severity_document(sev: FailureSeverity) -> dict:
     """p(severity | failure) as plain numbers: ``{"signal", "label", "unit", "contact", "n", "n_kept", "covered",
-    "median_min_distance", "text", "bins": [{"label", "lo", "hi", "count", "share"}]}``: the distance signal and its
-    contact level (metres), the failures and those whose rollout was kept, the share of p these carry, their
-    share-weighted median min distance (metres; null without a kept failure), the console's line, and per
-    impact-speed bin (``lo`` / ``hi`` in m/s, null for "no contact" and the open end) the kept failures and their share
-    of the kept failures' p (the shares add up to 1)."""
+    "median_min_distance", "text", "bins": [{"label", "lo", "hi", "count", "share"}]}`` (metres, m/s; null where not
+    defined; the bins' shares add up to 1)."""
     bounds, counts, shares = sev.bounds(), sev.counts(), sev.shares()
     return {
         "signal": sev.scale.signal,
@@ -378,16 +364,12 @@ def severity_document(sev: FailureSeverity) -> dict:
 
 def log_failures(stream: rr.RecordingStream, grouping: FailureGrouping, problem: object = None) -> str:
     r"""Log a run's failures to its recording (static): ``failures`` (Markdown, :func:`population_markdown`),
-    ``final/failures`` (every failure, in share order: stage, rollout, share, log-weight, log p, group, and where the
-    problem gives them its min distance and impact speed) and ``final/severity_of_failures``: p(severity | failure)
-    as bars, one per impact-speed bin (no contact first), each the bin's share of the failures' p, with (AnyValues)
-    the bins' words (``bin``), failures (``bin_failures``) and shares (``bin_share``), the share-weighted median min
-    distance (metres), the contact level (metres), the share of p the kept failures carry (``kept_share``) and the
-    distance's name.
+    ``final/failures`` (every failure in share order) and ``final/severity_of_failures`` (p(severity | failure) as
+    bars per impact-speed bin, with the bins' words, counts and shares, the share-weighted median min distance, the
+    contact level and ``kept_share``).
 
     Returns:
-        The console's severity line for the run's description (``"\n\n" + line``), or ``""`` without one.
-    """
+        The console's severity line for the run's description (``"\n\n" + line``), or ``""`` without one."""
     import rerun as rr  # a recording only: the command line's other outputs need no rerun
 
     from pemviz.sinks import colours as C

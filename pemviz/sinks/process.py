@@ -1,11 +1,7 @@
-"""What the ``pemviz`` program sets in its own process (or its recording process), never when pemviz is imported as a
-library.
-
-:func:`settle_pyarrow_without_pandas`: a recording run never hands pyarrow a pandas object, so it need not pay pandas'
-import (about 0.2 s of a default run's 3 s) for pyarrow to learn there is none.
-
-:func:`import_scipy_special_lean`: scipy.special, which a run needs before its first stage, without the two numpy
-submodules its array-API shim imports only to copy them (about 40 ms of the run's start).
+"""What the ``pemviz`` program sets in its own process (or its recording process), never when pemviz is imported as
+a library: :func:`settle_pyarrow_without_pandas` (pyarrow need not import pandas to learn there is none) and
+:func:`import_scipy_special_lean` (scipy.special without the numpy submodules its array-API shim would import only
+to copy).
 """
 
 from __future__ import annotations
@@ -26,19 +22,14 @@ class _NoPandas:
 
 
 def settle_pyarrow_without_pandas() -> bool:
-    """Settle pyarrow's two lazy pandas probes without importing pandas; returns whether it did (False where pandas
-    is imported already).
+    """Settle pyarrow's two lazy pandas probes without importing pandas; returns whether it did (False where pandas is
+    imported already).
 
-    rerun turns every logged value into Arrow with ``pyarrow.array`` / ``pyarrow.scalar``. On its first use pyarrow
-    imports pandas twice over, only to learn whether a value is a pandas one: its Python shim
-    (``pyarrow.lib._pandas_api``, for arrays) and its C++ converter's static data (``InitPandasStaticData`` in
-    ``arrow/python/helpers.cc``, for Python sequences: pandas' ``NaT``, ``NA``, ``Timestamp``). Here the shim's
-    import is refused (it records that pandas is absent), and the converter is shown an empty module named pandas
-    (it records none of pandas' types); then the process's modules are as before, and importing pandas later works.
-    The price, in this process only: pyarrow no longer recognises pandas' missing-value objects (``pd.NaT``,
-    ``pd.NA``) inside Python sequences. Only the program calls this (:data:`pemviz.commands.AS_PROGRAM`), for a serial
-    recording run, which converts numpy arrays and plain Python values only.
-    """
+    pyarrow imports pandas on first use only to recognise pandas values: its Python shim
+    (``pyarrow.lib._pandas_api``) and its C++ converter (``InitPandasStaticData``). Here the shim's import is
+    refused and the converter is shown an empty module named pandas; importing pandas later still works, but pyarrow
+    then no longer recognises ``pd.NaT`` / ``pd.NA`` inside Python sequences in this process. Only the program calls
+    this (:data:`pemviz.commands.AS_PROGRAM`), for a serial recording run."""
     if "pandas" in sys.modules:
         return False
     import numpy as np
@@ -69,14 +60,10 @@ def import_scipy_special_lean() -> bool:
     """Import ``scipy.special`` without importing :data:`UNUSED_NUMPY_SUBMODULES`; returns whether it did (False
     where scipy.special or one of them is imported already, or numpy does not list them).
 
-    scipy.special imports its array-API shim, ``scipy._lib.array_api_compat.numpy``, which copies numpy's namespace
-    into its own (``clone_module`` in ``scipy/_lib/array_api_compat/_internal.py``: ``from numpy import *``, then
-    every name of ``dir(numpy)``); each of numpy's lazy submodules it meets is imported then (numpy's module
-    ``__getattr__``, ``numpy/__init__.py``). Here numpy's ``__all__`` and ``__dir__`` leave them out while
-    scipy.special is imported, and are restored at once; the shim then gets them back as names that import their
-    module when first read (a module ``__getattr__``, PEP 562), and in its ``__all__``: every name of the shim still
-    reads what it read before, numpy's included. Only the program calls this (:data:`pemviz.commands.AS_PROGRAM`), in a
-    process that has started no thread yet.
+    scipy.special's array-API shim copies numpy's namespace (``clone_module``,
+    ``scipy/_lib/array_api_compat/_internal.py``), importing each lazy submodule it meets; here numpy's ``__all__``
+    and ``__dir__`` leave them out during the import, and the shim gets them back as lazily imported names (PEP
+    562). Only the program calls this (:data:`pemviz.commands.AS_PROGRAM`), before any thread starts.
     """
     if "scipy.special" in sys.modules:
         return False

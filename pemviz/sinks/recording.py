@@ -1,83 +1,22 @@
 """Rerun sink: writes an experiment's events into a rerun recording (``.rrd`` file, or a live viewer).
 
-The sink only listens to the engine's events (:mod:`pemviz.engine.events`); it never drives the engine. What it knows of
-the run and the problem comes with :class:`~pemviz.engine.events.RunStarted`: the stages and their names from the run's
-plan, the signals, thresholds and scene from the problem's view. Its look (colours, figures, scene lanes) is
-:mod:`pemviz.sinks.rerun_views`'s, its layout :mod:`pemviz.sinks.rerun_blueprint`'s (three tabs: *Stages* on the
-``stage`` timeline, *Explain* and *Rollouts* on ``step``), the most likely failure's entities
+The sink only listens to the engine's events (:mod:`pemviz.engine.events`); it never drives the engine. What it
+knows of the run and the problem comes with :class:`~pemviz.engine.events.RunStarted`: the stages and their names
+from the run's plan, the signals, thresholds and scene from the problem's view. Its look (colours, figures, scene
+lanes) is :mod:`pemviz.sinks.rerun_views`'s, its layout :mod:`pemviz.sinks.rerun_blueprint`'s (three tabs: *Stages*
+on the ``stage`` timeline, *Explain* and *Rollouts* on ``step``), the most likely failure's entities
 :mod:`pemviz.sinks.rerun_explain`'s, the estimate's Markdown :mod:`pemviz.sinks.rerun_text`'s.
 
-Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch: the engine's
-numbering and the plan's names, :func:`pemviz.core.plan.stage_label`; the default timeline: scrubbing it steps the
-proposal views, the histograms and the estimate), ``step`` (0..T-1, one simulation step of dt = 0.05 s: the rollout
-traces, the most likely failure and the scene play on it) and ``repetition`` (only when the sink is given one).
-Colours are those of the panel (:mod:`pemviz.sinks.colours`): detected green, missed orange, crash red.
-
-Entity paths (``KK`` = stage number, two digits; ``NNN`` = a rollout's number in its stage, at least three digits):
-
-- ``estimate``: Markdown of the current estimate with its 95 % interval, k-hat, verdict and the exact
-  answer where known, re-logged static after each stage and at the end.
-- ``description``: Markdown of the run (what it is, how to read it, its config, the stage table, how it
-  ended), re-logged static after each stage.
-- ``proposal_marginal/{miss,log_odds}/...``: each stage's q(miss) over the states its rollouts visited, per gap bin,
-  beside the PEM's, as bars on ``stage`` (:func:`pemviz.sinks.rerun_views.log_marginal_proposal`), and
-  ``proposal_marginal/stats``: every array of its :class:`~pemviz.core.proposal_view.ProposalView` (AnyValues).
-- ``proposal/data/pem``, ``proposal/data/stage_KK``: the reference-state curves: p_PEM(detect | d) and each stage's
-  proposal q(detect | d) after its update with the proposal's other inputs held at a reference state (the final
-  batch's repeats stage K's), static :class:`rerun.LineStrips2D`, points ``(d [m], probability)``;
-  ``proposal/data/current``: the same curve on the ``stage`` timeline (thick, so scrubbing steps it);
-  ``proposal/data/elite_KK``: the elite rollouts' empirical detection rate per 0.1 m gap bin (for the final batch
-  the "elites" are its crashes). ``proposal/data`` carries the transform from (metres, probability) to the plot box;
-  ``proposal/axes`` the frame.
-- ``feature/...``: a state proposal's q(detect) against the PEM over the feature that moved it most, per stage
-  (:mod:`pemviz.sinks.rerun_features`; with the run's problem, :attr:`RerunSink.problem`).
-- ``stages/{failure_rate,gamma,log10_mu_hat,ess,nll,khat}``: per-stage values as :class:`rerun.Scalars` on
-  ``stage``, styled once (static :class:`rerun.SeriesLines` and :class:`rerun.SeriesPoints`) for rerun's
-  native time-series views; ``stages/log10_mu_hat/{ci_low,ci_high,exact}``: the 95 % interval and the exact answer
-  where known; ``stages/miss_in_window/{q,pem}``: the mean q(miss) and p_PEM(miss) over the stage's visited states
-  inside the sampler window.
-- ``stage_figures/<series>``: the per-stage series again as static figures (:mod:`pemviz.sinks.rerun_stage_figures`),
-  shown on every timeline; the bar charts of ``proposal_marginal`` and ``histograms`` carry ``step`` 0 as well, so
-  that ``step`` shows the last stage's.
-- ``histograms/{robustness,log_weight}``: each stage's histogram of every rollout's robustness (configured
-  metric) and importance log-weight (nats), a :class:`rerun.BarChart` on ``stage``.
-- ``rollouts/<column>/stage_KK`` for each signal of the problem's view (e.g. ``gap_m``, ``ego_speed_mps``): the kept
-  rollouts of a stage over ``step`` (:func:`pemviz.sinks.rerun_rollouts.kept_rollouts`: all of them up to 500, else
-  the least robust, the most likely failures, the failures up to 100 and a uniform sample), one entity with one
-  series per rollout, one ``send_columns`` each: red = failure (its name says the outcome in the drawing object's
-  words, e.g. ``contact at ...``), grey = safe, yellow and wider = the stage's least-robust rollouts.
-  ``rollouts/<column>/thresholds``: the problem's failure threshold and sampler window (none for a problem without
-  thresholds). ``rollouts/summary/stage_KK``: static per-rollout values of the kept rollouts (number, log p under
-  the PEM, robustness under each metric, importance log-weight in nats, failure flag, outcome words, tag).
-- ``rollouts/<first column>/stage_KK/rollout_NNN``: the stage's featured rollouts
-  (:func:`pemviz.sinks.rerun_rollouts.featured`: the least robust and the most likely failures) as entities of their
-  own, with the rollout's properties (:class:`rerun.AnyValues`: stage, rollout, role, log p, log-weight, robustness,
-  outcome and the drawing object's numbers of it, e.g. a severity). ``rollouts/{detected,missed}/stage_KK``: the
-  first signal of the featured rollouts at their detections (shown for the least robust) and misses, where a
-  detection can still change the outcome (:func:`pemviz.sinks.rerun_rollouts.deciding`).
-- ``scene/stage_KK/{lane,label,<object>...,sight}`` (a drawing object that draws a scene only,
-  :class:`pemviz.sinks.drawing.RecordingDrawing`): top-down scene of each stage's least-robust rollout, one lane per
-  stage, a box per object the drawing names (e.g. ``ego`` and ``lead``), playable on ``step``: the ego is green
-  while the detector sees and orange while it misses (the sight line likewise), an object turns red where the
-  drawing raises its alarm (e.g. the gap below the crash gap).
-- ``explain/...``: the most likely failure of the run (:mod:`pemviz.sinks.rerun_explain`), logged once the run
-  ends (final estimate, cancellation or close).
-- ``final``: the final estimate (static :class:`rerun.AnyValues`).
-- ``final/failures``: every failure of the final estimate, the largest share of p first: stage, rollout, share,
-  log-weight, log p, group and, with the run's problem (:attr:`RerunSink.problem`), its min distance (metres; NaN
-  where its rollout was not kept) and impact speed (m/s; NaN: no contact); ``final/severity_of_failures``: p(severity
-  | failure), the failures' share of p per impact-speed bin (no contact, 0-2, 2-5, > 5 m/s) as a static
-  :class:`rerun.BarChart`, with the bins' words, counts, shares and the share-weighted median min distance
-  (:class:`pemviz.core.severity.FailureSeverity`).
-
-Size: per stage the recording holds summaries, two histograms, the marginal proposal's bars, at most 500 rollouts'
-traces in one entity per signal and a few featured rollouts, so a run of 10^5 rollouts a stage stays a few MB.
+Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch,
+:func:`pemviz.core.plan.stage_label`), ``step`` (0..T-1, one simulation step) and ``repetition`` (only when the sink
+is given one). The entity paths and what each holds are listed in docs/recording.md. Per stage the recording holds
+summaries, two histograms, the marginal proposal's bars, at most 500 rollouts' traces in one entity per signal and a
+few featured rollouts, so a run of 10^5 rollouts a stage stays a few MB.
 
 Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed, scenario and its
-parameters (``scenario_params``: ``name=value, ...`` as the run set them; ``""``: the scenario's defaults). The file is
-written when the sink is closed (after the run, Ctrl-C or SIGTERM) under a unique temporary name and moved to ``PATH``,
-so a recording is never half-written, keeps every finished stage, and a kill leaves an existing ``PATH`` as it was.
-"""
+parameters (``scenario_params``). The file is written when the sink is closed (after the run, Ctrl-C or SIGTERM)
+under a unique temporary name and moved to ``PATH``, so a recording is never half-written, keeps every finished
+stage, and a kill leaves an existing ``PATH`` as it was."""
 
 from __future__ import annotations
 
@@ -221,12 +160,10 @@ class RerunSink(Sink):
     # -- constructors -------------------------------------------------------------------------------
     @classmethod
     def to_file(cls, path: str | os.PathLike, *, overwrite: bool = False, **kw: Any) -> RerunSink:
-        """A sink that saves to ``path`` when :meth:`close` commits it.
-
-        The recording is encoded in memory (:meth:`rerun.RecordingStream.binary_stream`) and written by
-        :meth:`close` to a temporary file of a unique name beside ``path``, then moved onto it: a kill leaves the
-        previous ``path`` untouched, and a write error (disk full, file too large) is an ``OSError`` here, with
-        no file left, instead of a stalled writer thread.
+        """A sink that saves to ``path`` when :meth:`close` commits it: encoded in memory
+        (:meth:`rerun.RecordingStream.binary_stream`), written by :meth:`close` to a unique temporary file beside
+        ``path`` and moved onto it, so a kill leaves the previous ``path`` untouched and a write error is an
+        ``OSError`` with no file left.
         """
         stream = rr.RecordingStream(APP_ID, batcher_config=FILE_BATCHER)
         sink = cls(stream, **kw)
@@ -259,12 +196,9 @@ class RerunSink(Sink):
         return cls(stream, **kw)
 
     def close(self, commit: bool = True) -> Path | None:
-        """Finish the recording and (file sinks) write it; returns the file written (None for gRPC or no commit).
-
-        A run that ended without a final estimate or a cancellation event (Ctrl-C, SIGTERM, an exception in a
-        stage) is marked as interrupted in the description; every finished stage is already logged.
-        ``commit=False`` drops a file recording (a run that failed on bad input writes nothing). Closing twice
-        is harmless (the second call returns None).
+        """Finish the recording and (file sinks) write it; returns the file written (None for gRPC or no commit). A
+        run that ended without a final estimate or a cancellation is marked interrupted; ``commit=False`` drops a
+        file recording; closing twice is harmless.
 
         Raises:
             OSError: the file could not be written (nothing is left; an existing file is untouched).

@@ -1,28 +1,18 @@
 """A rerun recording written by a second process while the run goes on (``pemviz run --save``, the program only).
 
-Importing rerun (about 0.25 s) and logging a run's events to it (about a fifth of a default run) hold the Python
-interpreter's lock, so a thread cannot take them off the run's path; a second process can, on a second core.
-:class:`RecordingProcess` is the run's listener: it pickles each event as it arrives (so a proposal trained in place
-afterwards is recorded as it was when it drew) and a writer thread feeds them to ``python -m
-pemviz.sinks.recording_process PATH OVERWRITE``, whose :func:`main` hands them, in order, to a
-:class:`pemviz.sinks.recording.RerunSink` writing ``PATH`` (the same entities, the same file). The child rebuilds
-the run's problem from :class:`~pemviz.engine.events.RunStarted`'s config
-(:func:`pemviz.scenarios.problems.problem_for`) for what it computes from it: robustness under the metrics the run did
-not compute, and the failures' severity. The final estimate's failures come grouped by the run
-(:meth:`RecordingProcess.share_failure_groups`), which groups them while the child logs the last stage.
+Importing rerun and logging to it hold the interpreter's lock, so a second process, not a thread, takes them off the
+run's path. :class:`RecordingProcess` is the run's listener: it pickles each event as it arrives and a writer thread
+feeds them to ``python -m pemviz.sinks.recording_process PATH OVERWRITE``, whose :func:`main` hands them in order to
+a :class:`pemviz.sinks.recording.RerunSink` writing ``PATH``. The child rebuilds the run's problem from
+:class:`~pemviz.engine.events.RunStarted`'s config (:func:`pemviz.scenarios.problems.problem_for`).
 
-What the sink promises holds across the two processes:
+The sink's promises hold across the two processes: :meth:`RecordingProcess.close` returns when the file is written
+or raises what :meth:`pemviz.sinks.recording.RerunSink.close` raises (or an ``OSError`` with the child's last
+words); Ctrl-C and SIGTERM reach the run only, and the child keeps every finished stage; a run killed outright
+leaves no file.
 
-- :meth:`RecordingProcess.close` returns when the file is written, or raises what
-  :meth:`pemviz.sinks.recording.RerunSink.close` raises (:class:`pemviz.core.files.OutputExists`, ``OSError``), and an
-  ``OSError`` naming the child's last words where the child itself failed.
-- Ctrl-C and SIGTERM reach the run only (the child has a session of its own and ignores both); the run closes the
-  sink, and the child marks the recording interrupted and keeps every finished stage, as the one-process sink does.
-- A run killed outright (SIGKILL) leaves no file: the child sees its input end without a close and writes nothing.
-
-Protocol (parent to child, standard input): pickled ``("event", event)`` messages, then one ``("close", commit)``.
-Child to parent (standard output): one JSON line, ``{"written": path or null}`` or ``{"error": kind, ...}``.
-"""
+Protocol: pickled ``("event", event)`` messages on the child's standard input, then one ``("close", commit)``; the
+child answers one JSON line, ``{"written": path or null}`` or ``{"error": kind, ...}``."""
 
 from __future__ import annotations
 

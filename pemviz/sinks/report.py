@@ -1,12 +1,7 @@
-"""A safety-case report of one run: one self-contained HTML page and its Markdown twin, from the run's result document.
-
-The page needs no network and no script: its styles are inline and its one chart (the severity curve, log scale) is
-an inline SVG drawn here. It holds the estimate with its interval, ESS, verdict and the exact answer or reference;
-the severity curve; the scenario, its specification and the PEM; the lines the console printed; the settings, seed,
-pemviz version and command; and the sha256 of every input file and of the result document itself.
-
-The document is :func:`pemviz.io.result.result_document`'s (``pemviz run --json``), so ``pemviz report RESULT.json``
-and ``pemviz run --report PAGE.html`` write the same page.
+"""A safety-case report of one run: one self-contained HTML page (inline styles, an inline SVG severity curve, no
+script) and its Markdown twin, from the run's result document (:func:`pemviz.io.result.result_document`): the
+estimate with its interval, ESS, verdict and exact answer or reference, the severity curve, the scenario, spec and
+PEM, the console's lines, the settings, seed, version, command and every input's sha256.
 """
 
 from __future__ import annotations
@@ -144,11 +139,10 @@ def _log10(p: float | None) -> float | None:
 
 
 def severity_svg(doc: dict[str, Any], width: int = 860, height: int = 300) -> str:
-    """The severity curve as an inline SVG with its legend: log10 p against the level (the scale's unit), each point
-    as the run shows it (the result document's ``shown``, :meth:`pemviz.core.severity.SeverityCurve.shown`): an
-    estimate with its 95 % interval (filled where ``reliable``, else hollow), a lower bound alone (an upward
-    triangle), a level no rollout reached (a downward triangle on the floor); the exact answers as crosses; the
-    colour is the verdict's. An empty string without a curve or without anything to draw."""
+    """The severity curve as an inline SVG with its legend: log10 p against the level, each point as the run shows
+    it (:meth:`pemviz.core.severity.SeverityCurve.shown`: an estimate with its interval, filled where ``reliable``;
+    a lower bound as an upward triangle; a level not reached as a downward one), the exact answers as crosses,
+    coloured by verdict; "" without anything to draw."""
     sev = doc.get("severity") or {}
     pts = [pt for pt in sev.get("points", []) if pt.get("level") is not None]
     values = _drawn_log10(pts)
@@ -520,10 +514,9 @@ def markdown_twin(path: Path) -> Path:
 
 
 def check_report_paths(page: str | os.PathLike[str], flag: str, *, overwrite: bool = False) -> Path:
-    """Refuse a report whose page or Markdown twin (:func:`markdown_twin`) cannot be written, before any work; where
-    one of them exists (without ``overwrite``), one line names both files, which of them exists and the flag that
-    replaces it, e.g. ``--report r.html: writes r.html and its Markdown twin r.md; r.md exists: give --overwrite to
-    replace it``.
+    """Refuse a report whose page or Markdown twin (:func:`markdown_twin`) cannot be written, before any work; an
+    existing one (without ``overwrite``) gets one line naming both files and the flag, e.g. ``--report r.html:
+    writes r.html and its Markdown twin r.md; r.md exists: give --overwrite to replace it``.
 
     Raises:
         ValueError: as :func:`pemviz.io.files.check_output_path` for either file (:class:`OutputExists`, naming both,

@@ -1,27 +1,11 @@
 """The layout of a pemviz recording in rerun's viewer (the blueprint sent with it, :mod:`pemviz.sinks.recording`).
 
-rerun shows the data of one timeline at a time (chosen in the time panel; a view cannot choose its own,
-rerun-io/rerun#6828), so the recording opens on ``step`` and every tab has content there. The layout is three tabs,
-one per question, and text views beside them that hold on every timeline:
-
-- **Stages** (open at start): what the sampler learned, stage by stage. The proposal's q(miss) over the states the
-  stage's rollouts visited beside the PEM's, per gap bin, on a probability and a log-odds scale (bar charts;
-  :mod:`pemviz.core.proposal_view`: the last stage's on ``step``, each stage's when scrubbing ``stage``), the
-  reference-state curve q(detect | d) of each stage's proposal (for a state-dependent proposal also q(detect)
-  against the PEM over the feature that moved it most: :mod:`pemviz.sinks.rerun_features`), the per-stage series as
-  static figures (:mod:`pemviz.sinks.rerun_stage_figures`: log10 mu_hat with its interval and the exact answer,
-  failures / N, gamma, ESS, k-hat, NLL, the mean miss probability inside the sampler window) and the histograms of
-  robustness and log-weight.
-- **Explain** (timeline ``step``): the most likely failure of the run: what happened in words, p(detect) of the
-  PEM and q(detect) of the sampler along it with its misses, its first signal against the thresholds with the
-  counterfactual replays, the controller and its scene (the last two for a problem with a scene).
-- **Rollouts** (timeline ``step``): the kept rollouts of every stage over ``step`` and the scene's lanes.
-- beside the tabs: the **estimate**, and in tabs the **run**'s description, the final estimate's **failures** (every
-  group of failures and the failures with the largest shares of p) and, for a scene with contact, p(severity |
-  failure) per impact-speed bin (static).
-
-Everything here builds blueprint objects and logs nothing.
-"""
+rerun shows one timeline at a time, so the recording opens on ``step`` and every tab has content there. Three tabs,
+one per question: **Stages** (what the sampler learned: the proposal views of :mod:`pemviz.core.proposal_view` and
+:mod:`pemviz.sinks.rerun_features`, the per-stage figures of :mod:`pemviz.sinks.rerun_stage_figures`, the
+histograms), **Explain** (the most likely failure) and **Rollouts** (the kept rollouts and the scene's lanes);
+beside them the estimate, the run's description, the final failures and p(severity | failure). Everything here
+builds blueprint objects and logs nothing."""
 
 from __future__ import annotations
 

@@ -1,36 +1,13 @@
 """The recording's *Explain* tab: the most likely failure of a run, logged as entities under ``explain/``.
 
-The most likely failure is the failing rollout with the largest log p under the PEM (:meth:`RolloutBatch.log_likelihood
-<pemviz.core.rollouts.RolloutBatch.log_likelihood>`, T - 1 steps: the log-probability of its detections plus, where the
-PEM mislocates, the log-density of its measurement errors, stated apart:
-:func:`pemviz.core.counterfactuals.failure_log_p_parts`) among the rollouts the engine reported: the failure
-the sampler found that the real detector is likeliest to produce, the "most likely failure" of adaptive stress
-testing (Lee et al., "Adaptive Stress Testing", JAIR 69, 2020). For any problem it shows p(detect) of the PEM and
-q(detect) of the sampler along it and its misses (:func:`pemviz.core.proposal_view.prob_detect`); where the problem's
-drawing object explains it (:meth:`pemviz.sinks.drawing.RecordingDrawing.explanation`, e.g. the braking scenario's
-exact replays on its deterministic twin) also its outcome in words, the series and markers the drawing gives (e.g.
-the controller's signals, the minimal set of misses whose flip avoids the failure, the last step at which one
-detection still saves it and replays of those counterfactuals), one paragraph in words and one lane of its scene.
-
-Entities (``step`` timeline unless static; ``<col>`` = the problem's first signal):
-
-- ``explain/summary``: Markdown (static): where the rollout comes from, its outcome and the drawing's lines.
-- ``explain/failure``: :class:`rerun.AnyValues` (static): stage, rollout, log p and its parts
-  ``log_prob_detections`` (the log-probability of the detections, nats, <= 0) and, where the PEM mislocates,
-  ``log_density_errors`` (the log-density of the measurement errors, nats), robustness, misses, and the drawing's
-  properties of the failure (e.g. the outcome words, severity, minimal miss set, last saving step).
-- ``explain/detect/{pem,sampler}``: p(detect) and q(detect) at each step; ``explain/detect/misses``: markers below
-  the curves at the misses.
-- ``explain/<col>/{recorded,thresholds,misses}``: the first signal, the problem's thresholds and the misses.
-- ``explain/<key>``: each series and marker of the drawing's explanation (e.g. ``explain/<col>/with_minimal_set``,
-  ``explain/controller/acceleration``, ``explain/speed/ego``) and ``explain/scene``, one lane of its scene.
-- ``explain/detect/object_<j>/{detected,missed,unseen,pem,sampler}`` (several objects): each object's events on
-  its row j, and its p(detect) of the PEM (grey) and q(detect) of the sampler that drew the rollout (blue) in the
-  band above the row (j at 0, j + 0.8 at 1).
-- ``explain/objects/{ego,true,measured,error}`` (a problem with ``objects_xy``, e.g. the cut-in): every object seen
-  from the ego at each step (x to the right, ahead upwards, metres), green where detected, orange where missed, grey
-  where it cannot be seen; where detected, the measured position (blue) and a line from the true one to it.
-"""
+The most likely failure is the failing rollout with the largest log p under the PEM
+(:meth:`RolloutBatch.log_likelihood <pemviz.core.rollouts.RolloutBatch.log_likelihood>`, T - 1 steps; its parts:
+:func:`pemviz.core.counterfactuals.failure_log_p_parts`) among the rollouts the engine reported, the "most likely
+failure" of adaptive stress testing (Lee et al., "Adaptive Stress Testing", JAIR 69, 2020). For any problem it shows
+p(detect) of the PEM and q(detect) of the sampler along it and its misses
+(:func:`pemviz.core.proposal_view.prob_detect`); where the problem's drawing object explains it
+(:meth:`pemviz.sinks.drawing.RecordingDrawing.explanation`) also its outcome in words, the drawing's series and
+markers, and one lane of its scene. The entities are listed in docs/recording.md."""
 
 from __future__ import annotations
 
@@ -135,24 +112,19 @@ def log_explanation(
 
     Args:
         stream: the recording logged to.
-        failure: the most likely failure as a batch of one rollout; None: the run found no failure (the summary
-            says so and nothing else is logged).
-        log_p: its log p under the PEM over T - 1 steps (nats): the log-probability of its detections plus, where
-            the PEM mislocates, the log-density of its measurement errors.
+        failure: the most likely failure as a batch of one rollout; None: the run found no failure (the summary says
+            so).
+        log_p: its log p under the PEM over T - 1 steps (nats).
         n_failures: failing rollouts it was chosen among.
         view: the problem's view (signals, thresholds; its drawing object explains the failure).
         stage_name: the plan's name of its stage (``CE stage 4/10``).
         indexes: the sink's time columns for ``send_columns`` (with its repetition).
-        object_detect: several objects: each one's p(detect) under the PEM and q(detect) under the sampler that drew
-            the rollout, float64 [T, M] each (:func:`pemviz.core.proposal_view.object_detect_probabilities`), drawn in
-            the object's row band; None: not drawn.
-        parts: ``log_p`` as its two parts (:func:`pemviz.core.counterfactuals.failure_log_p_parts`), stated apart
-            in the summary and the properties; None: the failure's own batch is split where it holds no measurement
-            errors, else only the sum is stated, named a log-likelihood.
+        object_detect: several objects: each one's p(detect) under the PEM and q(detect) under the sampler, float64
+            [T, M] each (:func:`pemviz.core.proposal_view.object_detect_probabilities`); None: not drawn.
+        parts: ``log_p`` as its two parts (:func:`pemviz.core.counterfactuals.failure_log_p_parts`); None: split
+            from the failure's own batch where it holds no measurement errors, else only the sum is stated.
     Returns:
-        the drawing object's explanation of the rollout (:meth:`pemviz.sinks.drawing.RecordingDrawing.explanation`;
-        None without one or without a failure).
-    """
+        the drawing object's explanation of the rollout (None without one or without a failure)."""
     s = stream
     if failure is None:
         text = "# No failure found\n\nThe run found no failing rollout: nothing to explain."

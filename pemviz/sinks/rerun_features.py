@@ -1,17 +1,8 @@
 """The recording's view of what a state-dependent proposal does to a feature (``method = "state"``): per stage,
-q(detect) of the proposal that drew the stage against the PEM's p(detect) over the feature that moved q most from the
-PEM, binned over the rows the stage drew (:func:`pemviz.core.feature_view.stage_feature_curve`), as a figure like the
-proposal's q(detect | gap) curve (:data:`pemviz.sinks.rerun_views.PROPOSAL_FIG`).
-
-Entity paths (``feature``; each stage's on ``stage`` and on ``step`` 0, so that ``step`` shows the last stage's):
-
-- ``feature/data/q_detect``: the series ``q(detect)``, points (feature value, mean q(detect)) per bin, in the stage's
-  colour; ``feature/data/pem``: the series ``PEM p(detect)`` (mean p_PEM(detect)) at the same bins, grey.
-- ``feature/data``: the transform from (feature's unit, probability) to the plot box; ``feature/axes``: the frame, its
-  ticks, the feature's name as the x axis title, the figure's title and the legend.
-- ``feature/stats``: the curve's numbers (:class:`rerun.AnyValues`): ``feature``, ``effect_nats``, ``x``,
-  ``q_detect``, ``p_detect``, ``n_rows``.
-"""
+q(detect) of the stage's proposal against the PEM's p(detect) over the feature that moved q most
+(:func:`pemviz.core.feature_view.stage_feature_curve`), as a figure like the proposal's q(detect | gap) curve, under
+``feature/`` (``feature/data/q_detect``, ``feature/data/pem``, ``feature/axes``, ``feature/stats``) on ``stage`` and
+on ``step`` 0."""
 
 from __future__ import annotations
 

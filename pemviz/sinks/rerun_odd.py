@@ -1,8 +1,7 @@
-"""The map of a run over an operating design domain in the recording: ``/odd/map``, a table of each drawn parameter's
-bins (P(bin), p(failure | bin) with its 95 % interval or lower bound, verdict, share of p_ODD) and the region that
-carries most of p_ODD; ``/odd/<name>/log10_p``, ``log10_low`` and ``log10_high``, one point per bin on the ``odd_bin``
-timeline; over two or more parameters ``/odd/pair``, a tensor of log10 p(failure | cell) of the first two (nan without
-failure; the blueprint's *ODD map* view, :func:`pemviz.sinks.rerun_blueprint.default_blueprint`)."""
+"""The map of a run over an operating design domain in the recording: ``/odd/map`` (each drawn parameter's bins and
+the region that carries most of p_ODD), ``/odd/<name>/log10_p``, ``log10_low`` and ``log10_high`` on the ``odd_bin``
+timeline, and over two or more parameters ``/odd/pair``, a tensor of log10 p(failure | cell)
+(:func:`pemviz.sinks.rerun_blueprint.default_blueprint`)."""
 
 from __future__ import annotations
 

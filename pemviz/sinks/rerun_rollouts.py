@@ -1,12 +1,7 @@
-"""The recording's rollouts (*Rollouts* tab, ``step`` timeline): which of a stage's rollouts are kept, which are
-featured as entities of their own, and how both are logged (:class:`pemviz.sinks.recording.RerunSink` calls these).
-
-A stage's kept rollouts share one entity per signal, one series per rollout (one ``send_columns`` per signal). A few
-of them, the *featured* ones (:func:`featured`: the least robust and the most likely failures), are also entities of
-their own (their first signal, with their properties), so that each can be selected, hidden or read back alone; their
-detections and misses are marked. An entity costs about 8 kB of recording (two chunks: its style and properties, its
-trace) and 0.3-1 ms, so featuring every kept rollout of a default run (about 1,300) would add about 10 MB and a
-second.
+"""The recording's rollouts (*Rollouts* tab, ``step`` timeline): which of a stage's rollouts are kept (one entity
+per signal, one series per rollout), which are featured as entities of their own (:func:`featured`: the least robust
+and the most likely failures, their detections and misses marked), and how both are logged. Featuring is kept to a
+few: each entity costs kilobytes and a millisecond.
 """
 
 from __future__ import annotations
@@ -51,10 +46,9 @@ def most_likely_failures(ev: RolloutsSampled, k: int) -> np.ndarray:
 
 def kept_rollouts(ev: RolloutsSampled, n_least_robust: int) -> np.ndarray:
     """Indices of the rollouts recorded in full, ascending: all up to :data:`ALL_ROLLOUTS_UP_TO`, else the
-    ``n_least_robust`` least robust, every failure up to :data:`SAMPLED_ROLLOUTS` of them, the stage's most likely
-    failures (:func:`most_likely_failures`, as many as ``n_least_robust``) and a uniform sample of
-    :data:`SAMPLED_ROLLOUTS` (every ``N / SAMPLED_ROLLOUTS``-th rollout); all of the engine's sample of a streamed
-    stage (chosen the same way)."""
+    ``n_least_robust`` least robust, failures up to :data:`SAMPLED_ROLLOUTS`, the most likely failures
+    (:func:`most_likely_failures`) and a uniform sample of :data:`SAMPLED_ROLLOUTS`; of a streamed stage, the
+    engine's sample chosen the same way."""
     n = ev.robustness.size
     if n <= ALL_ROLLOUTS_UP_TO or ev.n_total is not None:
         return np.arange(n)

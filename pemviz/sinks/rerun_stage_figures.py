@@ -1,16 +1,9 @@
-"""The per-stage series of a recording as static figures: visible on every timeline.
+"""The per-stage series of a recording as static figures, visible on every timeline (rerun draws every view on the one
+chosen timeline, so series over ``stage`` would be blank on ``step``).
 
-rerun's viewer draws every view on the one timeline the time panel has chosen (a view cannot ask for its own:
-rerun-io/rerun#6828), so time series over ``stage`` are blank while the per-step tabs (Explain, Rollouts) are looked
-at on ``step``. Drawn instead as static x-y figures (:class:`pemviz.sinks.rerun_views.Figure`: line strips in a 2D
-view, re-logged after each stage), the series of the Stages tab show on ``step`` and on ``stage`` alike, and the
-recording can open on ``step`` with every tab filled.
-
-Each figure: the series over the stages finished so far (a line and a dot per stage), for log10 mu_hat its 95 %
-intervals as vertical bars and the exact answer or the plain Monte Carlo reference as a horizontal line. The y range
-covers the finite values (for log10 mu_hat, those of the stages with a failure: an interval reaching p = 1 would
-squash the rest) with 8 % padding. No I/O beyond the stream.
-"""
+Each figure (:class:`pemviz.sinks.rerun_views.Figure`, re-logged after each stage): the series over the stages
+finished so far, for log10 mu_hat with its 95 % intervals and the exact answer or reference as a line; the y range
+covers the finite values (log10 mu_hat: of the stages with a failure) with 8 % padding. No I/O beyond the stream."""
 
 from __future__ import annotations
 

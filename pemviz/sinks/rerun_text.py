@@ -1,10 +1,6 @@
-"""What the rerun recording (:mod:`pemviz.sinks.recording`) says of its estimate: the ``estimate`` document (mu_hat
-with its interval, k-hat, verdict and the exact answer where known), the parts of the ``description`` below its head
-(:func:`pemviz.sinks.rerun_views.intro_markdown`): the run's result, its table of finished stages and its config, and
-the values of the ``final`` entity.
-
-Everything here is Markdown or plain values made from the engine's events and the run's config: no state, no I/O, no
-rerun.
+"""What the rerun recording (:mod:`pemviz.sinks.recording`) says of its estimate: the ``estimate`` document, the
+parts of the ``description`` below its head (:func:`pemviz.sinks.rerun_views.intro_markdown`) and the values of the
+``final`` entity, as Markdown or plain values from the engine's events and config: no state, no I/O, no rerun.
 """
 
 from __future__ import annotations

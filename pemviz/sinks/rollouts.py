@@ -59,27 +59,20 @@ def _estimate_json(e: Any) -> dict[str, Any]:
 
 class RolloutSink(Sink):
     """Engine listener for ``pemviz run --save-rollouts``: writes every stage the run's estimate uses (``stages =
-    "used"``: the stages it pooled, or its one batch) or every stage (``"all"``), so that ``pemviz estimate`` on the
-    file reproduces the run's estimate.
+    "used"``) or every stage (``"all"``), so that ``pemviz estimate`` on the file reproduces the run's estimate.
 
-    Each rollout is written with its stage, the component of the stage's mixture that drew it, its severity (min
-    distance and impact speed, :data:`pemviz.io.rollout_table.SEVERITY_COLUMNS`), and as ``log_q`` the
-    per-step density the run weighed it with (:func:`pemviz.core.weights.stage_log_q`: for a mixture over whole
-    rollouts, the mixture's). The sidecar holds the run's weight convention, each stage's components and weight bound,
-    and the pooling rule with its stage weights (:mod:`pemviz.io.rollout_format`). Rollouts are written chunk by chunk
-    as the engine simulates them (:class:`pemviz.engine.events.RolloutChunk`, Parquet row groups of a
-    :class:`pemviz.io.rollout_writer.RolloutWriter`), with ``log_p`` and the salient variables, so memory stays that of
-    a chunk whatever N is; the stages the estimate did not use are dropped and the unit is moved into place when the
-    run finishes, and nothing is left after a cancelled or failed run; an interrupted one keeps its last finished
-    stage (:meth:`keep_finished`). If the file holds one stage drawn by a
-    proposal, a snapshot of it taken when the stage was sampled is saved as ``NAME.proposal.pt`` and named in the
-    sidecar.
+    Each rollout is written with its stage, mixture component, severity
+    (:data:`pemviz.io.rollout_table.SEVERITY_COLUMNS`) and as ``log_q`` the density the run weighed it with
+    (:func:`pemviz.core.weights.stage_log_q`); the sidecar holds the weight convention, each stage's components and
+    weight bound, and the pooling (:mod:`pemviz.io.rollout_format`). Chunks are written as the engine simulates them
+    (:class:`pemviz.io.rollout_writer.RolloutWriter`), so memory stays that of a chunk; the unit is moved into place
+    when the run finishes, nothing is left after a cancelled or failed run, and an interrupted one keeps its last
+    finished stage (:meth:`keep_finished`). A file of one proposal's stage also gets ``NAME.proposal.pt``.
 
     Attributes:
         written: the Parquet path once written, else None.
     Raises:
-        ValueError: a bad path, an unknown ``stages``, or (at the run's start) a method without importance weights.
-    """
+        ValueError: a bad path, an unknown ``stages``, or (at the run's start) a method without importance weights."""
 
     def __init__(
         self,
@@ -183,11 +176,9 @@ class RolloutSink(Sink):
                 print(line, file=self._out or sys.stderr, flush=True)
 
     def size_line(self, chunk_bytes: int, chunk: int, written: int) -> str | None:
-        """The line that says how large the rollout file will be, from the bytes a rollout took in the first chunk
-        of a stage after pretraining (``chunk_bytes`` for ``chunk`` rollouts; ``written`` rollouts in all so far)
-        and the rollouts the run plans and may add (:class:`~pemviz.engine.events.RunStarted`'s plan;
-        :func:`pemviz.engine.cost.then_adds`: the retry and plain Monte Carlo after the stages); None where even the
-        most stays within :data:`SAY_SIZE_ABOVE_BYTES`."""
+        """The line that says how large the rollout file will be, from the bytes a rollout took in a stage's first
+        chunk after pretraining and the rollouts the run plans and may add (:func:`pemviz.engine.cost.then_adds`);
+        None where even the most stays within :data:`SAY_SIZE_ABOVE_BYTES`."""
         if chunk <= 0:
             return None
         per = chunk_bytes / chunk
@@ -248,11 +239,10 @@ class RolloutSink(Sink):
         return self.written
 
     def keep_finished(self) -> tuple[Path, int, Any] | None:
-        """After an interrupt (Ctrl-C, SIGTERM): commit the last finished stage this file saves, its rollouts whole,
-        as a run whose estimate is that stage's own (the one its row printed; :func:`pemviz.io.rollout_estimate`
-        re-estimates it from the file), with the finished stages before it where ``stages`` is ``all``; the stage
-        being drawn is dropped. Returns (the Parquet path, the stage, its estimate), or None where no saved stage
-        finished (nothing is written: :meth:`close`)."""
+        """After an interrupt (Ctrl-C, SIGTERM): commit the last finished stage this file saves, whole, as a run
+        whose estimate is that stage's own (with the finished stages before it where ``stages`` is ``all``); the
+        stage being drawn is dropped. Returns (the Parquet path, the stage, its estimate), or None where no saved
+        stage finished."""
         done = [k for k in self._finished if k in self._infos]
         if self._writer is None or not done:
             return None
