@@ -2,41 +2,25 @@
 salient variables, the detection PEM's and noise PEM's inputs) and where it measures a detected object, given the
 noise PEM's errors. Every function is elementwise over arrays of one shape (e.g. ``[M, N]``: M objects, N rollouts).
 
-The camera (pinhole, KITTI's camera 2: :data:`pemviz.pem.camera.KITTI_FOCAL_PX`, its principal point and the
-:data:`KITTI_IMAGE_SIZE_PX` image) looks along the road from ``camera_height_m`` above it; its frame is KITTI's
-(Geiger et al. 2013, "Vision meets robotics: the KITTI dataset", IJRR 32(11)): x to the right, y down, z forward.
-An object is an upright box (:class:`ObjectKind`) standing on the road, at ``(loc_x_m, loc_z_m)`` (its centre in the
-ground plane), turned by ``rot_y_rad`` about the camera's y axis (KITTI's rotation_y: 0 faces the camera's x axis,
-the right; -pi/2 faces forward). From the box:
+The camera (pinhole, KITTI's camera 2: :data:`pemviz.pem.camera.KITTI_FOCAL_PX`, the :data:`KITTI_IMAGE_SIZE_PX`
+image) looks along the road from ``camera_height_m`` above it, in KITTI's frame (Geiger et al. 2013, "Vision meets
+robotics: the KITTI dataset", IJRR 32(11)): x right, y down, z forward. An object is an upright box
+(:class:`ObjectKind`) on the road at ``(loc_x_m, loc_z_m)``, turned by ``rot_y_rad`` (KITTI's rotation_y). From the
+box:
 
-- **truncation** (KITTI's sense: the share of the object outside the image): ``1 - area(box & image) / area(box)``,
-  the 2D box being the box around the projections ``u = X / Z``, ``v = Y / Z`` of its ground-plane footprint's
-  axis-aligned bounding box, raised to the object's height (KITTI, eq. 5);
-- **occluded share** (:func:`occluded_share`): the share of an object's 2D box covered by the boxes of nearer objects
-  (smaller centre depth ``loc_z``), ``min(1, sum_i area(box_i & box) / area(box))``: exact where the nearer boxes do
-  not overlap each other on the box, an upper bound where they do. KITTI's occlusion level (0 fully visible, 1
-  partly, 2 largely occluded; the salient ``occlusion``) follows from it by thresholds (:func:`occlusion_level`),
-  and a box covered beyond ``hidden`` is not visible. :func:`view` takes the level from the caller (default 0: one
-  object alone); :func:`views` computes it for objects that can hide each other;
-- **visible**: the centre at least :data:`pemviz.pem.camera.MIN_RANGE_M` ahead, some of the box inside the image and
-  (:func:`views`) the box covered less than ``hidden``.
-
-**Seeing over a roof.** The boxes are exact for upright boxes: a camera ``h`` above the road sees the roof of a car
-of height ``H < h`` at depth ``Z`` at ``v = (h - H) / Z``, higher in the image the further the car. So a car straight
-behind a nearer car of the same height shows its top above the near car's roof, and the further behind, the larger
-the share that shows. At KITTI's 1.65 m over 1.5 m cars (:data:`CAR`, both centres on the camera's axis), a car
-straight behind a car ``Z1`` ahead is hidden (share >= 0.8) up to about 3.4 ``Z1`` (67 m behind a car 20 m ahead;
-3.7 ``Z1`` at 10 m, 3.2 ``Z1`` at 30 m) and largely occluded (level 2) further: share 0.74 at 4 ``Z1`` and 0.57 at
-6 ``Z1`` behind a car 20 m ahead (``tests/stack/test_occlusion.py``). A camera lower than the roofs (``h <= H``)
-sees nothing over them.
+- **truncation**: ``1 - area(box & image) / area(box)`` of its 2D image box (:func:`image_box`; KITTI, eq. 5);
+- **occluded share** (:func:`occluded_share`): the share of the 2D box covered by nearer objects' boxes, from which
+  KITTI's occlusion level follows (:func:`occlusion_level`); :func:`view` takes the level from the caller,
+  :func:`views` computes it;
+- **visible**: the centre at least :data:`pemviz.pem.camera.MIN_RANGE_M` ahead, some of the box in the image and
+  (:func:`views`) the box covered less than ``hidden``. A camera above the roofs sees a far car over a near one
+  (``tests/stack/test_occlusion.py``).
 
 A detected object is **measured** (:func:`measure`) at its true position moved by the noise PEM's range error along
-the camera ray and its lateral error across it, as a pinhole camera reads a box whose height is off (the range,
-bearing kept) and whose centre is off (the bearing): ``Z_m = Z + dZ``, ``X_m = (X + dX) Z_m / Z``
-(:mod:`pemviz.pem.camera`: ``dZ`` along the optical axis, ``dX`` back-projected at the true range).
+the camera ray and its lateral error across it: ``Z_m = Z + dZ``, ``X_m = (X + dX) Z_m / Z``
+(:mod:`pemviz.pem.camera`).
 
-Units: metres, radians.
-"""
+Units: metres, radians."""
 
 from __future__ import annotations
 
@@ -139,11 +123,8 @@ def image_box(
     rot_y_rad: np.ndarray | float,
     camera_height_m: float = 1.65,
 ) -> ImageBox:
-    """The 2D image box of upright boxes standing on the road (module docstring; KITTI, eq. 5): the box around the
-    projections of the corners of the footprint's axis-aligned bounding box, raised to the object's height. Over
-    them ``u = X / Z`` is largest at the right edge ``X_hi`` and smallest at the left edge ``X_lo``, at the near or
-    far face (``Z_near``, ``Z_far``, clamped to at least 0.1 m); the roof ``(h - H) / Z`` is highest at the far face
-    when it is below the camera (``H < h``), at the near one otherwise; the bottom is ``h / Z_near``.
+    """The 2D image box of upright boxes standing on the road (KITTI, eq. 5): the box around the projections of the
+    footprint's corners, raised to the object's height (depths clamped to at least 0.1 m).
 
     Args:
         kind: the objects' class and box.
@@ -152,8 +133,7 @@ def image_box(
         rot_y_rad: KITTI's rotation_y (radians), as :func:`view`.
         camera_height_m: the camera above the road (metres).
     Returns:
-        :class:`ImageBox` of the broadcast shape of ``loc_x_m`` and ``loc_z_m``.
-    """
+        :class:`ImageBox` of the broadcast shape of ``loc_x_m`` and ``loc_z_m``."""
     x = np.asarray(loc_x_m, dtype=np.float64)
     z = np.asarray(loc_z_m, dtype=np.float64)
     rot = np.broadcast_to(np.asarray(rot_y_rad, dtype=np.float64), x.shape)
@@ -173,25 +153,21 @@ def image_box(
 def occluded_share(
     boxes: ImageBox, depth_m: np.ndarray | None = None, pairs: tuple[tuple[int, int], ...] | None = None
 ) -> np.ndarray:
-    """The share of each object's 2D box covered by the boxes of nearer objects (module docstring):
-    ``min(1, sum over nearer i of area(box_i & box_j) / area(box_j))``, the overlap of two boxes being
-    ``max(0, min(u_hi) - max(u_lo)) * max(0, min(v_bot) - max(v_top))``. Exact where the nearer boxes do not overlap
-    each other on ``box_j``, an upper bound where they do. The occlusion between vehicles of the cut-in
-    (``pemviz.scenarios.cut_in.scene``) is this function.
+    """The share of each object's 2D box covered by the boxes of nearer objects: ``min(1, sum over nearer i of
+    area(box_i & box_j) / area(box_j))``; exact where the nearer boxes do not overlap each other on ``box_j``, an
+    upper bound where they do.
 
     Args:
         boxes: the M objects' boxes, arrays ``[M] + S`` (:meth:`ImageBox.stack`, or :func:`image_box` of ``[M, N]``
-            positions of one kind).
-        depth_m: float64 ``[M] + S`` (or broadcastable), each object's centre depth ``loc_z`` (m): ``i`` hides ``j``
-            where ``depth_m[i] < depth_m[j]``, element by element. Needed unless ``pairs`` is given.
-        pairs: instead of depths, the ``(i, j)`` pairs in which ``i`` is nearer than ``j`` in every element (a scene
-            that knows who is in front, as the cut-in's lanes do); they are summed in the order given, so that a
-            scene gets the same bits whatever ``S``.
+            positions).
+        depth_m: float64 ``[M] + S`` (or broadcastable), each object's centre depth (m): ``i`` hides ``j`` where
+            ``depth_m[i] < depth_m[j]``. Needed unless ``pairs`` is given.
+        pairs: instead of depths, the ``(i, j)`` pairs in which ``i`` is nearer than ``j`` everywhere, summed in the
+            order given (the same bits whatever ``S``).
     Returns:
-        float64 ``[M] + S``, in [0, 1] (dimensionless: a share of the box's area).
+        float64 ``[M] + S``, in [0, 1].
     Raises:
-        ValueError: neither ``depth_m`` nor ``pairs``, or ``depth_m`` of another leading size than the boxes.
-    """
+        ValueError: neither ``depth_m`` nor ``pairs``, or ``depth_m`` of another leading size than the boxes."""
     m = np.shape(boxes.u_lo)[0]
     if pairs is None:
         if depth_m is None:
@@ -299,10 +275,9 @@ def views(
     largely: float = 0.35,
     hidden: float = 0.8,
 ) -> CameraView:
-    """The camera's view of M objects that can hide each other (module docstring): :func:`view` of each, with the
-    share of its box covered by nearer objects' boxes (:func:`occluded_share`, by centre depth), KITTI's occlusion
-    level from it (:func:`occlusion_level`) in the salient ``occlusion`` column, and not visible where the share is
-    ``hidden`` or more.
+    """The camera's view of M objects that can hide each other: :func:`view` of each, with the share of its box covered
+    by nearer objects (:func:`occluded_share`), KITTI's occlusion level from it (:func:`occlusion_level`) and not
+    visible from ``hidden`` on.
 
     Args:
         kinds: the M objects' kinds.
@@ -310,15 +285,14 @@ def views(
         loc_z_m: float64 ``[M, ...]``, forward (m).
         rot_y_rad: broadcastable to them (radians).
         camera_height_m: as :func:`view`.
-        partly: the share from which an object is partly occluded (level 1; the cut-in's 0.01 by default).
-        largely: the share from which it is largely occluded (level 2; 0.35).
-        hidden: the share from which it is hidden, not visible (0.8).
+        partly: the share from which an object is partly occluded (level 1).
+        largely: the share from which it is largely occluded (level 2).
+        hidden: the share from which it is hidden, not visible.
     Returns:
         :class:`CameraView` of arrays ``[M, ...]`` (``salient`` ``[M, ..., 11]``; ``occluded`` the share).
     Raises:
         ValueError: ``len(kinds)`` not the positions' first axis, thresholds not ``0 < partly < largely < hidden <=
-            1``, or ``camera_height_m`` not in (0, 10] m.
-    """
+            1``, or ``camera_height_m`` not in (0, 10] m."""
     x = np.asarray(loc_x_m, dtype=np.float64)
     z = np.asarray(loc_z_m, dtype=np.float64)
     if x.ndim == 0 or x.shape != z.shape or x.shape[0] != len(kinds):

@@ -1,28 +1,16 @@
 """The detection stage of a perception stack, for any scene: a noisy detector built from the shipped PEMs, and the
 log-probabilities of what it did, detections and measurement errors apart.
 
-Per object and step, with ``x`` the object's 11 KITTI salient variables (:func:`pemviz.stack.camera.view` computes
-them for a pinhole camera):
+Per object and step, with ``x`` the object's 11 KITTI salient variables (:func:`pemviz.stack.camera.view`):
 
     p(a, e | x) = p_PEM(a | x) * p_noise(e | x)^a,    a in {0, 1} (missed, detected), e = (dZ, dX) metres,
 
-the detection PEM giving the logit of p(detected) (Innes & Ramamoorthy 2022, "Testing rare downstream safety
-violations via upstream adaptive sampling of perception error models", ICRA, Sec. IV-A) and the noise PEM
-(``noise_hetero-t.pt``: a heteroscedastic Student-t, :class:`pemviz.pem.noise.NoisePEM`) the density of a detected
-object's range and lateral errors (:class:`pemviz.pem.perception.NoisyPEM`). A missed object has no measurement, so
-its error adds nothing.
-
-:func:`camera_detector` returns that detector for a scene's object rows (a
-:class:`pemviz.pem.perception.SalientDetector`, which every sampler of pemviz takes as a problem's target: the
-importance samplers replace its detection logits and shift its error model inside the problem's window, and weigh
-both; :func:`pemviz.core.detectors.draw_step`). :func:`pemviz.core.event_probs.event_log_probs` gives what a step's
-events cost under it, kept apart: the log-probability of the detections and misses (nats, <= 0) and the log-density
-of the detected objects' errors (nats, the errors in metres: a density, so it can be positive; Cover & Thomas 2006,
-*Elements of Information Theory*, Sec. 8.1). Their sum is the step's ``log p`` of the rollouts
-(:attr:`pemviz.core.rollouts.RolloutBatch.log_p`); :func:`pemviz.core.event_probs.batch_log_probs` splits a whole
-batch's. :func:`perceive` draws a step's events from the PEMs themselves, for a scene tried by hand outside a
-sampler; :func:`ahead_rows` gives a problem the rows where the PEM's detection curve is drawn.
-"""
+the detection PEM giving the logit of p(detected) (Innes & Ramamoorthy 2022, ICRA, Sec. IV-A) and the noise PEM
+(:class:`pemviz.pem.noise.NoisePEM`) the density of a detected object's range and lateral errors.
+:func:`camera_detector` returns that detector (a :class:`pemviz.pem.perception.SalientDetector`, every sampler's
+target); :func:`pemviz.core.event_probs.event_log_probs` gives a step's log-probability of detections (<= 0) and
+log-density of errors apart (Cover & Thomas 2006, *Elements of Information Theory*, Sec. 8.1). :func:`perceive`
+draws a step by hand; :func:`ahead_rows` gives a problem the rows where the detection curve is drawn."""
 
 from __future__ import annotations
 
@@ -62,10 +50,9 @@ def _salient_index(names: tuple[str, ...], who: str) -> list[int]:
 
 
 def ahead_rows(object_names: Sequence[str], kind: Any, camera_height_m: float = 1.65) -> Any:
-    """A problem's ``curve_rows`` (where the target's detection curve is drawn) for object rows ``object_names``: a
-    function ``grid [R] -> rows float64 [R, G]`` of an object of ``kind`` (:class:`pemviz.stack.camera.ObjectKind`)
-    straight ahead of the camera at each range of ``grid`` (m), facing the camera's right, fully visible: its salient
-    variables (:func:`pemviz.stack.camera.view`), ``visible`` 1 and the first column the range; every other column 0.
+    """A problem's ``curve_rows`` for object rows ``object_names``: ``grid [R] -> rows float64 [R, G]`` of an object
+    of ``kind`` straight ahead of the camera at each range of ``grid`` (m), fully visible (its salient variables,
+    ``visible`` 1, the first column the range, other columns 0).
 
     Raises:
         ValueError: ``object_names`` without the 11 salient variables.
@@ -96,21 +83,16 @@ def camera_detector(
 
     Args:
         object_names: the scene's object-row columns [G]; they must hold the 11 names of
-            :data:`pemviz.pem.encoding.INPUT_COLUMNS` (``class``, ``truncation``, ... ``rot_y``; consecutive or not)
-            and may hold ``visible`` (:data:`VISIBLE`: rows holding 0 there are never detected, logit -inf).
-        detect: the detection PEM (:class:`pemviz.pem.PEM`, :class:`pemviz.pem.TreePEM`); None: the shipped one
-            (:func:`pemviz.pem.load_pem`).
-        noise: the noise PEM (:class:`pemviz.pem.noise.NoiseModel`); None: the shipped ``hetero-t``
-            (:func:`pemviz.pem.store.load_noise_pem`).
+            :data:`pemviz.pem.encoding.INPUT_COLUMNS` and may hold ``visible`` (:data:`VISIBLE`: rows holding 0
+            there are never detected).
+        detect: the detection PEM (:class:`pemviz.pem.PEM`, :class:`pemviz.pem.TreePEM`); None: the shipped one.
+        noise: the noise PEM (:class:`pemviz.pem.noise.NoiseModel`); None: the shipped ``hetero-t``.
         errors: False: a detector that only detects (exact measurements; ``noise`` is not loaded).
     Returns:
-        a :class:`pemviz.pem.perception.SalientDetector` (a :class:`pemviz.core.detectors.NoisyDetector` with
-        ``noise_names`` = :data:`NOISE_NAMES`): ``detect_logit(rows [R, G]) -> [R]``, ``noise_params``,
-        ``noise_from_uniforms``, ``noise_log_prob(rows, errors [R, 2]) -> [R]`` (nats).
+        a :class:`pemviz.pem.perception.SalientDetector` with ``noise_names`` = :data:`NOISE_NAMES`.
     Raises:
         ValueError: a salient variable missing from ``object_names``, or a name twice.
-        pemviz.pem.network.PemFormatError, OSError: a shipped PEM that cannot be read.
-    """
+        pemviz.pem.network.PemFormatError, OSError: a shipped PEM that cannot be read."""
     names = tuple(object_names)
     if len(set(names)) != len(names):
         raise ValueError(f"camera_detector: object_names must be distinct, got {names}")
@@ -152,10 +134,9 @@ class Perception:
 
 
 def perceive(detector: Any, rows: np.ndarray, rng: np.random.Generator) -> Perception:
-    """Draw a step's perception of object rows [R, G] from ``detector`` itself (the PEMs, no proposal): object r is
-    detected iff ``log u_r <= log_expit(logit_r)``, and a detected object's errors come from the error model's inverse
-    CDF of further uniforms (as :func:`pemviz.core.detectors.draw_step` draws them). For trying a scene by hand; a
-    problem's rollouts are drawn by the samplers through :func:`pemviz.core.problems.rollout_functions`.
+    """Draw a step's perception of object rows [R, G] from ``detector`` itself (no proposal), as
+    :func:`pemviz.core.detectors.draw_step` draws: detected iff ``log u_r <= log_expit(logit_r)``, errors by inverse
+    CDF. For trying a scene by hand.
 
     Returns:
         :class:`Perception`.

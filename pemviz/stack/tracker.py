@@ -3,56 +3,36 @@ stage of a perception stack, for any scene (the Kalman filter: Kalman 1960, "A n
 prediction problems", Trans. ASME, Journal of Basic Engineering 82(1), 35-45).
 
 Use: ``tracks = Tracks.empty((M, N))`` at the start (and :func:`start_confirmed` for objects the ego already
-follows); each step, with the step's detections and their measured
-positions in road coordinates, ``tracks = update(tracks, measured, z_x, z_y, range_m, prior_vx_mps, params)``, let
-the controller read ``tracks.x``, ``tracks.y``, ``tracks.vx``, ``tracks.vy`` where ``tracks.confirmed``, then
-``tracks = predict(tracks, dt_s, params)`` for the next step. :func:`pemviz.stack.camera.measure` gives the measured
-positions of objects seen by a camera and mislocated by the noise PEM's errors; the guide's page *A realistic
-perception stack* (``docs/realistic-stack.md``) writes a scene on it.
+follows); each step ``tracks = update(tracks, measured, z_x, z_y, range_m, prior_vx_mps, params)`` with the step's
+detections and their measured road positions (:func:`pemviz.stack.camera.measure`), let the controller read
+``tracks.x``, ``tracks.y``, ``tracks.vx``, ``tracks.vy`` where ``tracks.confirmed``, then ``tracks = predict(tracks,
+dt_s, params)``. The guide's page *A realistic perception stack* (``docs/realistic-stack.md``) writes a scene on it.
 
-Each object's track holds a constant-velocity (CV) state per road axis, ``(position, velocity)`` along x (the road)
-and y (across it), with a 2 x 2 covariance per axis. The axes are filtered independently: the motion model has no
-cross-axis term and the measurement covariance used is diagonal in (x, y), so the 4-state filter with a
-block-diagonal covariance is exactly two 2-state filters. Per step:
+Each track holds a constant-velocity state ``(position, velocity)`` per road axis with a 2 x 2 covariance; the axes
+are filtered independently (no cross-axis motion term, diagonal measurement covariance), which is exactly the
+4-state filter. Per step:
 
-- **predict** (every active track): ``x' = F x``, ``P' = F P F^T + Q`` with ``F = [[1, dt], [0, 1]]`` and the
-  discrete white-noise acceleration model ``Q = sigma_a^2 [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]`` (Bar-Shalom, Li &
-  Kirubarajan 2001, *Estimation with Applications to Tracking and Navigation*, Sec. 6.3.3, eq. 6.3.3-4;
-  ``filterpy.common.Q_discrete_white_noise(2, dt, sigma_a^2)``);
-- **update** (tracks with a measurement ``z`` of their position, variance ``r``): ``S = P00 + r``,
-  ``K = (P00, P01) / S``, ``x += K (z - position)``, ``P -= K (P00, P01)`` (the Kalman filter's update in its
-  standard form, Bar-Shalom et al. 2001, Ch. 5, with ``H = [1, 0]``);
-- **gate** (the validation region of Bar-Shalom, Daum & Huang 2009, "The probabilistic data association filter",
-  IEEE Control Systems Magazine 29(6)) along the road: a measurement whose normalised innovation squared
-  ``y_x^2 / S_x`` exceeds ``gate_chi2`` (by default the 0.9999 quantile of chi-square with 1 degree of freedom,
-  15.14) is rejected, and the track coasts as if the object had been missed: a heavy-tailed range error
-  (the noise PEM's Student-t) cannot throw the estimate metres away in one step. A track whose last update is
-  ``restart_after_steps`` or more steps old and whose new measurement falls outside its gate is restarted at that
-  measurement (its velocity estimate kept, with the start's variance), so that a track whose prediction diverged
-  from its object does not stay locked out by its own gate;
-- **confirm**: a started (or restarted) track is tentative until a measurement inside its gate updates it; the
-  controller acts on confirmed tracks only (track confirmation, Blackman & Popoli 1999, *Design and Analysis of
-  Modern Tracking Systems*, Artech House, Ch. 6), so one wild measurement cannot put a phantom in the ego's lane;
-- **start** (a detection of an object without a track): position = the measurement with variance ``r``, velocity =
-  a prior (along the road the caller's ``prior_vx_mps``, e.g. the ego's own speed for traffic that moves with the
-  ego; across it 0) with variance ``sigma_v0^2``;
-- **drop** a track that went ``max_coast_steps`` predictions without an update (its prediction is no longer
-  trusted; the next detection starts it again);
-- **established** (:func:`start_confirmed`): a scene that begins with the ego already following an object (the lead
-  of a cut-out, tracked for a while before the scene's first step) starts its track confirmed, at the position and
-  velocity the caller gives, with their variances.
+- **predict**: ``x' = F x``, ``P' = F P F^T + Q``, ``F = [[1, dt], [0, 1]]``, discrete white-noise acceleration ``Q
+  = sigma_a^2 [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]`` (Bar-Shalom, Li & Kirubarajan 2001, *Estimation with Applications
+  to Tracking and Navigation*, eq. 6.3.3-4);
+- **update**: ``S = P00 + r``, ``K = (P00, P01) / S``, ``x += K (z - position)``, ``P -= K (P00, P01)`` (ibid., Ch.
+  5, ``H = [1, 0]``);
+- **gate** along the road (Bar-Shalom, Daum & Huang 2009, "The probabilistic data association filter", IEEE Control
+  Systems Magazine 29(6)): a measurement with ``y_x^2 / S_x > gate_chi2`` (default the 0.9999 chi-square(1)
+  quantile, 15.14) is rejected and the track coasts; a track not updated for ``restart_after_steps`` restarts at a
+  measurement outside its gate;
+- **confirm**: a started track is tentative until a measurement inside its gate updates it; the controller acts on
+  confirmed tracks only (Blackman & Popoli 1999, *Design and Analysis of Modern Tracking Systems*, Ch. 6);
+- **start**: position = the measurement (variance ``r``), velocity = a prior (``prior_vx_mps`` along the road, 0
+  across) with variance ``sigma_v0^2``; **drop** after ``max_coast_steps`` predictions without an update;
+  **established** (:func:`start_confirmed`): a track confirmed from the scene's start.
 
-Why not a library filter. The batched twin of a scenario steps N x M filters per step (10^4-10^5), interleaved with
-the controller that acts on them, and must give the same bits as the one-rollout simulator. filterpy's
-``KalmanFilter`` (2.0) runs one filter per object with matrix products per call (tens of microseconds a step);
-simdkalman 1.0.4 vectorises many filters with stacked ``matmul`` and ``linalg.inv`` but measured 5.5 us per
-filter-step on 20,480 filters (this machine, 2026), about 100 times the budget of a rollout step. So the filter is
-written once here, as elementwise arithmetic on ``[N, M]`` arrays (the same code serves the one-rollout simulator
-with N = 1, so the two are step-identical), and ``tests/stack/test_tracker.py`` checks it against
-filterpy's ``KalmanFilter`` (4-state CV model) as the oracle.
+Written here rather than taken from filterpy or simdkalman: the batched twin steps 10^4-10^5 filters per step as
+elementwise arithmetic on ``[N, M]`` arrays, step-identical to the one-rollout simulator (N = 1); the library
+filters are about 100 times slower per filter-step (docs/validation.md). ``tests/stack/test_tracker.py`` checks it
+against filterpy's ``KalmanFilter`` as the oracle.
 
-Units: metres, seconds, m/s; variances in m^2 and (m/s)^2.
-"""
+Units: metres, seconds, m/s; variances in m^2 and (m/s)^2."""
 
 from __future__ import annotations
 
@@ -67,27 +47,20 @@ class TrackerParams:
 
     Attributes:
         accel_std_x_mps2, accel_std_y_mps2: process-noise acceleration std along and across the road (m/s^2).
-        meas_std_x0_m, meas_std_x_per_m2: the std of a position measurement along the road,
-            ``meas_std_x0_m + meas_std_x_per_m2 * Z^2`` at measured range ``Z`` (m): a camera's range error grows
-            with the square of the range (pinhole: ``dZ ~ Z^2 e_h / (f H)``).
-        meas_std_y0_m, meas_std_y_per_m: the std across the road, ``meas_std_y0_m + meas_std_y_per_m * Z`` (a
-            pixel error back-projects linearly in the range).
-        init_speed_std_x_mps, init_speed_std_y_mps: std of the velocity prior of a new track (m/s). Along the road
-            15 m/s by default: wide enough that an object standing still is not taken for one moving with a 20 m/s
-            ego (a prior sure to 5 m/s of the ego's speed shows a car stopped 50 m ahead at 17 m/s half a second
-            after it is first seen, 6.6 m/s after a second; at 15 m/s 7.4 and 1.2 m/s: ``benchmarks/track_prior.py``
-            and the guide's *A realistic perception stack*). A scene whose objects all move with the ego can be
-            surer (the cut-in's 5 m/s).
+        meas_std_x0_m, meas_std_x_per_m2: the std of a position measurement along the road, ``meas_std_x0_m +
+            meas_std_x_per_m2 * Z^2`` at measured range ``Z`` (m) (pinhole: ``dZ ~ Z^2 e_h / (f H)``).
+        meas_std_y0_m, meas_std_y_per_m: the std across the road, ``meas_std_y0_m + meas_std_y_per_m * Z``.
+        init_speed_std_x_mps, init_speed_std_y_mps: std of the velocity prior of a new track (m/s); 15 m/s along the
+            road by default, wide enough that an object standing still is not taken for one moving with the ego
+            (``benchmarks/track_prior.py``).
         max_coast_steps: a track not updated for more than this many predictions is dropped.
         gate_chi2: the validation gate on the normalised innovation squared along the road (1 degree of freedom; the
-            lateral innovation is not gated: a lane change is a manoeuvre the CV model does not foresee, and the
-            camera's lateral error is small); ``inf``: no gate.
-        restart_after_steps: a track whose last update is this many steps old (2: the last step had none) restarts at
-            a measurement outside its gate.
+            lateral innovation is not gated); ``inf``: no gate.
+        restart_after_steps: a track whose last update is this many steps old restarts at a measurement outside its
+            gate.
 
     Raises:
-        ValueError: a negative or non-finite value, or a measurement std of 0.
-    """
+        ValueError: a negative or non-finite value, or a measurement std of 0."""
 
     accel_std_x_mps2: float = 3.0
     accel_std_y_mps2: float = 1.5
@@ -295,11 +268,9 @@ def start_confirmed(
     var_y_m2: np.ndarray | float = 0.01,
     var_vy_m2ps2: np.ndarray | float = 0.1,
 ) -> Tracks:
-    """Tracks started as established (module docstring): active, confirmed and just updated (``coast`` 0) where
-    ``where``, at the given state with a diagonal covariance (the position-velocity covariances 0); the other tracks
-    as they were. Call it once before a scene's first step (e.g. on ``Tracks.empty((M, N))``), then ``update`` and
-    ``predict`` as usual: the controller acts on these tracks from the first step, as it would on a track that had
-    followed the object for some time.
+    """Tracks started as established: active, confirmed and just updated where ``where``, at the given state with a
+    diagonal covariance; the others as they were. Call it once before a scene's first step, then ``update`` and
+    ``predict`` as usual.
 
     Args:
         tracks: the tracks (arrays of one shape, e.g. ``[M, N]``).
@@ -375,12 +346,9 @@ FEATURE_NAMES: tuple[str, ...] = (
     "track_var_vy_m2ps2",
     "track_ttc_s",
 )
-"""The tracker's state of an object as named features [G] (:func:`features`): 1.0 if it has a track, 1.0 if that track
-is confirmed, the track's age (predictions since it started or restarted), its consecutive misses (steps without an
-accepted measurement before the step now perceived), its estimated range ahead of the ego's reference point (m) and
-position across the road (m), its estimated velocity along and across the road (m/s), their variances (m^2, (m/s)^2),
-and its predicted time to collision (s, capped: :func:`features`). Every value 0 where the object has no track, except
-the time to collision, the cap."""
+"""The tracker's state of an object as named features [G] (:func:`features`): has a track, confirmed, age,
+consecutive misses, estimated range ahead (m) and lateral position (m), velocities (m/s) and their variances, and
+the predicted time to collision (s, capped); 0 without a track, except the time to collision (the cap)."""
 
 TTC_CAP_S = 10.0
 """The predicted time to collision of :func:`features` is at most this (s): finite for a track that does not close."""
@@ -389,13 +357,9 @@ TTC_CAP_S = 10.0
 def features(
     tracks: Tracks, ego_x_m: np.ndarray | float, ego_speed_mps: np.ndarray | float, ttc_cap_s: float = TTC_CAP_S
 ) -> np.ndarray:
-    """The tracks' state as float64 features ``[N, M, G]`` (rollout-major, as a simulator's object rows), named
-    :data:`FEATURE_NAMES`: what a proposal can read of the state the controller acts on. Call it at a step's start
-    (after :func:`predict`, before the step's :func:`update`), as ``objects()`` reports the rows.
-
-    The predicted time to collision of a track ``range / (ego_speed - vx)`` (s; the range ahead of ``ego_x_m`` and the
-    closing speed from the estimated velocity), at most ``ttc_cap_s``; the cap where the track does not close (closing
-    speed <= 0) or there is no track; 0 where the track is at or behind ``ego_x_m`` (range <= 0).
+    """The tracks' state as float64 features ``[N, M, G]`` (rollout-major), named :data:`FEATURE_NAMES`, at a step's
+    start (after :func:`predict`, before :func:`update`). The time to collision is ``range / (ego_speed - vx)`` (s),
+    at most ``ttc_cap_s`` (the cap where not closing or no track; 0 at or behind ``ego_x_m``).
 
     Args:
         tracks: the tracks of M objects in N rollouts (arrays ``[M, N]``).
