@@ -7,17 +7,10 @@ Example::
     spec = stl.parse("G[0,99](d >= 2)")          # str(spec) == "G[0,99](d >= 2)"
     rho = stl.robustness(spec, {"d": gap_m}, "classic")      # gap_m: [N, T] metres -> rho: [N] metres
     rho_agm = stl.robustness(spec, {"d": gap_m}, "agm", signal_ranges=stl.BRAKING_SIGNAL_RANGES)
-    rho_sc = stl.robustness(spec, {"d": gap_m}, "smooth-cumulative", temperature=50.0)
     over_time = stl.robustness_signal(spec, {"d": gap_m})    # [N, T]
 
 Builders: ``stl.always((stl.signal("d") < 5) >> stl.eventually(stl.signal("v") <= 0.1, 0, 20), 0, 150)``
-(parenthesise comparisons next to ``&``, ``|``, ``>>``, which bind tighter in Python).
-The semantics are objects (:mod:`pemviz.stl.semantics`): ``stl.robustness(spec, signals, stl.AGM(ranges))`` is
-``stl.robustness(spec, signals, "agm", signal_ranges=ranges)``. Modules: :mod:`pemviz.stl.expr` (arithmetic in
-predicates), :mod:`pemviz.stl.formula` (formulas), :mod:`pemviz.stl.parser`, :mod:`pemviz.stl.semantics`
-(classic, AGM, smooth cumulative, AGM normalisation), :mod:`pemviz.stl.evaluate` (the entry points, input
-kinds, the trace-end convention).
-"""
+(parenthesise comparisons next to ``&``, ``|``, ``>>``)."""
 
 from pemviz.stl.evaluate import TRACE_END, first_violation, robustness, robustness_signal
 from pemviz.stl.expr import KEYWORDS, BinaryExpr, Const, Expr, Negate, Signal, format_number

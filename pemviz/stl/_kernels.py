@@ -220,10 +220,8 @@ def pad_right(ops: Any, x: Array, length: int, value: float) -> Array:
 
 
 def sliding_idempotent(ops: Any, x: Array, width: int, n_out: int, op: Callable[[Array, Array], Array]) -> Array:
-    """out[i] = op-reduce of x[i : i + width] for i < n_out (rows); x has >= n_out + width - 1 rows.
-
-    ``op`` must be idempotent (min, max): log-doubling with two overlapping halves (sparse-table style),
-    ceil(log2 width) elementwise passes.
+    """out[i] = op-reduce of x[i : i + width] for i < n_out (rows), x with >= n_out + width - 1 rows; ``op``
+    idempotent (min, max): log-doubling, ceil(log2 width) passes.
     """
     if width == 1:
         return x[:n_out]
@@ -241,10 +239,8 @@ Elems = tuple  # tuple of arrays, one monoid element per time step
 
 
 def sliding_monoid(xs: Elems, width: int, n_out: int, combine: Callable[[Elems, Elems], Elems]) -> Elems:
-    """out[i] = combine-reduce of steps i .. i + width - 1, in order, for an associative ``combine``.
-
-    ``xs`` is a tuple of [L, n] arrays (one monoid element per step), L >= n_out + width - 1. Binary
-    decomposition of ``width`` into non-overlapping power-of-two segments: O(L log width) work.
+    """out[i] = combine-reduce of steps i .. i + width - 1, in order, for an associative ``combine`` over a tuple
+    ``xs`` of [L, n] arrays: power-of-two segments, O(L log width) work.
     """
     level = tuple(e[: n_out + width - 1] for e in xs)
     size = 1

@@ -1,27 +1,18 @@
 """Batched evaluation of STL robustness: the entry points :func:`robustness`, :func:`robustness_signal` and
 :func:`first_violation`, input validation, and the walk over the formula.
 
-Inputs are one array per signal, float [N, T] (N traces of T steps; a single trace [T] also works), numpy or
-torch; the output has the same kind, float64 (torch in: torch out; tensors that require grad are computed
-with torch ops and the result is differentiable, others run through numpy zero-copy). Time is in integer
-steps. The semantics (classic, AGM, smooth cumulative; :mod:`pemviz.stl.semantics`) is one object chosen at
-the entry point from its name and handed to every operator.
+Inputs are one array per signal, float [N, T] (or one trace [T]), numpy or torch; the output is float64 of the same
+kind (torch tensors that require grad give a differentiable result). Time is in integer steps. The semantics
+(:mod:`pemviz.stl.semantics`) is one object handed to every operator.
 
-The trace end (rtamt's offline discrete-time convention): a window [t+a, t+b] is cut at the last step T-1;
-G, F, U and their AGM/cumulative versions aggregate over the steps that remain (AGM divides by their
-number). ``[a,inf]`` runs to the trace end. If no step remains at some evaluation time the operator is
-vacuous: G is true (classic +inf, AGM +1, cumulative +inf), F and U false (classic -inf, AGM -1,
-cumulative 0). An operator whose window starts past the trace end at every time it is evaluated is an
-error; with ``trace_end="error"`` any window that needs steps past the end is an error.
+The trace end (rtamt's offline discrete-time convention): a window is cut at step T-1 and aggregates over the steps
+that remain; ``[a,inf]`` runs to the end; with no step left the operator is vacuous (G true, F and U false). A
+window that starts past the end at every evaluated time is an error; with ``trace_end="error"`` so is any window
+that needs steps past the end.
 
-Speed: only the time range each sub-formula needs is computed (robustness at time 0 of ``G[0,199](d >= 2)``
-is one predicate pass and one min over time). Inside, arrays are time-major [L, n] so that a window shift is
-a contiguous block. Sliding min/max use log-doubling (ceil(log2 w) passes), sliding sums, products and
-log-sum-exps a binary decomposition of the width, classic until an associative (value, running min)
-monoid; AGM and cumulative until loop over the window offsets, vectorised over traces and times. Traces
-run in cache-sized chunks on a thread pool (numpy releases the GIL). ``benchmarks/stl_speed.py``: 10^4 x
-200 in milliseconds, >= 1000x rtamt.
-"""
+Only the time range each sub-formula needs is computed, on time-major [L, n] arrays: sliding min/max by
+log-doubling, sums, products and log-sum-exps by a binary decomposition of the width, classic until by an
+associative monoid; traces run in cache-sized chunks on a thread pool (``benchmarks/stl_speed.py``)."""
 
 from __future__ import annotations
 
@@ -81,34 +72,29 @@ def robustness(
 ) -> Any:
     """Robustness of ``formula`` at step ``time`` for every trace: float64 [N] (``[]`` for [T] inputs).
 
+    Source: :mod:`pemviz.stl.semantics` (Donze & Maler 2010; Mehdipour, Vasile & Belta, ACC 2019; Haghighi,
+    Mehdipour, Bartocci & Belta 2019).
+
     Args:
         formula: a :class:`~pemviz.stl.formula.Formula` or its text, e.g. ``"G[0,99](d >= 2)"``.
-        signals: signal name -> values [N, T] (or [T]), numpy or torch, e.g. ``{"d": gap_m}`` in metres.
-            Extra names are ignored.
-        semantics: a name from :data:`~pemviz.stl.semantics.SEMANTICS` (``"classic"``, ``"agm"``,
-            ``"smooth-cumulative"``) or a :class:`~pemviz.stl.semantics.Semantics` object
-            (``Classic()``, ``AGM(signal_ranges)``, ``SmoothCumulative(temperature)``), which carries its
-            own temperature / signal ranges.
+        signals: signal name -> values [N, T] (or [T]), numpy or torch, e.g. ``{"d": gap_m}`` in metres; extra names
+            are ignored.
+        semantics: a name from :data:`~pemviz.stl.semantics.SEMANTICS` or a :class:`~pemviz.stl.semantics.Semantics`
+            object, which carries its own temperature / signal ranges.
         time: evaluation step, 0 <= time < T.
         temperature: b of ``"smooth-cumulative"`` (> 0; larger is closer to min/max).
-        signal_ranges: ``{"d": (lo, hi)}`` per signal, AGM predicate normalisation
-            (:mod:`pemviz.stl.semantics`).
+        signal_ranges: ``{"d": (lo, hi)}`` per signal, AGM predicate normalisation.
         trace_end: ``"truncate"`` (rtamt's convention) or ``"error"`` (windows must fit in the trace).
 
     Returns:
         numpy float64 [N] for numpy inputs; torch float64 [N] for torch inputs (differentiable).
 
     Raises:
-        ValueError: unknown semantics (lists the allowed ones), malformed text (with its column; a
-            ``STLSyntaxError``), a signal the formula reads is missing, signals of different shapes, NaN in a
-            signal used, ``time`` outside the trace, an interval past the trace end (with its column),
-            AGM predicate values outside [-1, 1] without ``signal_ranges``, a bad temperature,
-            ``temperature`` or ``signal_ranges`` given besides a semantics object.
-        TypeError: ``signals`` (or ``signal_ranges``) is not a mapping, or a signal holds non-numeric data.
-
-    Source: :mod:`pemviz.stl.semantics` (Donze & Maler 2010; Mehdipour, Vasile & Belta, ACC 2019; Haghighi,
-    Mehdipour, Bartocci & Belta 2019).
-    """
+        ValueError: unknown semantics, malformed text (an ``STLSyntaxError`` with its column), a missing signal,
+            signals of different shapes, NaN in a signal used, ``time`` outside the trace, an interval past the
+            trace end, AGM predicate values outside [-1, 1] without ``signal_ranges``, a bad temperature, or
+            ``temperature`` / ``signal_ranges`` besides a semantics object.
+        TypeError: ``signals`` (or ``signal_ranges``) is not a mapping, or a signal holds non-numeric data."""
     job = _Job(formula, signals, semantics, temperature, signal_ranges, trace_end)
     if isinstance(time, bool) or not isinstance(time, (int, np.integer)):
         raise TypeError(f"time must be an int step, got {time!r}")
@@ -127,11 +113,9 @@ def robustness_signal(
     signal_ranges: Mapping[str, tuple[float, float]] | None = None,
     trace_end: str = "truncate",
 ) -> Any:
-    """Robustness of ``formula`` at every step: float64 [N, T] (``[T]`` for [T] inputs).
-
-    Column t is :func:`robustness` at ``time=t``; near the trace end windows are cut (module docstring), so
-    with ``trace_end="error"`` only formulas without temporal operators pass. Arguments, return kinds and
-    errors as in :func:`robustness`.
+    """Robustness of ``formula`` at every step: float64 [N, T] (``[T]`` for [T] inputs); column t is
+    :func:`robustness` at ``time=t``, windows cut at the trace end (so ``trace_end="error"`` passes only formulas
+    without temporal operators).
     """
     job = _Job(formula, signals, semantics, temperature, signal_ranges, trace_end)
     out = job.run(0, job.T - 1)
@@ -403,12 +387,9 @@ class _Evaluator:
 
 
 def first_violation(formula: Formula | str, signals: Mapping[str, Any], level: float = 0.0) -> np.ndarray:
-    """The step at which a safety formula ``G[a,b](operand)`` with a time-free operand is first violated.
-
-    Returns int [N] (``[]`` for [T] inputs): the first step t in [a, b] at which the operand's classic
-    robustness is < 0 (or <= ``level`` when ``level`` > 0: the formula's robustness is then <= ``level`` whatever
-    comes after), and T where there is none. Only the actions before that step can change whether a rollout
-    violates the formula, so importance weights and NLLs stop there.
+    """The step at which a safety formula ``G[a,b](operand)`` with a time-free operand is first violated: int [N]
+    (``[]`` for [T] inputs), the first t in [a, b] with the operand's classic robustness < 0 (or <= ``level`` > 0),
+    else T; importance weights and NLLs stop there.
 
     Raises:
         ValueError: if the formula is not ``G[a,b](operand)`` with an operand of horizon 0.

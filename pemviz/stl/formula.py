@@ -6,19 +6,11 @@ Grammar (time in integer steps; an interval ``[a,b]`` is inclusive, ``b`` may be
              | formula -> formula | G[a,b](formula) | F[a,b](formula) | (formula) U[a,b] (formula)
     predicate := expr (>= | > | <= | <) expr      with expr affine in the signals: d - 2, (d - 2) / 13, 2 * v + vl
 
-``str(formula)`` is the canonical text; ``parse(str(f)) == f`` and ``str(parse(s)) == s`` for canonical ``s``
-(:mod:`pemviz.stl.parser`). Canonical spelling: ``!``, ``&``, ``|``, ``->``, ``G[a,b](..)``, ``F[a,b](..)``,
-``(..) U[a,b] (..)``; unary operands are always parenthesised, predicates inside ``&``/``|``/``->`` are not.
-
-The temporal operators share one base, :class:`Temporal` (an interval of future steps); ``G`` and ``F`` are
-the two :class:`UnaryTemporal` operators and differ only in the reduction over their window
-(:attr:`UnaryTemporal.conjunctive`: a conjunction over the steps for ``G``, a disjunction for ``F``).
-Arithmetic inside predicates lives in :mod:`pemviz.stl.expr`.
-
-Builders: ``signal("d") >= 2`` is a :class:`Predicate`; ``p & q``, ``p | q``, ``~p``, ``p >> q`` (implies);
+``str(formula)`` is the canonical text: ``parse(str(f)) == f`` (:mod:`pemviz.stl.parser`). ``G`` and ``F`` are the
+two :class:`UnaryTemporal` operators, differing in :attr:`UnaryTemporal.conjunctive`; arithmetic inside predicates
+lives in :mod:`pemviz.stl.expr`. Builders: ``signal("d") >= 2``; ``p & q``, ``p | q``, ``~p``, ``p >> q`` (implies);
 :func:`always`, :func:`eventually`, :func:`until`, :func:`conjunction`, :func:`disjunction`, :func:`negation`,
-:func:`implies`.
-"""
+:func:`implies`."""
 
 from __future__ import annotations
 
@@ -243,14 +235,11 @@ class Implies(Formula):
 
 
 class Temporal(Formula):
-    """Base of the temporal operators ``G``, ``F`` and ``U``: an interval ``[start, end]`` of future steps.
+    """Base of the temporal operators ``G``, ``F`` and ``U``: an interval ``[start, end]`` of future steps,
+    inclusive, 0 <= start <= end, ``end`` None to the trace end (``inf``); subclasses set ``symbol``.
 
-    ``start`` and ``end`` are integer steps after the evaluation time t, inclusive, 0 <= start <= end;
-    ``end`` None runs to the trace end (written ``inf``). Subclasses set ``symbol`` (``"G"``, ``"F"``, ``"U"``),
-    the operator's name in the text and in error messages.
-
-    Raises (on construction): TypeError for a non-int bound or a non-formula operand, ValueError for
-    start < 0 or end < start (with the column when parsed from text).
+    Raises (on construction): TypeError for a non-int bound or a non-formula operand, ValueError for start < 0 or
+    end < start (with the column when parsed from text).
     """
 
     symbol = ""
@@ -271,11 +260,8 @@ class Temporal(Formula):
 
 @dataclass(frozen=True, eq=True)
 class UnaryTemporal(Temporal):
-    """``G`` or ``F`` over ``[t+start, t+end]`` (cut at the trace end); the two differ only in ``conjunctive``.
-
-    ``conjunctive`` True (``G``): the operand must hold at every step of the window, the window reduces like
-    ``&``; False (``F``): at some step, the window reduces like ``|``. Each robustness semantics
-    (:mod:`pemviz.stl.semantics`) defines both reductions.
+    """``G`` or ``F`` over ``[t+start, t+end]`` (cut at the trace end): ``conjunctive`` True (``G``) reduces the
+    window like ``&``, False (``F``) like ``|``, as each semantics defines (:mod:`pemviz.stl.semantics`).
     """
 
     operand: Formula

@@ -1,14 +1,10 @@
 """Parse STL text into :mod:`pemviz.stl.formula` objects; errors carry the column.
 
-Accepted spellings (canonical first): ``!``/``~``/``not``, ``&``/``&&``/``and``, ``|``/``||``/``or``,
-``->``/``implies``, ``G``/``always``, ``F``/``eventually``, ``U``/``until``; intervals ``[a,b]``, ``[a:b]``,
-``[a,inf]``, ``[a,inf)``; an operator without interval is ``[0,inf]``. Precedence, loosest first:
-``->`` (right-assoc), ``|``, ``&``, ``U`` (non-assoc), unary ``! G F``. Example:
-``parse("G[0,150](d < 5 -> F[0,20](v <= 0.1))")``.
-
-Numbers are ASCII digits only (``d >= ²`` or full-width digits are errors), at most :data:`MAX_NUMBER_CHARS`
-characters and finite in float64; interval bounds at most :data:`MAX_STEP`; operators and parentheses nest at
-most :data:`MAX_DEPTH` deep. Every failure is an :class:`STLSyntaxError` with its column.
+Spellings (canonical first): ``!``/``~``/``not``, ``&``/``&&``/``and``, ``|``/``||``/``or``, ``->``/``implies``,
+``G``/``always``, ``F``/``eventually``, ``U``/``until``; intervals ``[a,b]``, ``[a:b]``, ``[a,inf]``, ``[a,inf)``
+(none: ``[0,inf]``). Precedence, loosest first: ``->`` (right-assoc), ``|``, ``&``, ``U`` (non-assoc), unary ``! G
+F``. Numbers are ASCII digits, at most :data:`MAX_NUMBER_CHARS` characters; bounds at most :data:`MAX_STEP`; nesting
+at most :data:`MAX_DEPTH`. Every failure is an :class:`STLSyntaxError` with its column.
 """
 
 from __future__ import annotations

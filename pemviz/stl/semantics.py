@@ -1,40 +1,22 @@
 """The robustness semantics of STL as objects: :class:`Classic`, :class:`AGM`, :class:`SmoothCumulative`.
 
-One :class:`Semantics` object is chosen at the API boundary (from its name, :func:`semantics_from_name`, or
-passed directly to :func:`pemviz.stl.robustness`) and handed down to every operator of the formula walk
-(:mod:`pemviz.stl.evaluate`); each object defines the value of predicates, ``&`` / ``|``, the window
-reductions of ``G`` / ``F`` and until. Values are float64 arrays, time-major [L, n] (L steps of n traces), in
-the units of the predicates (classic: the signals' units, e.g. metres; AGM: unitless in [-1, 1]; smooth
-cumulative: signal units x steps).
+One :class:`Semantics` object is chosen at the API boundary (:func:`semantics_from_name`, or passed to
+:func:`pemviz.stl.robustness`) and handed to every operator of the formula walk (:mod:`pemviz.stl.evaluate`). Values
+are float64 arrays, time-major [L, n], in the predicates' units (classic: the signals', e.g. metres; AGM: unitless
+in [-1, 1]; smooth cumulative: signal units x steps).
 
-- :class:`Classic` (Donze & Maler 2010; discrete time as in rtamt's offline monitor): predicate value
-  ``lhs - rhs``; ``!`` negates; ``&``/G take min, ``|``/F max; ``(a) U[s,e] (b)`` at t is the max over
-  t' in [t+s, t+e] of min(b(t'), min over [t, t') of a). Agrees with rtamt 0.4.10 to 1e-9 (tests). The
-  left operand must hold strictly before t' (rtamt's and LTL's discrete-time until; ``(a) U (a & b)`` gives
-  the inclusive one). All three semantics use this window for until.
-- :class:`AGM` (Mehdipour, Vasile & Belta, "Arithmetic-geometric mean robustness for control from signal
-  temporal logic specifications", ACC 2019, Def. 2): predicates scaled into [-1, 1] (see below); ``&`` / G
-  over m values r_i: if some r_i <= 0, (1/m) sum min(0, r_i); else (prod (1 + r_i))^(1/m) - 1. ``|`` / F are
-  the exact De Morgan duals (``|`` = ``!(!a & !b)``): if some r_i >= 0, (1/m) sum max(0, r_i); else
-  1 - (prod (1 - r_i))^(1/m). ``a -> b`` = ``!a | b``; until is the AGM ``|`` over t' of the binary AGM ``&``
-  of b(t') and the AGM ``&`` of a over [t, t') (only b(t') when that is empty). Every value has the sign of
-  the classic robustness (zero included) and lies in [-1, 1].
-- :class:`SmoothCumulative` (Haghighi, Mehdipour, Bartocci & Belta 2019, arXiv 1904.11611, smooth version of
-  Def. 3; the authors' ``sc_rob_pos``; used by Innes & Ramamoorthy 2022): the positive cumulative robustness
-  rho+. Predicates give softplus_b(h) = log(1 + e^(b h)) / b (rho- gives -softplus_b(-h)); ``!`` maps rho+ to
-  -rho- of its operand; ``&``/G take the soft minimum -(1/b) log sum e^(-b r), ``|`` the soft maximum; F sums
-  over its window, U sums over t' of softmin(b(t'), a over [t, t')). Temperature b, default 50 (the paper's
-  run). Its sign is not the classic sign on borderline traces (Haghighi et al. 2019).
+- :class:`Classic` (Donze & Maler 2010; discrete time as rtamt's offline monitor, agreeing with rtamt 0.4.10 to
+  1e-9): predicate ``lhs - rhs``; ``&``/G min, ``|``/F max; ``(a) U[s,e] (b)`` at t is the max over t' in [t+s, t+e]
+  of min(b(t'), min over [t, t') of a) (the left operand holds strictly before t', for all three semantics).
+- :class:`AGM` (Mehdipour, Vasile & Belta, "Arithmetic-geometric mean robustness for control from signal temporal
+  logic specifications", ACC 2019, Def. 2): ``&``/G over m values: (1/m) sum min(0, r_i) if some r_i <= 0, else
+  (prod (1 + r_i))^(1/m) - 1; ``|``/F their De Morgan duals. Signs agree with classic; predicates are divided by
+  :func:`agm_scale` over ``signal_ranges`` and clipped to [-1, 1] (without ranges they must already lie there).
+- :class:`SmoothCumulative` (Haghighi, Mehdipour, Bartocci & Belta 2019, arXiv 1904.11611, smooth Def. 3; used by
+  Innes & Ramamoorthy 2022): rho+ with softplus predicates, soft min/max of temperature b (default 50), F and U
+  summed over their windows.
 
-Predicate normalisation for AGM (explicit): ``AGM(signal_ranges={"d": (0.0, 15.0)})``; each predicate's
-value h is divided by max |h| over the box of signal ranges (``d >= 2`` with d in [0, 15] -> (d - 2) / 13,
-the authors' braking normalisation) and clipped to [-1, 1] (values beyond the declared ranges saturate; the
-sign is kept). Without ranges the predicate values are used as written, which must already lie in [-1, 1]
-(write ``(d - 2) / 13 >= 0``), else a ValueError says how to normalise.
-
-Empty windows (all steps past the trace end) are vacuous: G is true (classic +inf, AGM +1, cumulative
-+inf), F and U false (classic -inf, AGM -1, cumulative 0).
-"""
+Empty windows are vacuous: G true (classic +inf, AGM +1, cumulative +inf), F and U false (-inf, -1, 0)."""
 
 from __future__ import annotations
 
