@@ -1,11 +1,6 @@
-"""The exact failure probabilities that validation judges the estimators against, and the problems that have one.
-
-:func:`exact_answer` is a problem's truth (:class:`ExactAnswer`): a closed form for the toys and the crowd, the
-deterministic latched simulator, the enumeration of :mod:`pemviz.scenarios.braking.truth` for ``main`` (kept for the
-shipped PEMs, :mod:`pemviz.scenarios.braking.truth_known`), or the answer a registered scenario carries;
-:func:`validation_problems` lists the problems that have one (:data:`pemviz.scenarios.problems.PROBLEMS`, then the
-registered scenarios with an exact answer) and :func:`validation_problem` builds one. :mod:`pemviz.studies.validation`
-runs the estimators on them.
+"""The exact failure probabilities validation judges the estimators against: :func:`exact_answer`
+(:class:`ExactAnswer`: closed forms, the latched simulator, the enumeration of :mod:`pemviz.scenarios.braking.truth`
+or its kept answers, or a registered scenario's), :func:`validation_problems` and :func:`validation_problem`.
 """
 
 from __future__ import annotations
@@ -37,11 +32,9 @@ class ExactAnswer:
 def exact_answer(
     name: str, pem_path: str | None = None, *, progress: Callable[[str], None] | None = None, recompute: bool = False
 ) -> ExactAnswer:
-    """The exact p_fail of a problem of :data:`~pemviz.scenarios.problems.PROBLEMS` (milliseconds for the toys, the
-    latched scenario and ``main`` with a shipped PEM, whose answer is kept; 20-40 s of enumeration for ``main`` with
-    another PEM or with ``recompute``).
-
-    ``progress`` receives a line per refinement of the enumeration (``main``).
+    """The exact p_fail of a problem of :data:`~pemviz.scenarios.problems.PROBLEMS` (milliseconds where kept or in
+    closed form; 20-40 s of enumeration for ``main`` with another PEM or ``recompute``), ``progress`` receiving a
+    line per refinement.
 
     Raises:
         ValueError: an unknown name.

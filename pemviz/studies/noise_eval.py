@@ -1,23 +1,12 @@
 """Noise PEM quality: 5-fold cross-validation of the noise PEMs against the homoscedastic baseline.
 
-Protocol: the folds of the detection PEMs' Table I (``StratifiedKFold(n_splits=5)`` on the detected label, file order,
-no shuffle; :func:`pemviz.studies.pem_eval.stratified_folds`), restricted to the rows of the noise data set (detected,
-range >= 1 m, dequantised box errors in metres: :func:`pemviz.pem.noise.noise_training_data`); the 14-dim encoding
-uses the z-score statistics of the full file. Every model is trained on four folds and scored on the fifth:
-
-- NLL: the mean negative log-likelihood of the held-out errors, nats per obstacle (both dimensions), and per dimension;
-- coverage: the share of held-out errors inside the central 50 / 80 / 90 / 95 % predictive interval, per dimension;
-- ICE (interval calibration error): the mean of |coverage - level| over the central intervals of level 0.05, 0.10,
-  ..., 0.95, per dimension (from the probability integral transform, PIT: a calibrated model has uniform PIT values
-  and an ICE near 0);
-- coverage of the 90 % interval by range band (out of fold): a homoscedastic model covers near obstacles too often
-  and far ones too rarely.
-
-Models (:data:`NOISE_MODEL_NAMES`): ``homo-normal`` (linear mean, constant scale: the baseline), ``homo-t``
-(constant Student-t), and the heteroscedastic :class:`pemviz.pem.noise.NoisePEM` with a Normal, Laplace or Student-t
-head (``hetero-t`` is the shipped recipe). :func:`evaluate_noise_pems` computes; :func:`format_markdown`,
-:func:`format_csv`, :func:`summary_lines` present.
-"""
+The folds are the detection PEMs' (:func:`pemviz.studies.pem_eval.stratified_folds`) restricted to the noise data
+set (:func:`pemviz.pem.noise.noise_training_data`). Scores on the held-out fold: NLL (nats per obstacle and per
+dimension), coverage of the central 50 / 80 / 90 / 95 % intervals, ICE (the mean |coverage - level| over levels
+0.05..0.95, from the PIT), and the 90 % interval's coverage by range band. Models (:data:`NOISE_MODEL_NAMES`):
+``homo-normal``, ``homo-t`` and :class:`pemviz.pem.noise.NoisePEM` with a Normal, Laplace or Student-t head
+(``hetero-t`` shipped). :func:`evaluate_noise_pems` computes; :func:`format_markdown`, :func:`format_csv`,
+:func:`summary_lines` present."""
 
 from __future__ import annotations
 

@@ -1,11 +1,7 @@
-"""The paper's Tables II and III (Innes & Ramamoorthy 2022) with repetitions, standard errors and the exact answer.
-
-Table II: MC, naive-50 and the adaptive sampler at the paper's sizes (plus the sampler under other presets);
-Table III: the adaptive sampler under each robustness metric. A row is R repetitions of one config
-(:class:`RowSpec`), summarised by :func:`summarise_row` as mean +- standard error std/sqrt(R) of mu_hat (the
-authors divided by R), failures, NLL, ESS and the ratio to the exact p_fail. :func:`write_recording` writes every
-repetition's per-stage proposal curves and the paper's Fig. 4 (the stage-3 curves averaged per metric) to rerun.
-``pemviz tables`` is the command-line layer over this module and :mod:`pemviz.studies.validation`.
+"""The paper's Tables II and III (Innes & Ramamoorthy 2022) with repetitions, standard errors and the exact answer:
+a row is R repetitions of one config (:class:`RowSpec`), summarised by :func:`summarise_row` (mean +- std/sqrt(R),
+failures, NLL, ESS, ratio to the exact p_fail); :func:`write_recording` writes the proposal curves and the paper's
+Fig. 4. ``pemviz tables`` is its command line.
 """
 
 from __future__ import annotations

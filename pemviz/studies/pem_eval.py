@@ -1,24 +1,14 @@
 """PEM quality: 5-fold cross-validation of the PEM models (paper Table I) with calibration.
 
 Protocol (Innes & Ramamoorthy (2022), Table I; the authors' ``eval_kfold_class_models.py``):
-``StratifiedKFold(n_splits=5)`` on the detected label, folds in file order (no shuffle); every model is trained on 4
-folds and scored on the fifth; the 14-dim encoding uses the z-score statistics of the full file. Per fold: BCE (nats),
-ROC-AUC, average precision (AP) and expected calibration error (ECE, 15 equal-width bins); the table reports the mean
-over folds beside the paper's numbers.
-
-Models:
-
-- ``ml-nn``: the paper's ML-NN (300 epochs, :mod:`pemviz.pem.network`);
-- ``lr``: logistic regression on the 14 features (scikit-learn, ``max_iter=10000``, as the authors);
-- ``guess-mu``: the training folds' detection rate for every row;
-- ``b-nn``: the Bayesian NN (pyro, :mod:`pemviz.pem.bayes`);
-- ``gbt``: gradient-boosted trees on the same 14 features (:mod:`pemviz.pem.trees`), pemviz's best model,
-  chosen by cross-validation on these folds (settings compared in ``pemviz/assets/README.md``).
+``StratifiedKFold(n_splits=5)`` on the detected label, no shuffle, the encoding's z-scores from the full file. Per
+fold: BCE (nats), ROC-AUC, average precision and expected calibration error (15 equal-width bins); the table reports
+the mean over folds beside the paper's. Models: ``ml-nn`` (:mod:`pemviz.pem.network`), ``lr`` (scikit-learn logistic
+regression), ``guess-mu`` (the training folds' rate), ``b-nn`` (:mod:`pemviz.pem.bayes`), ``gbt``
+(:mod:`pemviz.pem.trees`, the best by these folds).
 
 :func:`evaluate_pems` computes; :func:`format_markdown` / :func:`format_csv` and
-:func:`pemviz.studies.pem_eval_recording.write_recording` (rerun: ROC curves, reliability diagrams, p(detect | gap)
-curves beside the authors' PEM) present.
-"""
+:func:`pemviz.studies.pem_eval_recording.write_recording` present."""
 
 from __future__ import annotations
 
@@ -67,11 +57,9 @@ class Predictor(Protocol):
 
 @dataclass(frozen=True)
 class EvalConfig:
-    """Settings of :func:`evaluate_pems`.
-
-    ``folds``: which of the ``n_splits`` folds to run (None = all; CI runs one). ``mlnn_epochs``,
-    ``gbt_trees``, ``bnn_steps``, ``bnn_samples`` shrink the models for a quick run; the defaults are the
-    full protocol. ``seed`` seeds every model (ML-NN, B-NN, trees).
+    """Settings of :func:`evaluate_pems`: ``folds`` (None = all; CI runs one), ``mlnn_epochs``, ``gbt_trees``,
+    ``bnn_steps``, ``bnn_samples`` (smaller for a quick run; the defaults are the full protocol), ``seed`` for every
+    model.
 
     Raises:
         ValueError: an unknown model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1.
@@ -300,12 +288,9 @@ def evaluate_pems(
     on_fold: Callable[[str, FoldScore], None] | None = None,
     data_source: str = "",
 ) -> EvalResult:
-    """Cross-validate the configured models (default :class:`EvalConfig`, the full protocol) on raw salient
-    inputs ``[N, 11]`` and labels ``[N]``.
-
-    The z-score statistics are those of all ``N`` rows (as the authors'); folds from
-    :func:`stratified_folds`. ``on_fold(model, score)`` is called after each fit (for progress output).
-    The authors' PEM curve is added when ``../shared/reference/carla-stuff-pem`` is present.
+    """Cross-validate the configured models (default :class:`EvalConfig`) on raw salient inputs ``[N, 11]`` and
+    labels ``[N]``, z-scored on all N rows, folds from :func:`stratified_folds`; ``on_fold(model, score)`` after
+    each fit; the authors' PEM curve is added when ``../shared/reference/carla-stuff-pem`` is present.
 
     Raises:
         ValueError: mismatched lengths or labels not in {0, 1}.

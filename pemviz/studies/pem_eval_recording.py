@@ -46,15 +46,10 @@ def _legend(stream: Any, fig: Any, entries: Sequence[tuple[str, tuple[int, int, 
 
 
 def log_recording(result: EvalResult, stream: Any) -> None:
-    """Log the evaluation into a rerun ``RecordingStream`` (all static; 2D figures in (x, y) axis units).
-
-    Entities: ``description`` (Markdown table); ``roc/data/<model>`` (pooled out-of-fold ROC curve,
-    thick) and ``roc/data/<model>/fold_K`` (thin); ``reliability/data/<model>`` and ``.../bins`` (pooled
-    reliability diagram: mean predicted p against observed detection rate per bin, point area ~ rows) and
-    ``reliability/data/diagonal``; ``gap/data/<model>`` (mean over the fold models of p(detect | gap) for the
-    braking scenario's lead) and ``gap/data/authors`` (the authors' PEM);
-    ``folds/{bce,auc}/data/<model>`` (per-fold scores); ``<figure>/legend``; ``metrics/<model>`` (the
-    numbers as ``AnyValues``).
+    """Log the evaluation into a rerun ``RecordingStream`` (all static, 2D figures in axis units): ``description``,
+    ``roc/data/<model>`` (and ``/fold_K``), ``reliability/data/<model>`` (and ``/bins``, ``diagonal``),
+    ``gap/data/<model>`` and ``gap/data/authors``, ``folds/{bce,auc}/data/<model>``, ``<figure>/legend`` and
+    ``metrics/<model>``.
     """
     import rerun as rr
     import rerun.blueprint as rrb

@@ -1,26 +1,15 @@
 """What a seed reproduces, and where: a run's fingerprint under the CPU's vector-dispatch settings, chunk sizes and
 executors.
 
-A detection is drawn as ``u <= q``, so a last-bit change of q can flip a draw, and every later fit and rollout follows
-it. pemviz therefore computes every number that decides a draw or a fit in arithmetic whose result is fixed by
-IEEE 754 alone (:mod:`pemviz.core.exact`): the proposal network's logits and its Adam fits, its initial weights (numpy's
-PCG64), and the PEM networks' outputs (:class:`pemviz.pem.network.GridMLP`). The weights' and the errors'
-transcendentals (libm, numpy's and scipy's vector loops) may differ in their last bit between CPUs; a last-bit change
-of a float64 p flips a draw with probability about 1e-16, and the weights enter the fits on a grid of 24 bits
-(:data:`pemviz.core.exact_fit.COUNT_BITS`).
+A detection is drawn as ``u <= q``, so a last-bit change of q can flip a draw; every number that decides a draw or a
+fit is computed in arithmetic fixed by IEEE 754 alone (:mod:`pemviz.core.exact`). The contract this module checks
+(:func:`compare`): on one machine any chunk size and executor give the same fingerprint, bit for bit; on any x86-64
+CPU and dispatch setting (:data:`DISPATCH_SETTINGS`) the same rollouts, thresholds, elites and printed numbers, log
+mu_hat within :data:`LOG_MU_RTOL` relative.
 
-The contract this module checks (:func:`compare`):
-
-- **one machine**: any chunk size (``ExperimentConfig.chunk_rollouts``) and executor (serial or Ray) give the same
-  fingerprint, bit for bit;
-- **any x86-64 CPU, any dispatch setting** (:data:`DISPATCH_SETTINGS`): the same rollouts (every stage's detections
-  and failures, hashed), the same thresholds and elites, the same printed numbers; log mu_hat within
-  :data:`LOG_MU_RTOL` relative (the weights' last bits).
-
-``python -m pemviz.studies.reproducibility [--scenario S] [--k K] [--n N] [--n-final N_e] [--chunk C]
-[--executor E] [--seed S] [--plain-fallback R]`` prints one run's fingerprint as JSON;
-``benchmarks/reproducibility.py`` runs the matrix.
-"""
+``python -m pemviz.studies.reproducibility [--scenario S] [--k K] [--n N] [--n-final N_e] [--chunk C] [--executor E]
+[--seed S] [--plain-fallback R]`` prints one run's fingerprint as JSON; ``benchmarks/reproducibility.py`` runs the
+matrix."""
 
 from __future__ import annotations
 
@@ -69,10 +58,9 @@ DISPATCH_SETTINGS: dict[str, dict[str, str]] = {
         "NPY_DISABLE_CPU_FEATURES": _numpy_without("baseline"),
     },
 }
-"""Settings of torch's (``ATEN_CPU_CAPABILITY``), MKL's, numpy's (``NPY_DISABLE_CPU_FEATURES``, named by the installed
-numpy's own dispatch targets: :func:`numpy_dispatch`) and OpenBLAS's kernel dispatch that any x86-64 CPU with AVX2
-runs: each picks the kernels (and so the rounding) of another CPU. A fingerprint records what torch, numpy and
-OpenBLAS then used (its ``dispatch``), so that a setting that took no effect shows."""
+"""Settings of torch's (``ATEN_CPU_CAPABILITY``), MKL's, numpy's (``NPY_DISABLE_CPU_FEATURES``, by
+:func:`numpy_dispatch`'s names) and OpenBLAS's kernel dispatch that any AVX2 x86-64 CPU runs, each another CPU's
+kernels; a fingerprint records the ``dispatch`` used."""
 
 
 def dispatch_in_use() -> dict[str, Any]:

@@ -1,10 +1,7 @@
-"""Validation of the estimators against exact failure probabilities: jobs, their records, summaries.
-
-A :class:`Job` is one method (a config) on one named problem (:data:`pemviz.scenarios.problems.PROBLEMS`) for one seed;
-:func:`run_jobs` runs jobs in worker processes and appends every :class:`RunRecord` to a ``runs.jsonl`` file as it
-ends, so an interrupted study resumes; :func:`summarise` groups records into table rows, beside each problem's truth
-(closed form, the deterministic latched simulator, or exact enumeration: :mod:`pemviz.studies.exact_answers`).
-``pemviz validate`` and ``pemviz tables`` are the command-line layers over this module.
+"""Validation of the estimators against exact failure probabilities: a :class:`Job` is one method on one named
+problem (:data:`pemviz.scenarios.problems.PROBLEMS`) for one seed; :func:`run_jobs` runs them in worker processes,
+appending each :class:`RunRecord` to ``runs.jsonl`` (so a study resumes); :func:`summarise` makes table rows beside
+each problem's truth (:mod:`pemviz.studies.exact_answers`).
 """
 
 from __future__ import annotations
@@ -455,19 +452,17 @@ AMS_SHARE = 4
 
 
 def ams_fields(budget: int) -> dict[str, Any]:
-    """Config fields of adaptive multilevel splitting at a budget of ``budget`` rollouts: N = budget / :data:`AMS_SHARE`
-    particles and k = N / 10. The continuations add 0 to 3.2 N rollout-equivalents (measured at N = 210, seeds 0-9:
-    toy 2.9 N, main 3.2 N, latched 0.5 N, toy-1e-30 0, where every particle ties at once), so the total stays near or
-    below the budget; the run's own count of rollout-equivalents is what a table reports."""
+    """Config fields of adaptive multilevel splitting at a budget of ``budget`` rollouts: N = budget /
+    :data:`AMS_SHARE` particles and k = N / 10; the continuations add 0 to 3.2 N rollout-equivalents
+    (docs/validation.md), and a table reports the run's own count."""
     n = max(2, budget // AMS_SHARE)
     return {"method": SPLITTING_METHOD, "n_per_stage": n, "ams_killed": max(1, n // 10)}
 
 
 def methods_for(presets: Sequence[str], baselines: Sequence[str], base: dict[str, Any]) -> list[tuple[str, dict]]:
-    """(label, config fields) per method: ``adaptive (PRESET)`` for each preset, then the baselines with as
-    many rollouts as the first preset's adaptive run simulates (equal budgets; ams: :func:`ams_fields`). The presets
-    run their stages alone (``plain_fallback`` = 0): plain Monte Carlo after them would spend past the budget the
-    baselines get."""
+    """(label, config fields) per method: ``adaptive (PRESET)`` per preset, then the baselines at the first preset's
+    simulations (ams: :func:`ams_fields`); the presets run their stages alone (``plain_fallback`` = 0) so budgets
+    stay equal."""
     out = []
     budget = None
     for name in presets:
