@@ -27,10 +27,9 @@ def _register_env() -> None:
 
 
 class _RegisterWhenGymnasiumLoads(_abc.MetaPathFinder):
-    """Registers the environment right after gymnasium itself is imported, so that ``import pemviz`` does not import
-    gymnasium (~0.1 s, for every command) and ``import pemviz, gymnasium`` still finds pemviz/Braking-v0: a finder
-    that, asked once for gymnasium, takes itself off ``sys.meta_path`` and hands back gymnasium's own spec with its
-    loader's ``exec_module`` followed by the registration."""
+    """Registers the environment right after gymnasium is imported, so ``import pemviz`` does not import gymnasium:
+    a finder that, asked once for gymnasium, takes itself off ``sys.meta_path`` and hands back gymnasium's own spec
+    with the registration after its ``exec_module``."""
 
     def find_spec(self, name: str, path: object = None, target: object = None) -> _machinery.ModuleSpec | None:
         if name != "gymnasium":

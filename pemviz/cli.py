@@ -1,9 +1,7 @@
 """pemviz: estimate the probability of rare safety failures of a perception-driven controller with a perception
 error model (PEM) and adaptive importance sampling, recorded for rerun and shown in a browser panel.
 
-The command line ``pemviz run | serve | pem | data | estimate | validate | tables``. Each sub-command lives in
-``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``, which adds its parser and sets
-``func(args) -> int`` as the parser default.
+Each sub-command lives in ``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``.
 """
 
 from __future__ import annotations
@@ -23,10 +21,9 @@ from pemviz.commands import COMMANDS, Terminated, UsageError, command_help
 
 
 class OneLineParser(argparse.ArgumentParser):
-    """An argument parser whose errors are one line, ``pemviz run: error: argument --k: 'abc' is not a number; ...``,
-    exit status 2, without the usage block argparse prints before it (``--help`` still shows the usage); an unknown
-    flag is followed by the nearest known one (``unrecognized arguments: --rel-eror 0.1; --rel-eror: did you mean
-    --rel-error?``)."""
+    """An argument parser whose errors are one line (``pemviz run: error: argument --k: 'abc' is not a number;
+    ...``), exit status 2, without the usage block; an unknown flag gets the nearest known one (``--rel-eror: did
+    you mean --rel-error?``)."""
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message}{self._nearest(message)}\n")
@@ -101,12 +98,10 @@ def _raise_terminated(signum: int, frame: object) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run one command; returns the exit status.
-
-    0 done; 1 a failure while working (a write error such as a full disk, out of memory), one line; 2 bad
-    input, one line, nothing written; 130 Ctrl-C and 143 SIGTERM, one line saying what was finished.
-    ``PEMVIZ_DEBUG=1`` shows the traceback instead of the line. Run as the program (``argv`` None), the process
-    ends as soon as the command has (:func:`_exit_now`), and a signal that comes after it is ignored.
+    """Run one command; returns the exit status: 0 done; 1 a failure while working (full disk, out of memory), one
+    line; 2 bad input, one line, nothing written; 130 Ctrl-C and 143 SIGTERM, one line saying what was finished
+    (``PEMVIZ_DEBUG=1``: the traceback). Run as the program (``argv`` None), the process ends as soon as the command
+    has (:func:`_exit_now`).
     """
     pemviz.commands.AS_PROGRAM = pemviz.commands.AS_PROGRAM or argv is None
     previous = None
@@ -133,10 +128,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _exit_now(status: int) -> None:
-    """End the program with ``status`` once the command has returned: its files are committed (each written whole
-    and renamed into place) and its recording streams flushed and closed, so nothing is left for the interpreter's
-    shutdown but tearing down torch's and rerun's modules and threads (~0.8 s of a 6 s run). Standard output and
-    error are flushed first; a reader that went away (a closed pipe) changes nothing."""
+    """End the program with ``status`` once the command has returned (its files committed, its recordings flushed
+    and closed), skipping the interpreter's teardown of torch's and rerun's modules and threads; standard output and
+    error are flushed first, a closed pipe changing nothing."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

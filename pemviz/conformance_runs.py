@@ -1,11 +1,9 @@
 """The runs of the conformance kit (:mod:`pemviz.testing`): an experiment driven by the engine, with its files.
 
 :func:`run_engine` runs a config on a problem through :class:`pemviz.engine.experiment.Experiment` and keeps every
-stage's and the final estimate (a :class:`KitRun`); :func:`run_with_files` does so with a rollout file
-(:class:`pemviz.sinks.rollouts.RolloutSink`) and a recording (:meth:`pemviz.sinks.recording.RerunSink.to_file`)
-written beside, each sink behind a :class:`GuardedListener` whose errors are kept for the check that owns it, not
-raised. :class:`files_folder` gives the folder they go to: the one asked for, or a temporary one removed afterwards.
-Importing this module imports no simulator, PEM, recording library or torch; a run imports what it runs.
+stage's and the final estimate (a :class:`KitRun`); :func:`run_with_files` adds a rollout file and a recording, each
+sink behind a :class:`GuardedListener` whose errors are kept for the check that owns it; :class:`files_folder` gives
+their folder. Importing this module imports no simulator, PEM, recording library or torch.
 """
 
 from __future__ import annotations
@@ -80,10 +78,8 @@ def run_engine(config: ExperimentConfig, problem: Problem, listeners: tuple = ()
 
 def run_with_files(config: ExperimentConfig, problem: Problem, folder: Path, stem: str) -> KitRun:
     """:func:`run_engine` with a rollout file (:class:`pemviz.sinks.rollouts.RolloutSink`) and a recording
-    (:meth:`pemviz.sinks.recording.RerunSink.to_file`) written to ``folder``.
-
-    A problem that does not know its step (``dt_s`` None, e.g. the toys, whose steps are units of travel) is written
-    with ``dt_s = 1`` in the file's sidecar (the estimate does not read it); the run itself is unchanged."""
+    (:meth:`pemviz.sinks.recording.RerunSink.to_file`) written to ``folder`` (``dt_s = 1`` in the sidecar where the
+    problem knows no step)."""
     from pemviz.sinks.recording import RerunSink
     from pemviz.sinks.rollouts import RolloutSink
 

@@ -1,7 +1,6 @@
 """The braking scenario as a gymnasium environment, ``pemviz/Braking-v0``: bring your own controller.
 
-``import pemviz`` registers it (by entry-point string; this module imports only gymnasium and numpy) as soon as
-gymnasium is imported, before or after pemviz, so::
+``import pemviz`` registers it (by entry-point string) as soon as gymnasium is imported::
 
     import gymnasium as gym
     import pemviz
@@ -13,29 +12,20 @@ gymnasium is imported, before or after pemviz, so::
     for _ in range(100):
         obs, reward, terminated, truncated, info = env.step(controller(obs))
 
-The scenario is Innes & Ramamoorthy (2022)'s automated braking on highway-env vehicles
-(:class:`pemviz.scenarios.braking.simulator.BrakingScenario`), except that the agent is the ego's controller:
+The scenario is Innes & Ramamoorthy (2022)'s automated braking
+(:class:`pemviz.scenarios.braking.simulator.BrakingScenario`) with the agent as the ego's controller:
 
-- **observation** float64 [3]: ``(detected, seen_gap_m, ego_speed_mps)``: 1.0 if the detector sees the
-  lead at this step (else 0.0); the gap from the ego's camera to the lead's rear in metres when detected
-  (detections report the true distance), -1.0 when missed; the ego's speed in m/s.
-- **action** float64 [1]: the ego's longitudinal acceleration command in m/s^2, clipped to
-  [-27.5, 4.0] (the fitted CARLA brake's strongest deceleration, the throttle's strongest acceleration).
-  The vehicle never reverses (the acceleration is at least -v / dt) and stops in contact with the lead
-  (gap <= 0.7 m), as in the scenario.
-- **detector**: each step ``detected`` iff ``u <= p(detect | state)``, ``u`` from the environment's
-  ``np_random`` (seeded by ``reset(seed=...)``), ``p`` from ``detector`` (default: the PEM). ``info``
-  carries ``log_p`` (the PEM's log-probability of that detection, nats) and ``log_q`` (the sampling
-  detector's), so importance weights ``sum_t log_p - log_q`` work for any sampling detector.
-- **reward** -1.0 at the step the gap first drops below the crash gap (2 m) within the spec's T states, else
-  0.0 (the sum is -1.0 exactly when classic robustness of ``G[0,T-1](d >= 2)`` is negative). No early
-  termination (``terminated`` is always False): an episode is truncated after ``n_steps`` = 100 actions
-  of dt = 0.05 s. ``info`` also holds the true ``gap_m``, ``ego_speed_mps``, ``lead_speed_mps``, ``crashed``.
+- **observation** float64 [3]: ``(detected, seen_gap_m, ego_speed_mps)``: 1.0 if the detector sees the lead (else
+  0.0); the gap in metres when detected, -1.0 when missed; the ego's speed in m/s.
+- **action** float64 [1]: the ego's acceleration command in m/s^2, clipped to [-27.5, 4.0]; the ego never reverses
+  and stops in contact (gap <= 0.7 m).
+- **detector**: ``detected`` iff ``u <= p(detect | state)``, ``u`` from ``np_random``, ``p`` from ``detector``
+  (default: the PEM); ``info`` carries ``log_p`` and ``log_q`` (nats) for importance weights.
+- **reward** -1.0 at the step the gap first drops below 2 m, else 0.0; never terminated, truncated after 100 actions
+  of dt = 0.05 s. ``info`` also holds ``gap_m``, ``ego_speed_mps``, ``lead_speed_mps``, ``crashed``.
 
-With :class:`BasicAgentController` (the scenario's CARLA BasicAgent: emergency brake if detected within
-10 m, else the PID toward 7.5 m/s, one step of actuation lag) the ego moves exactly as in
-:class:`~pemviz.scenarios.braking.simulator.BrakingScenario` for the same detections (tests/scenarios/test_envs.py).
-"""
+With :class:`BasicAgentController` the ego moves exactly as in
+:class:`~pemviz.scenarios.braking.simulator.BrakingScenario` for the same detections."""
 
 from __future__ import annotations
 
@@ -57,11 +47,9 @@ def register_envs() -> None:
 
 
 class BasicAgentController:
-    """The braking scenario's ego controller as a policy ``obs [3] -> acceleration [1]`` (m/s^2).
-
-    :func:`pemviz.scenarios.braking.simulator.ego_acceleration` (emergency brake if the lead is
-    detected within 10 m, otherwise the PID toward 27 km/h; the brake acts one step late) on what the
-    controller observes; the collision stop is the environment's. Call :meth:`reset` with each episode.
+    """The braking scenario's ego controller as a policy ``obs [3] -> acceleration [1]`` (m/s^2):
+    :func:`pemviz.scenarios.braking.simulator.ego_acceleration` on what it observes. Call :meth:`reset` with each
+    episode.
     """
 
     def __init__(self, params: Any = None) -> None:

@@ -1,7 +1,6 @@
-"""What the registries of scenarios (:mod:`pemviz.scenarios.registry`) and methods (:mod:`pemviz.methods`)
-share: a reference to an object by its import path, resolved when first used (as Gymnasium's ``entry_point``), and the
-loading of plugins from the modules an environment variable names and from installed packages' entry points, each
-failure one line naming the plugin. No I/O beyond importing; no scenario, no method.
+"""What the scenario and method registries share: a reference to an object by its import path, resolved when first
+used (as Gymnasium's ``entry_point``), and plugins loaded from modules an environment variable names and from entry
+points, each failure one line naming the plugin.
 """
 
 from __future__ import annotations

@@ -74,24 +74,16 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 """Named settings, each applied on top of the defaults.
 
-``state-ce`` (the default): cross-entropy on a proposal over the whole observed state, only where the detector
-can matter, weights up to the failure, once the threshold reaches the failure level the weights to the power 1.2
-(the Renyi divergence of order 1.2) and to the power 1 in the last fit, random tie-breaking, a capped pretraining,
-a 20 % per-step defensive mixture, and a mixture over whole rollouts: 45 % of every stage's rollouts from the
-proposal without the per-step cap, and once the failure level is reached 10 % from the target (weights at most 10),
-each fit using every failure since, weighed by the mixture of those stages' samplers, each batch's detections drawn by
-Array-RQMC and the pooled stages counted by j^2 n_j, short warm-started fits (Adam at 1e-2, at most 150 epochs, until
-converged) and the proposal only where a detection can still matter. Against exact answers at 2,100 simulations, 10
-seeds (``benchmarks/rarity_sweep.py``): median relative error <= 0.0035 on toys from 1e-3 to 1e-100 (the per-step
-mixture alone, ``state-ce-step``, found no failure at all on the toys needing 100 and 300 misses in a row),
-0.003-0.019 on the latched scenario from 1e-1.4 to 1e-62, 0.026 and 0.023 on the main braking job at 1e-15 and
-1e-26; on main over seeds 0-99: 0.021, RMS 0.027 (1,200 simulations, seeds 0-199: 0.036, RMS 0.057).
-``state-ce-step``: the default sampler before the mixture over rollouts (per-step defensive mixture only; median
-relative error 0.054 on the main job, 0.087 on latched at 1e-62).
-``paper``: the sampler as published (biased low on the braking job: its estimator is unbiased but so
-right-skewed that its 1,200 simulations almost never see the weights that matter). ``authors-code``: how the
-authors' public code ran it (alpha 0.5, 1000 epochs, weights recomputed through the gradient, the last stage's
-batch as the estimate). ``quick``: the default sampler with fewer, larger Adam steps, a run of a few seconds."""
+``state-ce`` (the default): cross-entropy on a proposal over the whole observed state, only where the detector can
+matter, weights up to the failure raised to 1.2 (Renyi order 1.2) once the threshold reaches the failure level and
+to 1 in the last fit, a capped pretraining, a 20 % per-step defensive mixture and a mixture over whole rollouts (45
+% from the uncapped proposal, 10 % from the target once the failure level is reached), every fit on every failure
+since, Array-RQMC detections, stages pooled by j^2 n_j, short warm-started Adam fits. Median relative error <=
+0.0035 on toys from 1e-3 to 1e-100 at 2,100 simulations (docs/validation.md). ``state-ce-step``: the default before
+the mixture over rollouts. ``paper``: the sampler as published (biased low on the braking job in practice: so
+right-skewed that 1,200 simulations almost never see the weights that matter). ``authors-code``: how the authors'
+public code ran it (alpha 0.5, 1000 epochs, weights recomputed through the gradient, the last stage's batch as the
+estimate). ``quick``: the default with fewer, larger Adam steps."""
 
 PRESET_HELP: dict[str, str] = {
     DEFAULT_PRESET: "the recommended sampler, right against exact answers (the user guide's Validation page)",

@@ -1,19 +1,15 @@
-"""A conformance kit to run in one's own tests (as scikit-learn's ``check_estimator`` and Gymnasium's ``check_env``):
-:func:`check_scenario` checks a scenario of the registry (:mod:`pemviz.scenarios.registry`) and
-:func:`check_estimator` an estimation method (:data:`pemviz.methods.BUILTIN_METHODS` or one of one's own), each
-the way pemviz's own tests do::
+"""A conformance kit to run in one's own tests (as scikit-learn's ``check_estimator`` and Gymnasium's
+``check_env``): :func:`check_scenario` checks a scenario of the registry and :func:`check_estimator` an estimation
+method, the way pemviz's own tests do::
 
     from pemviz.testing import check_estimator, check_scenario
 
     check_scenario("braking")
     check_estimator("adaptive")
 
-Each returns a :class:`Report` (the checks passed, and those skipped with the reason) and raises
-:class:`ConformanceError`, an AssertionError, naming the subject, the check and what was wrong, at the first check that
-fails. The checks are small (a few hundred rollouts, two stages of a few thousand): a scenario or a method takes
-seconds. The runs, with their rollout file and recording, are :mod:`pemviz.conformance_runs`'s; files go to a
-temporary folder that is removed afterwards (``folder=`` keeps them). Importing this module imports no simulator, PEM,
-recording library or torch; a check imports what it runs.
+Each returns a :class:`Report` and raises :class:`ConformanceError` (an AssertionError naming the subject, the check
+and what was wrong) at the first failing check. Each takes seconds; files go to a temporary folder (``folder=``
+keeps them). Importing this module imports no simulator, PEM, recording library or torch.
 """
 
 from __future__ import annotations
@@ -256,34 +252,23 @@ def check_scenario(
 
     The checks, in order (:data:`SCENARIO_CHECKS`):
 
-    - ``schema``: every parameter (:meth:`pemviz.scenarios.registry.Scenario.parameters`) is a float, int or bool
-      whose default the dataclass accepts; a value not of its kind (NaN, infinity, 0.5 for an int, text), or an
-      unknown name, is refused with a ValueError; far values (-1e12, 1e12) are accepted or refused with a ValueError
-      (no other error), and at least one is refused (the dataclass checks its range).
-    - ``problem``: the factory builds a problem; one whose record says it has an exact answer carries it
-      (``exact_log_p``, a probability below 1) at the default parameters.
-    - ``determinism``: the same seed gives the same rollouts bit for bit (observations, detections, log p and log q,
-      object rows, measurement errors; :data:`SIMULATED_ROLLOUTS`, drawn by the PEM and by a 50 % detector), from
-      the same problem, from a problem built again, and streamed in chunks where the problem streams.
-    - ``features``: where the scene reports state features (:mod:`pemviz.core.features`; not listed where it has
-      none), they are finite, the same replayed twice and in chunks of a third
-      (:func:`pemviz.core.features.check_features`).
-    - ``twin``: where the scenario has a single black-box simulator (:attr:`Scenario.simulator`), it passes
-      :func:`pemviz.core.checks.check_simulator` (single-object ones), and :data:`TWIN_ROLLOUTS` of it in lockstep
-      (:func:`pemviz.scenarios.simulate`) are those of the problem's batched twin, step by step, bit for bit.
+    - ``schema``: every parameter is a float, int or bool whose default the dataclass accepts; a value not of its
+      kind or an unknown name is refused with a ValueError, and at least one far value (-1e12, 1e12) is refused.
+    - ``problem``: the factory builds a problem, carrying ``exact_log_p`` (< 0) where its record says it has one.
+    - ``determinism``: the same seed gives the same rollouts bit for bit (:data:`SIMULATED_ROLLOUTS`), from the same
+      problem, from a problem built again, and streamed in chunks.
+    - ``features``: where the scene reports state features, they are finite and the same replayed twice and in
+      chunks (:func:`pemviz.core.features.check_features`).
+    - ``twin``: a single black-box simulator (:attr:`Scenario.simulator`) passes
+      :func:`pemviz.core.checks.check_simulator` and :data:`TWIN_ROLLOUTS` of it match the batched twin bit for bit.
       Skipped without one.
-    - ``drawing``: where the problem has a drawing object (:attr:`pemviz.core.problems.Problem.drawing`), it is the
-      registry's (:meth:`pemviz.scenarios.registry.Scenario.drawing_object` of the same parameters, equal), it
-      survives pickling (the recording runs in a second process), and its ``outcome(batch, i)``
-      (:class:`pemviz.core.drawing.Outcome`) says failed for exactly the rollouts the problem's failure event
-      (:meth:`pemviz.core.problems.Problem.failed`) says failed, on the rollouts drawn by the PEM and by a 50 %
-      detector. Skipped without one.
-    - ``rollout-file``: a ``naive50`` run of :data:`RUN_ROLLOUTS` (if none fails, 2 adaptive stages, no fallback)
-      saved by :class:`pemviz.sinks.rollouts.RolloutSink` re-estimates from the file
-      (:func:`pemviz.io.rollout_estimate.estimate_rollouts`) to the run's own mu_hat within
-      :data:`pemviz.io.rollout_estimate.REESTIMATE_RTOL` (1e-9, relative), with its failures, rollouts and verdict.
+    - ``drawing``: the problem's drawing object is the registry's, survives pickling, and its ``outcome(batch, i)``
+      says failed for exactly the rollouts :meth:`pemviz.core.problems.Problem.failed` does. Skipped without one.
+    - ``rollout-file``: a ``naive50`` run of :data:`RUN_ROLLOUTS` saved by
+      :class:`pemviz.sinks.rollouts.RolloutSink` re-estimates from the file to the run's mu_hat within
+      :data:`pemviz.io.rollout_estimate.REESTIMATE_RTOL`, with its failures, rollouts and verdict.
     - ``recording``: the same run recorded by :meth:`pemviz.sinks.recording.RerunSink.to_file` writes a non-empty
-      file without error.
+      file.
 
     Args:
         scenario: a registered name (:func:`pemviz.scenarios.registered`) or a
@@ -295,8 +280,7 @@ def check_scenario(
         the :class:`Report`.
     Raises:
         ConformanceError: the first check that fails, e.g. ``check_scenario('toy'): determinism: ...``.
-        KeyError: no scenario of that name.
-    """
+        KeyError: no scenario of that name."""
     from pemviz.core.features import check_features
     from pemviz.scenarios import simulate
     from pemviz.scenarios.registry import Scenario, get
@@ -506,38 +490,32 @@ def check_estimator(
 ) -> Report:
     """Check an estimation method on a problem with an exact answer: its interface, its bias, its verdicts, its files.
 
-    The runs are :func:`estimator_config` (2 stages of :data:`ESTIMATOR_ROLLOUTS` = 2000 rollouts, a final batch of
-    400), driven by the engine (:class:`pemviz.engine.experiment.Experiment`) on :data:`ESTIMATOR_PROBLEM` (the toy,
-    exact p = 1e-3, 9 steps a rollout). The checks, in order (:data:`ESTIMATOR_CHECKS`):
+    The runs are :func:`estimator_config` (2 stages of :data:`ESTIMATOR_ROLLOUTS` rollouts, a final batch of 400) on
+    :data:`ESTIMATOR_PROBLEM` (the toy, exact p = 1e-3). The checks, in order (:data:`ESTIMATOR_CHECKS`):
 
-    - ``interface``: :func:`pemviz.core.checks.check_estimator` at seed 0 (its plans, weights and estimates, and two
-      runs the same bit for bit).
-    - ``unbiased``: the estimates mu_k of seeds k = 0 .. K - 1 (K = :data:`ESTIMATOR_SEEDS` = 8) average to the exact
-      p: ``|mean(mu_k) / p - 1| <= 0.2 + 4 SE`` with SE the sample standard deviation of mu_k / p over sqrt(K)
-      (:data:`UNBIASED_TOLERANCE`, :data:`UNBIASED_Z`; fixed seeds: the same answer on every run). Means at these
-      sizes: mc, mixed50, adaptive within 0.1 % of p, ams within 4 %; naive50 spreads widely (mu_k / p 0.04 to 1.6)
-      and passes by its SE. An estimator off by 2 whose mu_k / p spread less than 0.25 fails (``mc`` doubled).
-    - ``verdicts``: no estimate (each stage's and the final one of every run) with no failure or a NaN mu_hat is
-      called ``reliable``; and a run on the toy with a requirement no rollout can violate reports no failure and no
-      ``reliable`` verdict.
-    - ``rollout-file``: seed 0's run saved by :class:`pemviz.sinks.rollouts.RolloutSink` re-estimates from the file to
-      the run's own mu_hat within 1e-9 (relative), with its failures, rollouts and verdict. Skipped for a method
-      without importance weights (``ams``: the sink refuses it, saying why).
-    - ``recording``: seed 0's run recorded (:meth:`pemviz.sinks.recording.RerunSink.to_file`) writes a non-empty file.
+    - ``interface``: :func:`pemviz.core.checks.check_estimator` at seed 0.
+    - ``unbiased``: the estimates mu_k of seeds k = 0 .. K - 1 (K = :data:`ESTIMATOR_SEEDS`) average to the exact p:
+      ``|mean(mu_k) / p - 1| <= 0.2 + 4 SE``, SE the standard error of mu_k / p (:data:`UNBIASED_TOLERANCE`,
+      :data:`UNBIASED_Z`).
+    - ``verdicts``: no estimate with no failure or a NaN mu_hat is called ``reliable``, and a requirement no rollout
+      can violate gives no failure and no ``reliable`` verdict.
+    - ``rollout-file``: seed 0's run saved by :class:`pemviz.sinks.rollouts.RolloutSink` re-estimates from the file
+      to its mu_hat within 1e-9 (relative). Skipped for a method without importance weights (``ams``).
+    - ``recording``: seed 0's run recorded (:meth:`pemviz.sinks.recording.RerunSink.to_file`) writes a non-empty
+      file.
 
     Args:
-        method: a registered method's name (:func:`pemviz.methods.method_names`: the built-in ones and a
-            plugin's), or a :class:`pemviz.methods.Method` of one's own (registered by the check).
+        method: a registered method's name (:func:`pemviz.methods.method_names`), or a
+            :class:`pemviz.methods.Method` of one's own (registered by the check).
         problem: a :class:`pemviz.core.problems.Problem` with an exact answer and a distance signal ``d`` (None:
             :data:`ESTIMATOR_PROBLEM`).
         folder: where seed 0's files go (kept); None: a temporary folder, removed afterwards.
         settings: the method's own settings (:class:`~pemviz.config.ExperimentConfig` fields, e.g. ``ams_score``).
     Returns:
-        the :class:`Report`. A check takes about a second (``adaptive`` a few) on a laptop.
+        the :class:`Report`.
     Raises:
         ConformanceError: the first check that fails, e.g. ``check_estimator('mc'): unbiased: ...``.
-        ValueError: an unknown method, or a problem without an exact answer.
-    """
+        ValueError: an unknown method, or a problem without an exact answer."""
     from pemviz.core.checks import CheckError
     from pemviz.core.checks import check_estimator as check_interface
     from pemviz.estimators import build_estimator
