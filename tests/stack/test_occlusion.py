@@ -32,7 +32,7 @@ def test_a_car_far_behind_a_car_shows_over_its_roof_by_hand():
 
 
 def test_a_car_up_to_about_three_times_as_far_is_hidden_behind_a_car_at_the_default_camera_height():
-    for z1, hidden_up_to in ((10.0, 37.37), (20.0, 67.33), (30.0, 97.33)):  # the module docstring's figures
+    for z1, hidden_up_to in ((10.0, 37.37), (20.0, 67.33), (30.0, 97.33)):  # docs/realistic-stack.md's figures
         assert not _share_behind(z1, hidden_up_to - 0.1)[2]
         share, _, visible = _share_behind(z1, hidden_up_to + 0.1)
         assert visible and 0.79 < share < 0.8
