@@ -21,7 +21,7 @@ from pemviz import stl
 from pemviz.core.detectors import Detector, GapModel
 from pemviz.core.estimate import Reference
 from pemviz.core.features import FeaturesFn, feature_replay
-from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, branch_rollouts, iter_rollouts, simulate_rollouts
+from pemviz.core.lockstep import branch_rollouts, iter_rollouts, simulate_rollouts
 from pemviz.core.problem_view import ProblemView, SignalView, Thresholds
 from pemviz.core.reweight import AlternativeTarget
 from pemviz.core.rollouts import BatchedSimulator, RolloutBatch
@@ -225,15 +225,10 @@ def rollout_functions(make: Callable[[int], BatchedSimulator], n_steps: int) -> 
         with threadpool_limits(1, user_api="blas"):
             return simulate_rollouts(make, n, n_steps, sampler, target, rng)
 
-    def stream(
-        n: int,
-        sampler: Detector,
-        target: Detector,
-        rng: np.random.Generator,
-        chunk_size: int = DEFAULT_CHUNK_SIZE,
-        keep_rows: bool = True,
-    ) -> Iterator[RolloutBatch]:
-        chunks = iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=chunk_size, keep_rows=keep_rows)
+    def stream(n: int, *args: Any, **kwargs: Any) -> Iterator[RolloutBatch]:
+        """:func:`pemviz.core.lockstep.iter_rollouts` of ``make`` (``sampler, target, rng, chunk_size=...,
+        keep_rows=...``)."""
+        chunks = iter_rollouts(make, n, n_steps, *args, **kwargs)
         while True:  # one thread while a chunk is simulated, whatever the consumer does between chunks
             with threadpool_limits(1, user_api="blas"):
                 batch = next(chunks, None)

@@ -23,8 +23,8 @@ import contextlib
 import signal
 import socket
 import threading
-from collections.abc import Iterator, Mapping
-from typing import Any, Protocol
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -32,29 +32,6 @@ from pemviz.core.detectors import Detector
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at, block_bounds
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.settings import EXECUTORS
-
-
-class Executor(Protocol):
-    """Simulates a stage's rollouts: ``simulate(problem, n, sampler, target, rng) -> RolloutBatch``, and
-    ``stream(problem, n, sampler, target, rng, chunk_size=None, keep_rows=None)``: the chunks of
-    ``problem.stream``, in order."""
-
-    def simulate(
-        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
-    ) -> RolloutBatch: ...
-
-    def stream(
-        self,
-        problem: Any,
-        n: int,
-        sampler: Detector,
-        target: Detector,
-        rng: np.random.Generator,
-        chunk_size: int | None = None,
-        keep_rows: bool | None = None,
-    ) -> Iterator[RolloutBatch]: ...
-
-    def close(self) -> None: ...
 
 
 def stream_size(chunk_size: int | None, keep_rows: bool | None) -> dict[str, Any]:
@@ -65,18 +42,37 @@ def stream_size(chunk_size: int | None, keep_rows: bool | None) -> dict[str, Any
     return size
 
 
-class SerialExecutor:
-    """Runs ``problem.simulate`` in this process (``--workers 1``)."""
+Block = tuple[RolloutBatch, int, int]
+"""A block's result: its rollouts [stop - start, T], the draws made (T) and the uniforms per rollout (K)."""
+
+
+class Executor:
+    """Simulates a stage's rollouts: ``simulate(problem, n, sampler, target, rng) -> RolloutBatch``, and
+    ``stream(problem, n, sampler, target, rng, chunk_size=None, keep_rows=None)``: the chunks of
+    ``problem.stream``, in order. A batch it cannot split (:meth:`eligible`) is the problem's own ``simulate`` /
+    ``stream`` in this process; the others are cut into blocks, the results of a subclass's :meth:`_simulated` and
+    :meth:`_streamed` (module docstring)."""
 
     name = "serial"
-    workers = 1
+    _simulated: Callable[[Any, int, Detector, Detector, Mapping[str, Any]], list[Block]]
+    """A subclass's results of the blocks of ``(problem, n, sampler, target, rng state)``, in rollout order."""
+    _streamed: Callable[[Any, int, Detector, Detector, Mapping[str, Any], bool | None], Iterator[Block]]
+    """A subclass's results of the streamed blocks of ``(..., keep_rows)`` in order; closing it cancels those not
+    taken."""
+
+    def eligible(self, n: int, rng: np.random.Generator, problem: Any = None) -> bool:
+        """Whether a batch of ``n`` rollouts of ``problem`` drawn from ``rng`` is simulated block by block
+        (:func:`splittable`)."""
+        return splittable(n, rng, problem)
 
     def simulate(
         self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
     ) -> RolloutBatch:
-        """``problem.simulate(n, sampler, target, rng)``: N rollouts [N, T] (see
-        :class:`pemviz.core.problems.Problem`)."""
-        return problem.simulate(n, sampler, target, rng)
+        """The rollouts of ``problem.simulate(n, sampler, target, rng)`` [N, T], bit for bit, ``rng`` left where that
+        leaves it."""
+        if not self.eligible(n, rng, problem):
+            return problem.simulate(n, sampler, target, rng)
+        return gather_chunks(problem, n, rng, self._simulated(problem, n, sampler, target, rng.bit_generator.state))
 
     def stream(
         self,
@@ -88,12 +84,26 @@ class SerialExecutor:
         chunk_size: int | None = None,
         keep_rows: bool | None = None,
     ) -> Iterator[RolloutBatch]:
-        """``problem.stream(n, sampler, target, rng, chunk_size=..., keep_rows=...)`` (those given): its chunks in
-        order."""
-        return problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
+        """The chunks of ``problem.stream(n, sampler, target, rng, ...)`` in order, each at most ``chunk_size`` rollouts
+        (None: one block): the same rollouts, bit for bit; ``rng`` is left where the serial stream leaves it once the
+        last chunk is handed out."""
+        if not self.eligible(n, rng, problem):
+            return problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
+        blocks = self._streamed(problem, n, sampler, target, rng.bit_generator.state, keep_rows)
+        return stream_chunks(problem, n, rng, blocks, chunk_size)
 
     def close(self) -> None:
-        pass
+        """Free what the executor holds (idempotent)."""
+
+
+class SerialExecutor(Executor):
+    """Runs ``problem.simulate`` / ``problem.stream`` in this process (``--workers 1``)."""
+
+    workers = 1
+
+    def eligible(self, n: int, rng: np.random.Generator, problem: Any = None) -> bool:
+        """Never: every batch is simulated in this process."""
+        return False
 
 
 class ChunkUniforms:
@@ -151,7 +161,7 @@ def chunk_uniforms(rng_state: Mapping[str, Any], n: int, n_steps: int, start: in
 
 def simulate_chunk(
     problem: Any, n: int, start: int, stop: int, sampler: Detector, target: Detector, rng_state: Mapping[str, Any]
-) -> tuple[RolloutBatch, int, int]:
+) -> Block:
     """Rollouts ``start..stop-1`` of the serial run ``problem.simulate(n, sampler, target, rng)`` from
     ``rng_state``: the batch [stop - start, T], its per-step draws (T) and uniforms per rollout; the serial run's
     when the range is one block (:func:`pemviz.core.rng.block_bounds`), or any range without Array-RQMC and with
@@ -168,8 +178,13 @@ def simulate_blocks(
     sampler: Detector,
     target: Detector,
     rng_state: Mapping[str, Any],
-) -> list[tuple[RolloutBatch, int, int]]:
-    """:func:`simulate_chunk` of each block ``(start, stop)`` in turn (one Ray task's work)."""
+    stream: bool = False,
+    keep_rows: bool | None = None,
+) -> list[Block]:
+    """:func:`stream_block` (``stream``) or :func:`simulate_chunk` of each block ``(start, stop)`` in turn (one task's
+    work)."""
+    if stream:
+        return [stream_block(problem, n, a, b, sampler, target, rng_state, keep_rows) for a, b in blocks]
     return [simulate_chunk(problem, n, a, b, sampler, target, rng_state) for a, b in blocks]
 
 
@@ -182,7 +197,7 @@ def stream_block(
     target: Detector,
     rng_state: Mapping[str, Any],
     keep_rows: bool | None = None,
-) -> tuple[RolloutBatch, int, int]:
+) -> Block:
     """Rollouts ``start..stop-1`` (one block) of the serial ``problem.stream(n, sampler, target, rng, ...)`` from
     ``rng_state``, streamed as one chunk (its object rows elided when ``keep_rows`` is False): the batch
     [stop - start, T], the draws made and the uniforms per rollout (as :func:`simulate_chunk`)."""
@@ -204,7 +219,7 @@ def stream_chunks(
     problem: Any,
     n: int,
     rng: np.random.Generator,
-    blocks: Iterator[tuple[RolloutBatch, int, int]],
+    blocks: Iterator[Block],
     chunk_size: int | None = None,
 ) -> Iterator[RolloutBatch]:
     """The chunks of a streamed batch of ``n`` rollouts from its blocks' results in rollout order, each block cut into
@@ -230,7 +245,7 @@ def stream_chunks(
     advance(rng, n * drawn[0] * drawn[1])
 
 
-def check_draws(problem: Any, results: list[tuple[RolloutBatch, int, int]]) -> tuple[int, int]:
+def check_draws(problem: Any, results: list[Block]) -> tuple[int, int]:
     """Check that every chunk result ``(batch, draws, uniforms per rollout)`` drew once per step; returns (T, K).
 
     Raises:
@@ -246,9 +261,7 @@ def check_draws(problem: Any, results: list[tuple[RolloutBatch, int, int]]) -> t
     return n_steps, per_rollout
 
 
-def gather_chunks(
-    problem: Any, n: int, rng: np.random.Generator, results: list[tuple[RolloutBatch, int, int]]
-) -> RolloutBatch:
+def gather_chunks(problem: Any, n: int, rng: np.random.Generator, results: list[Block]) -> RolloutBatch:
     """Concatenate chunk results in rollout order, check each drew T times (:func:`check_draws`), and advance ``rng``
     by n K T.
 
@@ -298,10 +311,10 @@ _RAY_SHARED: collections.OrderedDict[str, Any] = collections.OrderedDict()
 
 def ray_block(
     shared: list[Any], n: int, start: int, stop: int, rng_state: Mapping[str, Any], stream: bool, keep_rows: Any
-) -> tuple[RolloutBatch, int, int]:
+) -> Block:
     """One Ray task: block ``start..stop-1`` of the batch whose (problem, sampler, target) is the object
     ``shared[0]`` (an ``ObjectRef`` in a list, so that Ray does not fetch it for every task: a worker fetches and
-    unpickles it once, :data:`_RAY_SHARED`): :func:`stream_block` when ``stream``, else :func:`simulate_chunk`."""
+    unpickles it once, :data:`_RAY_SHARED`): :func:`simulate_blocks` of that block."""
     import ray
 
     key = shared[0].hex()
@@ -311,9 +324,7 @@ def ray_block(
         while len(_RAY_SHARED) > 2:
             _RAY_SHARED.popitem(last=False)
     problem, sampler, target = parts
-    if stream:
-        return stream_block(problem, n, start, stop, sampler, target, rng_state, keep_rows)
-    return simulate_chunk(problem, n, start, stop, sampler, target, rng_state)
+    return simulate_blocks(problem, n, [(start, stop)], sampler, target, rng_state, stream, keep_rows)[0]
 
 
 @contextlib.contextmanager
@@ -333,7 +344,7 @@ def kept_signal_handlers(signals: tuple[int, ...] = (signal.SIGTERM, signal.SIGI
                 signal.signal(sig, handler)
 
 
-class RayExecutor:
+class RayExecutor(Executor):
     """Simulates each batch as Ray tasks, one per block of rollouts, a bounded number in flight (module docstring).
 
     Args:
@@ -366,16 +377,16 @@ class RayExecutor:
         self.in_flight = int(in_flight) if in_flight else 2 * self.cpus
         self._task = ray.remote(ray_block)
 
-    def _blocks(
+    def _streamed(
         self,
         problem: Any,
         n: int,
         sampler: Detector,
         target: Detector,
-        rng_state: Mapping[str, Any],
-        stream: bool,
-        keep_rows: bool | None = None,
-    ) -> Iterator[tuple[RolloutBatch, int, int]]:
+        state: Mapping[str, Any],
+        keep_rows: bool | None,
+        stream: bool = True,
+    ) -> Iterator[Block]:
         """The results ``(batch, draws, uniforms per rollout)`` of the blocks of ``n`` rollouts in order, each a Ray
         task (:func:`ray_block`), at most :attr:`in_flight` not yet taken; a result is freed in the object store
         once dropped, and closing this cancels the tasks not taken."""
@@ -387,7 +398,7 @@ class RayExecutor:
             while todo or pending:
                 while todo and len(pending) < self.in_flight:
                     start, stop = todo.popleft()
-                    pending.append(self._task.remote(shared, n, start, stop, rng_state, stream, keep_rows))
+                    pending.append(self._task.remote(shared, n, start, stop, state, stream, keep_rows))
                 result = ray.get(pending.popleft())
                 yield result
                 del result
@@ -396,34 +407,11 @@ class RayExecutor:
                 with contextlib.suppress(Exception):
                     ray.cancel(ref)
 
-    def simulate(
-        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
-    ) -> RolloutBatch:
-        """The rollouts of ``problem.simulate(n, sampler, target, rng)`` [N, T], bit for bit, ``rng`` left where that
-        leaves it: a Ray task a block (in the driver when N is one block, :func:`splittable`)."""
-        if not splittable(n, rng, problem):
-            return problem.simulate(n, sampler, target, rng)
-        results = list(self._blocks(problem, n, sampler, target, rng.bit_generator.state, stream=False))
-        return gather_chunks(problem, n, rng, results)
-
-    def stream(
-        self,
-        problem: Any,
-        n: int,
-        sampler: Detector,
-        target: Detector,
-        rng: np.random.Generator,
-        chunk_size: int | None = None,
-        keep_rows: bool | None = None,
-    ) -> Iterator[RolloutBatch]:
-        """The chunks of ``problem.stream(n, sampler, target, rng, ...)`` in order, each at most ``chunk_size`` rollouts
-        (None: one block): the same rollouts, bit for bit; ``rng`` is left where the serial stream leaves it once the
-        last chunk is handed out. A Ray task a block, at most :attr:`in_flight` ahead of the chunk handed out; a
-        block is dropped once its chunks are (in the driver when N is one block, :func:`splittable`)."""
-        if not splittable(n, rng, problem):
-            return problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
-        blocks = self._blocks(problem, n, sampler, target, rng.bit_generator.state, stream=True, keep_rows=keep_rows)
-        return stream_chunks(problem, n, rng, blocks, chunk_size)
+    def _simulated(
+        self, problem: Any, n: int, sampler: Detector, target: Detector, state: Mapping[str, Any]
+    ) -> list[Block]:
+        """The blocks' results, a Ray task a block (:meth:`_streamed` of :func:`simulate_chunk`)."""
+        return list(self._streamed(problem, n, sampler, target, state, None, stream=False))
 
     def close(self) -> None:
         """Shut Ray down if this executor started it."""

@@ -26,17 +26,8 @@ import numpy as np
 
 from pemviz.core.detectors import Detector
 from pemviz.core.rng import block_bounds
-from pemviz.core.rollouts import RolloutBatch
 from pemviz.engine import handoff, resources
-from pemviz.engine.executors import (
-    gather_chunks,
-    simulate_blocks,
-    simulate_chunk,
-    splittable,
-    stream_block,
-    stream_chunks,
-    stream_size,
-)
+from pemviz.engine.executors import Block, Executor, simulate_blocks, simulate_chunk, splittable, stream_block
 from pemviz.engine.resources import ONE_THREAD_ENV, usable_cpus
 
 IDLE_S = 120
@@ -76,10 +67,7 @@ def _task(
 
     problem = _problem(digest, blob)
     with threadpool_limits(1):
-        if stream:
-            out = [stream_block(problem, n, a, b, sampler, target, state, keep_rows) for a, b in blocks]
-        else:
-            out = simulate_blocks(problem, n, blocks, sampler, target, state)
+        out = simulate_blocks(problem, n, blocks, sampler, target, state, stream, keep_rows)
     return handoff.pack(out, folder)
 
 
@@ -90,7 +78,7 @@ def _worker_start(path: tuple[str, ...]) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-class LocalExecutor:
+class LocalExecutor(Executor):
     """Simulates the blocks of a large batch on ``workers`` processes where they pay for their start (module
     docstring), the others in this process; the rollouts do not depend on the workers.
 
@@ -147,14 +135,10 @@ class LocalExecutor:
         blob = cloudpickle.dumps(problem)
         return hashlib.blake2b(blob, digest_size=16).hexdigest(), blob
 
-    def simulate(
-        self, problem: Any, n: int, sampler: Detector, target: Detector, rng: np.random.Generator
-    ) -> RolloutBatch:
-        """The rollouts of ``problem.simulate(n, sampler, target, rng)`` [N, T], bit for bit, ``rng`` left where that
-        leaves it: the first block here, timed, and the others in the pool where they pay for it (:meth:`_pays`)."""
-        if not self.eligible(n, rng, problem):
-            return problem.simulate(n, sampler, target, rng)
-        state, blocks = rng.bit_generator.state, block_bounds(n)
+    def _simulated(self, problem: Any, n: int, sampler: Detector, target: Detector, state: Any) -> list[Block]:
+        """The blocks' results in order: the first block here, timed, and the others in the pool where they pay for it
+        (:meth:`_pays`)."""
+        blocks = block_bounds(n)
         if self._pool is None:
             t0 = time.thread_time()
             first = [simulate_chunk(problem, n, *blocks[0], sampler, target, state)]
@@ -163,7 +147,7 @@ class LocalExecutor:
             first, block_s = [], 0.0
         if not self._pays(len(blocks), block_s):
             rest = [simulate_chunk(problem, n, a, b, sampler, target, state) for a, b in blocks]
-            return gather_chunks(problem, n, rng, first + rest)
+            return first + rest
         digest, blob = self._pickled(problem)
         pool = self._executor()
         k = -(-len(blocks) // self.workers)
@@ -175,31 +159,11 @@ class LocalExecutor:
         finally:
             for f in futures:
                 f.cancel()
-        return gather_chunks(problem, n, rng, first + parts)
+        return first + parts
 
-    def stream(
-        self,
-        problem: Any,
-        n: int,
-        sampler: Detector,
-        target: Detector,
-        rng: np.random.Generator,
-        chunk_size: int | None = None,
-        keep_rows: bool | None = None,
-    ) -> Iterator[RolloutBatch]:
-        """The chunks of ``problem.stream(n, sampler, target, rng, ...)`` in order, each at most ``chunk_size`` rollouts
-        (None: one block): the same rollouts, bit for bit; ``rng`` is left where the serial stream leaves it once the
-        last chunk is handed out. The first block is simulated here and timed; the others here too, or in the pool,
-        at most two per worker ahead, where they pay for it (:meth:`_pays`)."""
-        if not self.eligible(n, rng, problem):
-            yield from problem.stream(n, sampler, target, rng, **stream_size(chunk_size, keep_rows))
-            return
-        blocks = self._blocks(problem, n, sampler, target, rng.bit_generator.state, keep_rows)
-        yield from stream_chunks(problem, n, rng, blocks, chunk_size)
-
-    def _blocks(
+    def _streamed(
         self, problem: Any, n: int, sampler: Detector, target: Detector, state: Any, keep_rows: bool | None
-    ) -> Iterator[tuple[RolloutBatch, int, int]]:
+    ) -> Iterator[Block]:
         """The streamed blocks' results ``(batch, draws, uniforms per rollout)`` in order: the first here, timed; the
         others here too, or in the pool, at most two per worker ahead, where they pay for it (:meth:`_pays`); closing
         this cancels the blocks not handed back."""

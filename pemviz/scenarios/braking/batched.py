@@ -28,6 +28,7 @@ from pemviz.scenarios.braking.simulator import (
     OBSERVATION_NAMES,
     BrakingParams,
     ControllerState,
+    ego_acceleration,
     ego_step,
     initial_controller_state,
     lead_speeds,
@@ -152,7 +153,8 @@ class BatchedBraking:
                 f"None, got {detected.shape}"
             )
         gap = self._gap if self._gap is not None else self.gap_m  # the observation's, when it was just asked
-        speed, self._ctrl = ego_step(p, detected.reshape(self.n), gap, self.ego_speed_mps, self._ctrl)
+        accel, self._ctrl = ego_acceleration(p, detected.reshape(self.n), gap, self.ego_speed_mps, self._ctrl)
+        speed = ego_step(p, self.ego_speed_mps, accel)
         dt = p.dt_s
         # highway-env Vehicle.step: position += speed * dt, then speed += acceleration * dt.
         self.ego_x_m = self.ego_x_m + self.ego_speed_mps * dt

@@ -201,23 +201,13 @@ def lead_speeds(params: BrakingParams) -> np.ndarray:
     return v
 
 
-def ego_step(
-    params: BrakingParams,
-    detected: np.ndarray,
-    gap_m: np.ndarray,
-    ego_speed_mps: np.ndarray,
-    ctrl: ControllerState,
-) -> tuple[np.ndarray, ControllerState]:
-    """The ego's speed one step later, vectorised over rollouts: highway-env ``Vehicle.step``'s explicit Euler
-    update ``v' = max(v + a dt, 0)`` with a from :func:`ego_acceleration` (arguments as there).
-
-    Returns:
-        (next speed [N] in m/s, new controller memory). The ego's position moves by ``v dt`` with the speed
-        before the update (``Vehicle.step`` moves first), so the gap moves by ``(v_lead - v) dt``.
-    """
-    accel, ctrl = ego_acceleration(params, detected, gap_m, ego_speed_mps, ctrl)
-    speed = ego_speed_mps + accel * params.dt_s
-    return np.maximum(speed, 0.0, out=speed), ctrl  # v + (-v/dt) dt can round to -1e-16
+def ego_step(params: BrakingParams, ego_speed_mps: np.ndarray, accel_mps2: np.ndarray) -> np.ndarray:
+    """The ego's speed one step later [N] (m/s), vectorised over rollouts: highway-env ``Vehicle.step``'s explicit
+    Euler update ``v' = max(v + a dt, 0)`` with a [N] (m/s^2) from :func:`ego_acceleration`. The ego's position
+    moves by ``v dt`` with the speed before the update (``Vehicle.step`` moves first), so the gap moves by
+    ``(v_lead - v) dt``."""
+    speed = ego_speed_mps + accel_mps2 * params.dt_s
+    return np.maximum(speed, 0.0, out=speed)  # v + (-v/dt) dt can round to -1e-16
 
 
 def braking_step(
@@ -249,7 +239,8 @@ def braking_step(
     v = np.asarray(speed_mps, dtype=np.float64).ravel()
     ctrl = ControllerState(np.asarray(integral, dtype=np.float64).ravel(), np.asarray(pending, dtype=bool).ravel())
     a = np.broadcast_to(np.asarray(detected, dtype=bool), shape).ravel()
-    v2, ctrl2 = ego_step(params, a, g, v, ctrl)
+    accel, ctrl2 = ego_acceleration(params, a, g, v, ctrl)
+    v2 = ego_step(params, v, accel)
     g2 = g + (lead_speed_mps - v) * params.dt_s
     return g2.reshape(shape), v2.reshape(shape), ctrl2.integral_kmh_s.reshape(shape), ctrl2.pending_brake.reshape(shape)
 
