@@ -34,6 +34,12 @@ from pemviz.settings import (
     rows_of,
 )
 
+CROSS_ENTROPY = tuple(f.name for f in dataclasses.fields(CrossEntropySettings))
+"""The cross-entropy sampler's settings by their flat names (rows of :data:`pemviz.settings.SETTINGS`): the adaptive
+and state methods' :attr:`ExperimentConfig.method_settings` hold them (:attr:`ExperimentConfig.adaptive`)."""
+CROSS_ENTROPY_DEFAULTS = CrossEntropySettings()
+"""What :attr:`ExperimentConfig.adaptive` gives for a method that does not run the cross-entropy sampler."""
+
 
 def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
     """The settings ``scenario`` runs with when neither a method nor a preset is asked for: its registry record's
@@ -132,11 +138,11 @@ class ExperimentConfig:
 
     The defaults are the recommended sampler (preset :data:`pemviz.presets.DEFAULT_PRESET`);
     :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` gives the paper's own settings. Its fields are the run's own
-    settings, six groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, the cross-entropy sampler's and
-    splitting's settings (:attr:`adaptive`, :attr:`ams`), the fallback's after any method's stages (:attr:`fallback`),
-    and the method's own settings (:attr:`method_settings`: the
-    state method's, a plugin's). Every setting has one flat name, its row of :data:`pemviz.settings.SETTINGS`
-    (``smoothing``, ``executor``, ``ams_killed``) or of the method's settings (``state_share``): :meth:`of` makes a
+    settings, five groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, splitting's settings (:attr:`ams`),
+    the fallback's after any method's stages (:attr:`fallback`), and the method's own settings (:attr:`method_settings`:
+    the cross-entropy sampler's of the adaptive method, read as :attr:`adaptive`; the state method's, a plugin's).
+    Every setting has one flat name, its row of :data:`pemviz.settings.SETTINGS` (``smoothing``, ``executor``,
+    ``ams_killed``) or of the method's settings (``state_share``): :meth:`of` makes a
     config from flat names, :meth:`value` reads one, :meth:`flat` gives them all (the result document's, the rollout
     file's and ``runs.jsonl``'s ``config``), :meth:`replace` changes some.
 
@@ -173,14 +179,13 @@ class ExperimentConfig:
         perception: the PEM and its re-weightings (:class:`Perception`).
         execution: where the rollouts are simulated (:class:`Execution`).
         stop: the stop rule (:class:`StopRule`).
-        adaptive: the cross-entropy sampler's settings
-            (:class:`pemviz.methods.adaptive.CrossEntropySettings`).
         ams: splitting's settings (:class:`pemviz.methods.ams.AmsSettings`).
         fallback: the retry and plain Monte Carlo after the stages of a method whose record has a
             :attr:`~pemviz.methods.Method.then` (:class:`pemviz.settings.FallbackSettings`).
         method_settings: the method's own settings, an instance of its :attr:`pemviz.methods.Method.settings` (the
-            state method's :class:`pemviz.methods.state.StateSettings`, a method of one's own's; None: made from its
-            defaults; for a method without them, None).
+            adaptive method's :class:`pemviz.methods.adaptive.CrossEntropySettings`, the state method's
+            :class:`pemviz.methods.state.StateSettings`, a method of one's own's; None: made from its defaults; for a
+            method without them, None).
     """
 
     method: str = DEFAULT_METHOD
@@ -196,7 +201,6 @@ class ExperimentConfig:
     perception: Perception = Perception()
     execution: Execution = Execution()
     stop: StopRule = StopRule()
-    adaptive: CrossEntropySettings = CrossEntropySettings()
     ams: AmsSettings = AmsSettings()
     fallback: FallbackSettings = FallbackSettings()
     method_settings: Any = None
@@ -204,10 +208,12 @@ class ExperimentConfig:
     @classmethod
     def of(cls, **settings: Any) -> ExperimentConfig:
         """A config from settings by their flat names (:data:`pemviz.settings.SETTINGS`: ``n_stages=3``,
-        ``executor="ray"``), groups (``adaptive=CrossEntropySettings(...)``) or both (a flat name then changes its
-        group's value), and the method's own settings by their names (``state_share=0.2`` with ``method="state"``),
-        validated. Another built-in method's own setting at its default is left out (every run records them:
-        :meth:`flat`).
+        ``executor="ray"``), groups (``stop=StopRule(...)``, ``method_settings=...``) or both (a flat name then
+        changes its group's value), and the method's own settings by their names (``state_share=0.2`` with
+        ``method="state"``), validated. Another built-in method's own setting at its default is left out (every run
+        records them: :meth:`flat`); so are the cross-entropy sampler's settings given to a method that does not run
+        it (a preset's, a form's); its settings given as another method's (``method_settings``) carry over to one that
+        does.
 
         Raises:
             ConfigError: a setting out of range or against another, or another built-in method's own setting changed;
@@ -215,8 +221,8 @@ class ExperimentConfig:
         """
         method = method_or_none(settings.get("method", DEFAULT_METHOD))  # None: refused when the config is checked
         kind = method.settings_class() if method else None  # the method's own settings class, or None
-        mine = [f.name for f in dataclasses.fields(kind)] if kind else []
-        own = {k: v for k, v in settings.items() if k not in GROUP_OF and k not in mine}
+        mine = _names(kind)
+        own = {k: v for k, v in settings.items() if k not in GROUP_OF and k not in mine and k not in CROSS_ENTROPY}
         for name in [k for k in own if k in OWN_DEFAULTS]:  # another built-in method's, as a run records it
             if own.pop(name) != OWN_DEFAULTS[name]:
                 owner = next(r.name for r in records() if name in _names(r.settings_class()))
@@ -224,7 +230,10 @@ class ExperimentConfig:
         if mine:  # the method's own settings by their names, over the instance given (of its class) or its defaults
             assert kind is not None  # mine is empty otherwise
             given = own.get("method_settings")
-            base: Any = given if isinstance(given, kind) else kind()
+            carried = {
+                k: getattr(given, k) for k in CROSS_ENTROPY if k in mine and isinstance(given, CrossEntropySettings)
+            }
+            base: Any = given if type(given) is kind else kind(**carried)
             own["method_settings"] = dataclasses.replace(base, **{k: settings[k] for k in mine if k in settings})
         elif "method_settings" in own:  # another method's settings: not this one's
             own["method_settings"] = None
@@ -244,7 +253,7 @@ class ExperimentConfig:
         Raises:
             AttributeError: not a setting (of this run's method).
         """
-        group = GROUP_OF.get(name)
+        group = "adaptive" if name in CROSS_ENTROPY else GROUP_OF.get(name)
         if group is None and name not in SETTINGS and self.method_settings is not None:
             return getattr(self.method_settings, name)  # the method's own setting
         return getattr(self if group is None else getattr(self, group), name)
@@ -319,7 +328,7 @@ class ExperimentConfig:
         else:
             if self.method_settings is None:  # made without them: the method's defaults
                 object.__setattr__(self, "method_settings", kind())
-            if not isinstance(self.method_settings, kind):
+            if type(self.method_settings) is not kind:
                 raise ConfigError(
                     f"method {method.name}'s settings are a {kind.__name__}, got "
                     f"{type(self.method_settings).__name__}",
@@ -354,6 +363,13 @@ class ExperimentConfig:
             "a last fit of its own needs fit_weights = 'mixture' (which weighs the pool again at every fit); "
             "set final_smoothing = None with fit_weights = 'sampler'",
         )
+
+    @property
+    def adaptive(self) -> CrossEntropySettings:
+        """The cross-entropy sampler's settings: the method's own (:attr:`method_settings`) where it runs the sampler
+        (the adaptive and state methods), else their defaults."""
+        own = self.method_settings
+        return own if isinstance(own, CrossEntropySettings) else CROSS_ENTROPY_DEFAULTS
 
     @property
     def method_record(self) -> Method:
@@ -413,10 +429,9 @@ class ExperimentConfig:
 GROUPS: dict[str, type] = {
     f.name: type(f.default) for f in dataclasses.fields(ExperimentConfig) if dataclasses.is_dataclass(f.default)
 }
-"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three, the
-cross-entropy sampler's and splitting's settings (a dataclass in the method's home) and the fallback's
-(:class:`pemviz.settings.FallbackSettings`); a method's own settings are its
-:attr:`ExperimentConfig.method_settings`."""
+"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three,
+splitting's settings (a dataclass in the method's home) and the fallback's (:class:`pemviz.settings.FallbackSettings`);
+a method's own settings, the cross-entropy sampler's included, are its :attr:`ExperimentConfig.method_settings`."""
 
 GROUP_OF: dict[str, str] = {f.name: g for g, cls in GROUPS.items() for f in dataclasses.fields(cls)}
 """A setting's name (:data:`pemviz.settings.SETTINGS`) -> the :class:`ExperimentConfig` field of the group holding it;
@@ -451,7 +466,7 @@ def default_of(name: str) -> Any:
     Raises:
         KeyError: not a setting.
     """
-    cls = GROUPS.get(GROUP_OF.get(name, ""), ExperimentConfig)
+    cls = CrossEntropySettings if name in CROSS_ENTROPY else GROUPS.get(GROUP_OF.get(name, ""), ExperimentConfig)
     for f in dataclasses.fields(cls):
         if f.name == name:
             if f.default is not dataclasses.MISSING:

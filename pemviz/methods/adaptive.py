@@ -1,9 +1,10 @@
-"""The cross-entropy sampler's settings (``method = "adaptive"``): :class:`CrossEntropySettings`, the
-:attr:`pemviz.config.ExperimentConfig.adaptive` of a run, with their choices and limits. Each field, made by
-:func:`pemviz.methods.setting`, carries its row of :data:`pemviz.settings.SETTINGS` (symbol, range, unit, help, flag;
-owner ``adaptive``): a setting added here is the config's, checked, a flag (where it names one) and recorded after the
-keys runs record today; :class:`pemviz.estimators.cross_entropy.CrossEntropy` reads them. Light to import: no estimator
-is loaded."""
+"""The cross-entropy sampler's settings (``method = "adaptive"``): :class:`CrossEntropySettings`, the adaptive method's
+:attr:`pemviz.methods.Method.settings` (a run's :attr:`pemviz.config.ExperimentConfig.method_settings`, read as its
+:attr:`~pemviz.config.ExperimentConfig.adaptive`; the state method's settings add theirs to them), with their choices
+and limits. Each field, made by :func:`pemviz.methods.setting`, carries its row of :data:`pemviz.settings.SETTINGS`
+(symbol, range, unit, help, flag; owner ``adaptive``): a setting added here is the config's, checked, a flag (where it
+names one) and recorded after the keys runs record today; :class:`pemviz.estimators.cross_entropy.CrossEntropy` reads
+them. Light to import: no estimator is loaded."""
 
 from __future__ import annotations
 

@@ -1,13 +1,15 @@
-"""The state method's settings (``method = "state"``: the cross-entropy sampler whose proposal reads the state the
-stack acts on), light: it imports :mod:`pemviz.methods.rows` alone. Its estimator is :mod:`pemviz.estimators.state`
-(``StateCrossEntropy``), the proposal's linear model :mod:`pemviz.estimators.state_glm`, the check of its settings
-against the others :mod:`pemviz.estimators.state_hooks`; the registry (:mod:`pemviz.methods`) names them by text."""
+"""The state method's settings (``method = "state"``: the cross-entropy sampler whose proposal reads the state the stack
+acts on), light: it imports :mod:`pemviz.methods.rows` and :mod:`pemviz.methods.adaptive` alone. Its estimator is
+:mod:`pemviz.estimators.state` (``StateCrossEntropy``), the proposal's linear model :mod:`pemviz.estimators.state_glm`,
+the check of its settings against the others :mod:`pemviz.estimators.state_hooks`; the registry (:mod:`pemviz.methods`)
+names them by text."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
 
+from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.rows import setting
 
 STATE_MODELS = ("network", "glm")
@@ -15,10 +17,11 @@ STATE_MODELS = ("network", "glm")
 
 
 @dataclass(frozen=True)
-class StateSettings:
+class StateSettings(CrossEntropySettings):
     """The cross-entropy sampler of Innes & Ramamoorthy (2022) with the paper's q(detect | salient variables)
     generalised to every perception event of a step as a function of the state the stack acts on
-    (:mod:`pemviz.core.features`).
+    (:mod:`pemviz.core.features`): the sampler's settings (:class:`~pemviz.methods.adaptive.CrossEntropySettings`,
+    rows of the settings table) and these of its own.
 
     Attributes:
     state_share: the PEM's own share of the rollouts of every stage drawn after a stage reached the failure level
