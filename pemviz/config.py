@@ -24,6 +24,7 @@ from pemviz.methods import DEFAULT_METHOD, Method, extensible_names, method_or_n
 from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.ams import AmsSettings
 from pemviz.settings import (
+    CROSS_ENTROPY,
     DEFAULT_SCENARIO,
     OWN_DEFAULTS,
     RECORDED,
@@ -34,9 +35,6 @@ from pemviz.settings import (
     rows_of,
 )
 
-CROSS_ENTROPY = tuple(f.name for f in dataclasses.fields(CrossEntropySettings))
-"""The cross-entropy sampler's settings by their flat names (rows of :data:`pemviz.settings.SETTINGS`): the adaptive
-and state methods' :attr:`ExperimentConfig.method_settings` hold them (:attr:`ExperimentConfig.adaptive`)."""
 CROSS_ENTROPY_DEFAULTS = CrossEntropySettings()
 """What :attr:`ExperimentConfig.adaptive` gives for a method that does not run the cross-entropy sampler."""
 
@@ -291,19 +289,13 @@ class ExperimentConfig:
             "margin",
             "the crash gap is also the parameter crash_gap_m: give it once (--margin or --param crash_gap_m=...)",
         )
-        run, ce, stop = self.execution, self.adaptive, self.stop
+        run, stop = self.execution, self.stop
         need(run.ray_address is None or run.executor == "ray", "ray_address", "give it only with executor = 'ray'")
         need(run.workers is None or run.executor == "local", "workers", "give it only with executor = 'local'")
         need(
             self.scenario == "braking" or self.sim == "batched",
             "scenario",
             "the cut-in runs on its batched twin only; use sim = 'batched'",
-        )
-        need(ce.target_share + ce.plain_share <= 1.0, "target_share", "target_share + plain_share must be <= 1")
-        need(
-            ce.fit_weights == "sampler" or ce.fit_all_failures,
-            "fit_weights",
-            "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it",
         )
         need(
             self.margin is None or self.scenario == "braking",
@@ -357,12 +349,6 @@ class ExperimentConfig:
             "max_sims",
             f"{SETTINGS['max_sims'].words} must be at least the run's planned {self.n_simulations:,} simulations",
         )
-        need(
-            ce.final_smoothing is None or ce.fit_weights == "mixture",
-            "final_smoothing",
-            "a last fit of its own needs fit_weights = 'mixture' (which weighs the pool again at every fit); "
-            "set final_smoothing = None with fit_weights = 'sampler'",
-        )
 
     @property
     def adaptive(self) -> CrossEntropySettings:
@@ -410,14 +396,6 @@ class ExperimentConfig:
         return DEFAULT_MAX_SIMS if self.stop_rule is not None else None
 
     @property
-    def fits_whole_rollouts(self) -> bool:
-        """Whether the first cross-entropy stage fits whole elite rollouts, one object a step
-        (:func:`pemviz.estimators.ce_fit.ce_update`): the weights are not frozen, or neither the window nor the weights
-        until failure mark the steps that count (the ``paper`` preset)."""
-        ce = self.adaptive
-        return not (ce.weights == "frozen" and (self.weights_until_failure or ce.proposal_window))
-
-    @property
     def n_simulations(self) -> int:
         """Rollouts the experiment will simulate, pretraining included: those of the plan its method states
         (:meth:`pemviz.methods.Method.run_plan`; an open-ended plan, e.g. splitting's, the N initial
@@ -441,21 +419,6 @@ a setting not here is a field of the config itself."""
 def _names(settings: type | None) -> tuple[str, ...]:
     """The field names of a settings dataclass (none for None)."""
     return () if settings is None else tuple(f.name for f in dataclasses.fields(settings))
-
-
-def has_final_batch(config: ExperimentConfig) -> bool:
-    """Whether a cross-entropy run of ``config`` ends with N_e fresh rollouts from its final proposal (not with
-    ``final_estimate = "last-stage"``)."""
-    return config.adaptive.final_estimate != "last-stage"
-
-
-def whole_rollout_fit_refusal(config: ExperimentConfig, n_objects: int) -> str:
-    """The one line refusing :attr:`ExperimentConfig.fits_whole_rollouts` on a problem of ``n_objects`` objects a
-    step."""
-    return (
-        f"the cross-entropy fit of whole elite rollouts (weights {config.adaptive.weights!r}, without the window or "
-        f"weights until failure) takes one object per step; this problem perceives {n_objects}: use the default sampler"
-    )
 
 
 def default_of(name: str) -> Any:

@@ -483,8 +483,9 @@ _NAMED, _ADDED = _settings(
 SETTINGS: dict[str, Setting] = {**_NAMED, **_ADDED}
 """Every setting's :class:`Setting` but a method's own beyond the cross-entropy sampler's (the run's, the sampler's,
 splitting's and the fallback's), by name, in the order runs record them."""
-_CROSS_ENTROPY = frozenset(f.name for f in dataclasses.fields(CrossEntropySettings))
-"""The cross-entropy sampler's settings (rows of :data:`SETTINGS`, held by the adaptive and state methods' settings)."""
+CROSS_ENTROPY = frozenset(f.name for f in dataclasses.fields(CrossEntropySettings))
+"""The cross-entropy sampler's settings by their flat names: rows of :data:`SETTINGS`, held by the adaptive and state
+methods' settings (:attr:`pemviz.config.ExperimentConfig.adaptive` reads them)."""
 
 OWN_DEFAULTS: dict[str, Any] = {
     name: value
@@ -525,7 +526,7 @@ def rows_of(cls: type, owner: str) -> dict[str, Setting]:
     Raises:
         TypeError: a field without a row (not made by :func:`setting`), or a name the settings table already has.
     """
-    skip = _CROSS_ENTROPY if issubclass(cls, CrossEntropySettings) else frozenset()
+    skip = CROSS_ENTROPY if issubclass(cls, CrossEntropySettings) else frozenset()
     for f in dataclasses.fields(cls):
         if f.name not in skip and (ROW not in f.metadata or f.name in SETTINGS):
             why = "is the name of a setting of pemviz" if f.name in SETTINGS else "has no row (pemviz.settings.setting)"

@@ -156,9 +156,10 @@ def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choi
     own (the adaptive and state methods': the cross-entropy sampler's, rows of the table, and the state method's
     besides); every setting one field of the config, of one group or of the sampler's settings, its owner's (the run's
     groups hold the run's)."""
-    from pemviz.config import CROSS_ENTROPY, GROUP_OF, GROUPS
+    from pemviz.config import GROUP_OF, GROUPS
     from pemviz.methods import get_method
     from pemviz.methods.adaptive import CrossEntropySettings
+    from pemviz.settings import CROSS_ENTROPY
 
     own = [f.name for f in dataclasses.fields(ExperimentConfig) if f.name != "method_settings"]
     assert len([name for name in own if name not in GROUPS]) <= 10 and set(GROUPS) <= set(own)

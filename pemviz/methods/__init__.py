@@ -338,6 +338,7 @@ def _cross_entropy(name: str, description: str, build: str, **more: Any) -> Meth
         description,
         build,
         plan="pemviz.estimators.ce_plan:adaptive_run_plan",
+        validate="pemviz.estimators.builtin:adaptive_conflict",
         more_budget="pemviz.estimators.builtin:adaptive_more_budget",
         no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure",
         cost_model="proposal",
@@ -353,7 +354,6 @@ for _record in (
         CROSS_ENTROPY_METHOD,
         "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
         "pemviz.estimators.cross_entropy:CrossEntropy",
-        validate="pemviz.estimators.builtin:adaptive_conflict",
         proposal_curves=True,
         then_drawn="pemviz.estimators.builtin:adaptive_then_drawn",
         describe="pemviz.methods.words:adaptive",
@@ -416,7 +416,6 @@ for _record in (
         "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
         "report them",
         "pemviz.estimators.state:StateCrossEntropy",
-        validate="pemviz.estimators.state_hooks:state_conflict",
         run_adds="plus the replay of each batch's state features",
         baseline=True,
         feature_view=True,

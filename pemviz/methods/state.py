@@ -1,8 +1,8 @@
 """The state method's settings (``method = "state"``: the cross-entropy sampler whose proposal reads the state the stack
 acts on), light: it imports :mod:`pemviz.methods.rows` and :mod:`pemviz.methods.adaptive` alone. Its estimator is
 :mod:`pemviz.estimators.state` (``StateCrossEntropy``), the proposal's linear model :mod:`pemviz.estimators.state_glm`,
-the check of its settings against the others :mod:`pemviz.estimators.state_hooks`; the registry (:mod:`pemviz.methods`)
-names them by text."""
+the check of its settings against the others :meth:`StateSettings.conflict`; the registry (:mod:`pemviz.methods`) names
+them by text."""
 
 from __future__ import annotations
 
@@ -70,6 +70,13 @@ class StateSettings(CrossEntropySettings):
         kind="bool",
         flags=("--state-fit-errors",),
     )
+
+    def conflict(self) -> tuple[str, str] | None:
+        """As the cross-entropy sampler's (:meth:`CrossEntropySettings.conflict`), the PEM's share with the plain
+        proposal's at most all of a stage first."""
+        if self.state_share + self.plain_share > 1.0:
+            return "state_share", "state_share + plain_share must be <= 1"
+        return super().conflict()
 
 
 def state_settings(config: Any) -> StateSettings:
