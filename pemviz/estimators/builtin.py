@@ -113,9 +113,7 @@ def adaptive_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, st
     own = ce.conflict()
     if own is not None:
         return own
-    if ce.target_share + ce.plain_share > 0.0 and not (
-        ce.weights == "frozen" and (config.weights_until_failure or ce.proposal_window)
-    ):
+    if ce.target_share + ce.plain_share > 0.0 and ce.fits_whole_rollouts(config.weights_until_failure):
         return "target_share", (
             "a mixture over rollouts needs weights = 'frozen' and weights_until_failure or "
             "proposal_window; set target_share = plain_share = 0 (preset state-ce-step) for the "
@@ -142,9 +140,8 @@ def ams_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | 
 def adaptive_more_budget(config: ExperimentConfig, text: Any) -> str | None:
     """The cross-entropy sampler's route (:attr:`Method.more_budget <pemviz.methods.Method>`): a run at
     4 N (pretraining, K stages of 4 N and the final batch) or a precision target."""
-    n = int(getattr(config, "n_per_stage", 100))
-    final = setting_of(config, "n_final", 0) if config.adaptive.has_final_batch else 0
-    sims = setting_of(config, "pretrain_rollouts", 0) + setting_of(config, "n_stages", 0) * 4 * n + final
+    ce = config.adaptive
+    sims = ce.pretrain_rollouts + ce.n_stages * 4 * config.n_per_stage + (ce.n_final if ce.has_final_batch else 0)
     return text.importance_route(config, sims)
 
 

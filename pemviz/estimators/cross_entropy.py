@@ -193,14 +193,14 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             self._elites = EliteCandidates(plan.n, self.ce.quantile_level, floor=0.0)
             if self._failure_steps is not None:  # every failure since the failure level was reached
                 self._steps = self._failure_steps
-            elif self.ce.weights == "frozen" and (cfg.weights_until_failure or self.ce.proposal_window):
+            elif not self.whole_rollouts:
                 self._steps = EliteSteps(
                     self.problem.curve_grid,
                     self.ce.fit_rows,
                     self.fit_rng,
                     keep_observations=self.ce.fit_weights == "mixture",
                 )
-        elif k == self.ce.n_stages + 1 and self.ce.final_estimate != "last-stage":
+        elif k == self.ce.n_stages + 1 and self.ce.has_final_batch:
             assert self.sampler is not None, "the final batch's sampler comes with the pretraining fit"
             plan = StagePlan(k, "final", self.ce.n_final, self.sampler, mixture=self._mixture(self.ce.n_final))
         else:

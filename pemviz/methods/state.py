@@ -7,7 +7,6 @@ them by text."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.rows import setting
@@ -77,11 +76,3 @@ class StateSettings(CrossEntropySettings):
         if self.state_share + self.plain_share > 1.0:
             return "state_share", "state_share + plain_share must be <= 1"
         return super().conflict()
-
-
-def state_settings(config: Any) -> StateSettings:
-    """The state method's settings of ``config`` (a :class:`pemviz.config.ExperimentConfig`): its
-    :attr:`~pemviz.config.ExperimentConfig.method_settings` in a run of the method, their defaults in a config of
-    another (an estimator built on it by hand)."""
-    own = config.method_settings
-    return own if isinstance(own, StateSettings) else StateSettings()
