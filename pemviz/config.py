@@ -251,7 +251,9 @@ class ExperimentConfig:
         Raises:
             AttributeError: not a setting (of this run's method).
         """
-        group = "adaptive" if name in CROSS_ENTROPY else GROUP_OF.get(name)
+        if name in CROSS_ENTROPY:
+            return getattr(self.adaptive, name)
+        group = GROUP_OF.get(name)
         if group is None and name not in SETTINGS and self.method_settings is not None:
             return getattr(self.method_settings, name)  # the method's own setting
         return getattr(self if group is None else getattr(self, group), name)
