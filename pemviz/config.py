@@ -6,9 +6,9 @@ place, :data:`pemviz.settings.SETTINGS`, with the choices and limits beside it (
 form (:mod:`pemviz.app.form`) and the estimators (:func:`~pemviz.settings.settings_of`) all read it there. This module
 holds :class:`ExperimentConfig`, its checks of the settings against each other and :class:`ConfigError`.
 
-Where is alpha used? ``ExperimentConfig.smoothing`` here, then :class:`pemviz.estimators.cross_entropy.CrossEntropy`
-(its CE stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the weighted fit). The metric:
-:class:`pemviz.engine.experiment.Experiment` ranks the rollouts with it
+Where is alpha used? ``smoothing`` of the adaptive method's settings (:attr:`ExperimentConfig.adaptive`), then
+:class:`pemviz.estimators.cross_entropy.CrossEntropy` (its CE stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the
+weighted fit). The metric: :class:`pemviz.engine.experiment.Experiment` ranks the rollouts with it
 (:meth:`pemviz.core.problems.Problem.robustness`). The seed: the engine's rollout stream and the estimator's fit,
 tie-breaking and initial-weight streams.
 """
@@ -209,9 +209,7 @@ class ExperimentConfig:
         ``executor="ray"``), groups (``stop=StopRule(...)``, ``method_settings=...``) or both (a flat name then
         changes its group's value), and the method's own settings by their names (``state_share=0.2`` with
         ``method="state"``), validated. Another built-in method's own setting at its default is left out (every run
-        records them: :meth:`flat`); so are the cross-entropy sampler's settings given to a method that does not run
-        it (a preset's, a form's); its settings given as another method's (``method_settings``) carry over to one that
-        does.
+        records them: :meth:`flat`), as are the cross-entropy sampler's given to a method that does not run it.
 
         Raises:
             ConfigError: a setting out of range or against another, or another built-in method's own setting changed;

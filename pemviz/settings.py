@@ -481,11 +481,9 @@ _NAMED, _ADDED = _settings(
                          ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 SETTINGS: dict[str, Setting] = {**_NAMED, **_ADDED}
-"""Every setting's :class:`Setting` but a method's own beyond the cross-entropy sampler's (the run's, the sampler's,
-splitting's and the fallback's), by name, in the order runs record them."""
+"""The :class:`Setting` of the run's, the cross-entropy sampler's, splitting's and the fallback's settings, by name."""
 CROSS_ENTROPY = frozenset(f.name for f in dataclasses.fields(CrossEntropySettings))
-"""The cross-entropy sampler's settings by their flat names: rows of :data:`SETTINGS`, held by the adaptive and state
-methods' settings (:attr:`pemviz.config.ExperimentConfig.adaptive` reads them)."""
+"""The cross-entropy sampler's settings (rows of :data:`SETTINGS`), held by the adaptive and state methods' settings."""
 
 OWN_DEFAULTS: dict[str, Any] = {
     name: value
@@ -494,9 +492,8 @@ OWN_DEFAULTS: dict[str, Any] = {
     for name, value in dataclasses.asdict(kind()).items()
     if name not in SETTINGS
 }
-"""The built-in methods' own settings beyond the cross-entropy sampler's (:attr:`pemviz.methods.Method.settings`: the
-state method's) at their defaults, by name: what a run of another method records for them (every run has recorded them
-since they were the config's)."""
+"""The built-in methods' own settings but the table's (the state method's) at their defaults, by name: what a run of
+another method records for them (every run has recorded them since they were the config's)."""
 RECORDED: tuple[str, ...] = (*_NAMED, *OWN_DEFAULTS, *_ADDED)
 """The keys a run records its settings by (:meth:`pemviz.config.ExperimentConfig.flat`: result documents, rollout
 files, ``runs.jsonl``), in order: the table's rows where runs have always recorded them, the built-in methods' own
