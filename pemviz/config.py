@@ -6,9 +6,9 @@ place, :data:`pemviz.settings.SETTINGS`, with the choices and limits beside it (
 form (:mod:`pemviz.app.form`) and the estimators (:func:`~pemviz.settings.settings_of`) all read it there. This module
 holds :class:`ExperimentConfig`, its checks of the settings against each other and :class:`ConfigError`.
 
-Where is alpha used? ``ExperimentConfig.smoothing`` here, then :class:`pemviz.estimators.cross_entropy.CrossEntropy`
-(its CE stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the weighted fit). The metric:
-:class:`pemviz.engine.experiment.Experiment` ranks the rollouts with it
+Where is alpha used? ``smoothing`` of the adaptive method's settings (:attr:`ExperimentConfig.adaptive`), then
+:class:`pemviz.estimators.cross_entropy.CrossEntropy` (its CE stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the
+weighted fit). The metric: :class:`pemviz.engine.experiment.Experiment` ranks the rollouts with it
 (:meth:`pemviz.core.problems.Problem.robustness`). The seed: the engine's rollout stream and the estimator's fit,
 tie-breaking and initial-weight streams.
 """
@@ -24,6 +24,7 @@ from pemviz.methods import DEFAULT_METHOD, Method, extensible_names, method_or_n
 from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.ams import AmsSettings
 from pemviz.settings import (
+    CROSS_ENTROPY,
     DEFAULT_SCENARIO,
     OWN_DEFAULTS,
     RECORDED,
@@ -33,6 +34,9 @@ from pemviz.settings import (
     check_settings,
     rows_of,
 )
+
+CROSS_ENTROPY_DEFAULTS = CrossEntropySettings()
+"""What :attr:`ExperimentConfig.adaptive` gives for a method that does not run the cross-entropy sampler."""
 
 
 def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
@@ -132,11 +136,11 @@ class ExperimentConfig:
 
     The defaults are the recommended sampler (preset :data:`pemviz.presets.DEFAULT_PRESET`);
     :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` gives the paper's own settings. Its fields are the run's own
-    settings, six groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, the cross-entropy sampler's and
-    splitting's settings (:attr:`adaptive`, :attr:`ams`), the fallback's after any method's stages (:attr:`fallback`),
-    and the method's own settings (:attr:`method_settings`: the
-    state method's, a plugin's). Every setting has one flat name, its row of :data:`pemviz.settings.SETTINGS`
-    (``smoothing``, ``executor``, ``ams_killed``) or of the method's settings (``state_share``): :meth:`of` makes a
+    settings, five groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, splitting's settings (:attr:`ams`),
+    the fallback's after any method's stages (:attr:`fallback`), and the method's own settings (:attr:`method_settings`:
+    the cross-entropy sampler's of the adaptive method, read as :attr:`adaptive`; the state method's, a plugin's).
+    Every setting has one flat name, its row of :data:`pemviz.settings.SETTINGS` (``smoothing``, ``executor``,
+    ``ams_killed``) or of the method's settings (``state_share``): :meth:`of` makes a
     config from flat names, :meth:`value` reads one, :meth:`flat` gives them all (the result document's, the rollout
     file's and ``runs.jsonl``'s ``config``), :meth:`replace` changes some.
 
@@ -173,14 +177,13 @@ class ExperimentConfig:
         perception: the PEM and its re-weightings (:class:`Perception`).
         execution: where the rollouts are simulated (:class:`Execution`).
         stop: the stop rule (:class:`StopRule`).
-        adaptive: the cross-entropy sampler's settings
-            (:class:`pemviz.methods.adaptive.CrossEntropySettings`).
         ams: splitting's settings (:class:`pemviz.methods.ams.AmsSettings`).
         fallback: the retry and plain Monte Carlo after the stages of a method whose record has a
             :attr:`~pemviz.methods.Method.then` (:class:`pemviz.settings.FallbackSettings`).
         method_settings: the method's own settings, an instance of its :attr:`pemviz.methods.Method.settings` (the
-            state method's :class:`pemviz.methods.state.StateSettings`, a method of one's own's; None: made from its
-            defaults; for a method without them, None).
+            adaptive method's :class:`pemviz.methods.adaptive.CrossEntropySettings`, the state method's
+            :class:`pemviz.methods.state.StateSettings`, a method of one's own's; None: made from its defaults; for a
+            method without them, None).
     """
 
     method: str = DEFAULT_METHOD
@@ -196,7 +199,6 @@ class ExperimentConfig:
     perception: Perception = Perception()
     execution: Execution = Execution()
     stop: StopRule = StopRule()
-    adaptive: CrossEntropySettings = CrossEntropySettings()
     ams: AmsSettings = AmsSettings()
     fallback: FallbackSettings = FallbackSettings()
     method_settings: Any = None
@@ -204,10 +206,10 @@ class ExperimentConfig:
     @classmethod
     def of(cls, **settings: Any) -> ExperimentConfig:
         """A config from settings by their flat names (:data:`pemviz.settings.SETTINGS`: ``n_stages=3``,
-        ``executor="ray"``), groups (``adaptive=CrossEntropySettings(...)``) or both (a flat name then changes its
-        group's value), and the method's own settings by their names (``state_share=0.2`` with ``method="state"``),
-        validated. Another built-in method's own setting at its default is left out (every run records them:
-        :meth:`flat`).
+        ``executor="ray"``), groups (``stop=StopRule(...)``, ``method_settings=...``) or both (a flat name then
+        changes its group's value), and the method's own settings by their names (``state_share=0.2`` with
+        ``method="state"``), validated. Another built-in method's own setting at its default is left out (every run
+        records them: :meth:`flat`), as are the cross-entropy sampler's given to a method that does not run it.
 
         Raises:
             ConfigError: a setting out of range or against another, or another built-in method's own setting changed;
@@ -215,8 +217,8 @@ class ExperimentConfig:
         """
         method = method_or_none(settings.get("method", DEFAULT_METHOD))  # None: refused when the config is checked
         kind = method.settings_class() if method else None  # the method's own settings class, or None
-        mine = [f.name for f in dataclasses.fields(kind)] if kind else []
-        own = {k: v for k, v in settings.items() if k not in GROUP_OF and k not in mine}
+        mine = _names(kind)
+        own = {k: v for k, v in settings.items() if k not in GROUP_OF and k not in mine and k not in CROSS_ENTROPY}
         for name in [k for k in own if k in OWN_DEFAULTS]:  # another built-in method's, as a run records it
             if own.pop(name) != OWN_DEFAULTS[name]:
                 owner = next(r.name for r in records() if name in _names(r.settings_class()))
@@ -224,7 +226,10 @@ class ExperimentConfig:
         if mine:  # the method's own settings by their names, over the instance given (of its class) or its defaults
             assert kind is not None  # mine is empty otherwise
             given = own.get("method_settings")
-            base: Any = given if isinstance(given, kind) else kind()
+            carried = {
+                k: getattr(given, k) for k in CROSS_ENTROPY if k in mine and isinstance(given, CrossEntropySettings)
+            }
+            base: Any = given if type(given) is kind else kind(**carried)
             own["method_settings"] = dataclasses.replace(base, **{k: settings[k] for k in mine if k in settings})
         elif "method_settings" in own:  # another method's settings: not this one's
             own["method_settings"] = None
@@ -244,6 +249,8 @@ class ExperimentConfig:
         Raises:
             AttributeError: not a setting (of this run's method).
         """
+        if name in CROSS_ENTROPY:
+            return getattr(self.adaptive, name)
         group = GROUP_OF.get(name)
         if group is None and name not in SETTINGS and self.method_settings is not None:
             return getattr(self.method_settings, name)  # the method's own setting
@@ -282,19 +289,13 @@ class ExperimentConfig:
             "margin",
             "the crash gap is also the parameter crash_gap_m: give it once (--margin or --param crash_gap_m=...)",
         )
-        run, ce, stop = self.execution, self.adaptive, self.stop
+        run, stop = self.execution, self.stop
         need(run.ray_address is None or run.executor == "ray", "ray_address", "give it only with executor = 'ray'")
         need(run.workers is None or run.executor == "local", "workers", "give it only with executor = 'local'")
         need(
             self.scenario == "braking" or self.sim == "batched",
             "scenario",
             "the cut-in runs on its batched twin only; use sim = 'batched'",
-        )
-        need(ce.target_share + ce.plain_share <= 1.0, "target_share", "target_share + plain_share must be <= 1")
-        need(
-            ce.fit_weights == "sampler" or ce.fit_all_failures,
-            "fit_weights",
-            "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it",
         )
         need(
             self.margin is None or self.scenario == "braking",
@@ -319,7 +320,7 @@ class ExperimentConfig:
         else:
             if self.method_settings is None:  # made without them: the method's defaults
                 object.__setattr__(self, "method_settings", kind())
-            if not isinstance(self.method_settings, kind):
+            if type(self.method_settings) is not kind:
                 raise ConfigError(
                     f"method {method.name}'s settings are a {kind.__name__}, got "
                     f"{type(self.method_settings).__name__}",
@@ -348,12 +349,13 @@ class ExperimentConfig:
             "max_sims",
             f"{SETTINGS['max_sims'].words} must be at least the run's planned {self.n_simulations:,} simulations",
         )
-        need(
-            ce.final_smoothing is None or ce.fit_weights == "mixture",
-            "final_smoothing",
-            "a last fit of its own needs fit_weights = 'mixture' (which weighs the pool again at every fit); "
-            "set final_smoothing = None with fit_weights = 'sampler'",
-        )
+
+    @property
+    def adaptive(self) -> CrossEntropySettings:
+        """The cross-entropy sampler's settings: the method's own (:attr:`method_settings`) where it runs the sampler
+        (the adaptive and state methods), else their defaults."""
+        own = self.method_settings
+        return own if isinstance(own, CrossEntropySettings) else CROSS_ENTROPY_DEFAULTS
 
     @property
     def method_record(self) -> Method:
@@ -394,14 +396,6 @@ class ExperimentConfig:
         return DEFAULT_MAX_SIMS if self.stop_rule is not None else None
 
     @property
-    def fits_whole_rollouts(self) -> bool:
-        """Whether the first cross-entropy stage fits whole elite rollouts, one object a step
-        (:func:`pemviz.estimators.ce_fit.ce_update`): the weights are not frozen, or neither the window nor the weights
-        until failure mark the steps that count (the ``paper`` preset)."""
-        ce = self.adaptive
-        return not (ce.weights == "frozen" and (self.weights_until_failure or ce.proposal_window))
-
-    @property
     def n_simulations(self) -> int:
         """Rollouts the experiment will simulate, pretraining included: those of the plan its method states
         (:meth:`pemviz.methods.Method.run_plan`; an open-ended plan, e.g. splitting's, the N initial
@@ -413,10 +407,9 @@ class ExperimentConfig:
 GROUPS: dict[str, type] = {
     f.name: type(f.default) for f in dataclasses.fields(ExperimentConfig) if dataclasses.is_dataclass(f.default)
 }
-"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three, the
-cross-entropy sampler's and splitting's settings (a dataclass in the method's home) and the fallback's
-(:class:`pemviz.settings.FallbackSettings`); a method's own settings are its
-:attr:`ExperimentConfig.method_settings`."""
+"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three,
+splitting's settings (a dataclass in the method's home) and the fallback's (:class:`pemviz.settings.FallbackSettings`);
+a method's own settings, the cross-entropy sampler's included, are its :attr:`ExperimentConfig.method_settings`."""
 
 GROUP_OF: dict[str, str] = {f.name: g for g, cls in GROUPS.items() for f in dataclasses.fields(cls)}
 """A setting's name (:data:`pemviz.settings.SETTINGS`) -> the :class:`ExperimentConfig` field of the group holding it;
@@ -428,21 +421,6 @@ def _names(settings: type | None) -> tuple[str, ...]:
     return () if settings is None else tuple(f.name for f in dataclasses.fields(settings))
 
 
-def has_final_batch(config: ExperimentConfig) -> bool:
-    """Whether a cross-entropy run of ``config`` ends with N_e fresh rollouts from its final proposal (not with
-    ``final_estimate = "last-stage"``)."""
-    return config.adaptive.final_estimate != "last-stage"
-
-
-def whole_rollout_fit_refusal(config: ExperimentConfig, n_objects: int) -> str:
-    """The one line refusing :attr:`ExperimentConfig.fits_whole_rollouts` on a problem of ``n_objects`` objects a
-    step."""
-    return (
-        f"the cross-entropy fit of whole elite rollouts (weights {config.adaptive.weights!r}, without the window or "
-        f"weights until failure) takes one object per step; this problem perceives {n_objects}: use the default sampler"
-    )
-
-
 def default_of(name: str) -> Any:
     """The default value of the setting ``name`` (a flat name of :data:`pemviz.settings.SETTINGS`), read from the
     dataclasses (no config is made: a command line's help and flags need the defaults before a run, and a config's
@@ -451,7 +429,7 @@ def default_of(name: str) -> Any:
     Raises:
         KeyError: not a setting.
     """
-    cls = GROUPS.get(GROUP_OF.get(name, ""), ExperimentConfig)
+    cls = CrossEntropySettings if name in CROSS_ENTROPY else GROUPS.get(GROUP_OF.get(name, ""), ExperimentConfig)
     for f in dataclasses.fields(cls):
         if f.name == name:
             if f.default is not dataclasses.MISSING:

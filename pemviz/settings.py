@@ -2,13 +2,13 @@
 
 Each field's symbol, words, allowed range, unit, help, command-line flag and owner (the estimator that reads it) is a
 :class:`Setting` in :data:`SETTINGS`: the config's checks (:mod:`pemviz.config`), the command line
-(:mod:`pemviz.commands`), the panel's form (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read
-it here. The allowed values of the choices (:data:`METRICS`, ...) and the numeric limits
-(:data:`MAX_SEED`, ...) live beside it; the cross-entropy sampler's rows are the fields of its settings
-(:class:`pemviz.methods.adaptive.CrossEntropySettings`, each made by :func:`pemviz.methods.setting`), with its
-choices and limits beside them; the retry's and plain Monte Carlo's after any method's stages are the fields of
-:class:`FallbackSettings` here, with the retry's N (:meth:`FallbackSettings.retry_n`) and plain Monte Carlo's cap
-(:func:`plain_fallback_most`).
+(:mod:`pemviz.commands`), the panel's form (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read it
+here. The allowed values of the choices (:data:`METRICS`, ...) and the numeric limits (:data:`MAX_SEED`, ...) live
+beside it; the cross-entropy sampler's rows are the fields of its settings
+(:class:`pemviz.methods.adaptive.CrossEntropySettings`, each made by :func:`pemviz.methods.setting`; the adaptive and
+state methods' :attr:`pemviz.methods.Method.settings`), with its choices and limits beside them; the retry's and plain
+Monte Carlo's after any method's stages are the fields of :class:`FallbackSettings` here, with the retry's N
+(:meth:`FallbackSettings.retry_n`) and plain Monte Carlo's cap (:func:`plain_fallback_most`).
 """
 
 from __future__ import annotations
@@ -349,9 +349,10 @@ class Setting:
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
 
 
-def _rows(cls: type, owner: str) -> dict[str, Setting]:
-    """The :class:`Setting` of each field of ``cls`` made by :func:`setting`, by name, in the fields' order."""
-    fields = [f for f in dataclasses.fields(cls) if ROW in f.metadata]
+def _rows(cls: type, owner: str, skip: frozenset[str] = frozenset()) -> dict[str, Setting]:
+    """The :class:`Setting` of each field of ``cls`` made by :func:`setting` but those in ``skip``, by name, in the
+    fields' order."""
+    fields = [f for f in dataclasses.fields(cls) if ROW in f.metadata and f.name not in skip]
     return {f.name: Setting(f.name, owner=owner, **f.metadata[ROW]) for f in fields}
 
 
@@ -480,16 +481,19 @@ _NAMED, _ADDED = _settings(
                          ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 SETTINGS: dict[str, Setting] = {**_NAMED, **_ADDED}
-"""Every :class:`~pemviz.config.ExperimentConfig` field's :class:`Setting`, by name, in the order of the fields."""
+"""The :class:`Setting` of the run's, the cross-entropy sampler's, splitting's and the fallback's settings, by name."""
+CROSS_ENTROPY = frozenset(f.name for f in dataclasses.fields(CrossEntropySettings))
+"""The cross-entropy sampler's settings (rows of :data:`SETTINGS`), held by the adaptive and state methods' settings."""
 
 OWN_DEFAULTS: dict[str, Any] = {
     name: value
     for record in records()
     if record.name in BUILTIN_METHODS and (kind := record.settings_class()) is not None
     for name, value in dataclasses.asdict(kind()).items()
+    if name not in SETTINGS
 }
-"""The built-in methods' own settings (:attr:`pemviz.methods.Method.settings`: the state method's) at their defaults,
-by name: what a run of another method records for them (every run has recorded them since they were the config's)."""
+"""The built-in methods' own settings but the table's (the state method's) at their defaults, by name: what a run of
+another method records for them (every run has recorded them since they were the config's)."""
 RECORDED: tuple[str, ...] = (*_NAMED, *OWN_DEFAULTS, *_ADDED)
 """The keys a run records its settings by (:meth:`pemviz.config.ExperimentConfig.flat`: result documents, rollout
 files, ``runs.jsonl``), in order: the table's rows where runs have always recorded them, the built-in methods' own
@@ -512,16 +516,19 @@ class ConfigError(ValueError):
 
 def rows_of(cls: type, owner: str) -> dict[str, Setting]:
     """The :class:`Setting` of each field of ``cls`` (a method's settings dataclass: :func:`setting`), by name, in the
-    fields' order, owned by ``owner``.
+    fields' order, owned by ``owner``; of a subclass of
+    :class:`~pemviz.methods.adaptive.CrossEntropySettings` (the adaptive and state methods'), the fields it adds (the
+    sampler's are rows of :data:`SETTINGS`).
 
     Raises:
         TypeError: a field without a row (not made by :func:`setting`), or a name the settings table already has.
     """
+    skip = CROSS_ENTROPY if issubclass(cls, CrossEntropySettings) else frozenset()
     for f in dataclasses.fields(cls):
-        if ROW not in f.metadata or f.name in SETTINGS:
+        if f.name not in skip and (ROW not in f.metadata or f.name in SETTINGS):
             why = "is the name of a setting of pemviz" if f.name in SETTINGS else "has no row (pemviz.settings.setting)"
             raise TypeError(f"{cls.__name__}.{f.name} {why}")
-    return _rows(cls, owner)
+    return _rows(cls, owner, skip)
 
 
 def check_settings(settings: object, owner: str = "") -> None:

@@ -7,19 +7,18 @@ imports inside functions (run when the function is called), and imports under ``
 circle through them is one of design, not of loading). A circle is a strongly connected component of the graph
 (Tarjan 1972) with more than one module; each is printed with one closed path through it.
 
-The folders are checked too (:func:`folder_rules`): a folder of the package (``core``, ``sinks``, ...; a module at its
-top, ``config``, ``settings``, counts as a folder of its own) imports folders only in this layer order, lowest first,
-lazy and ``TYPE_CHECKING`` imports included, and no folders import one another in a circle:
+The folders are checked too (:func:`folder_rules`): a top-level folder of the package (``core``, ``sinks``, ...; a
+module at its top, ``config``, ``settings``, counts as a folder of its own; ``methods`` is one folder, whatever
+sub-folders it has, so that no circle among the top-level folders hides behind a method's folder) imports folders only
+in this layer order, lowest first, lazy and ``TYPE_CHECKING`` imports included, and no folders import one another in a
+circle:
 
-1. the registry: ``plugins`` and the modules at the top of ``methods/`` (the method registry, the built-in methods'
-   light settings and words modules), which import nothing else of the package;
+1. the registry: ``plugins`` and ``methods`` (the method registry, the built-in methods' light settings and words
+   modules), which import nothing else of the package: the registry names a method's estimator and hooks by text only
+   (``"pemviz.estimators.<module>:Class"``, a :data:`pemviz.plugins.Ref` resolved when used);
 2. the framework: ``settings``, ``config``, ``core``, ``pem``, ``stl``, ``stack``, ``estimators``, ``engine``; of
-   these the core, the PEMs, formulas, stack, estimators and engine (:data:`FRAMEWORK`) import nothing of layer 4;
-3. each method's folder ``methods/<name>/`` (its estimator, fits, hooks and settings), a node of its own: it may
-   import layers 1 and 2 (and another method's folder), nothing of layer 4; nothing of layers 1 and 2 imports it,
-   not even lazily: the registry names its code by text only (``"pemviz.methods.<name>.estimator:Class"``, a
-   :data:`pemviz.plugins.Ref` resolved when used), as it names a plugin method's;
-4. the rest: ``scenarios``, ``io``, ``sinks``, ``app``, ``commands``, ``studies`` (:data:`UPPER`) and the other
+   these the core, the PEMs, formulas, stack, estimators and engine (:data:`FRAMEWORK`) import nothing of layer 3;
+3. the rest: ``scenarios``, ``io``, ``sinks``, ``app``, ``commands``, ``studies`` (:data:`UPPER`) and the other
    modules at the top (the command line, the presets, the gymnasium environment).
 
     python scripts/import_cycles.py             # exit 1 if there is a circle among module-level imports
@@ -47,8 +46,6 @@ class ImportGraph:
     """Edges importer -> imported among one package's modules, split by when the import runs."""
 
     modules: set[str] = field(default_factory=set)
-    packages: set[str] = field(default_factory=set)
-    """The modules that are a folder's ``__init__.py``."""
     lines: dict[tuple[str, str], list[str]] = field(default_factory=dict)
     """(importer, imported) -> ``file:line`` of each import statement of the edge (``file`` from the package folder)."""
     module_level: dict[str, set[str]] = field(default_factory=dict)
@@ -135,7 +132,7 @@ def build_graph(root: Path) -> ImportGraph:
         SyntaxError: a file that does not parse (the message names it).
     """
     files = {module_name(p, root): p for p in sorted(root.rglob("*.py"))}
-    graph = ImportGraph(modules=set(files), packages={n for n, p in files.items() if p.name == "__init__.py"})
+    graph = ImportGraph(modules=set(files))
     for name, path in files.items():
         try:
             tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
@@ -245,59 +242,38 @@ def report(graph: ImportGraph) -> list[list[list[str]]]:
     return found
 
 
-METHODS = "methods"
-"""The folder of the method registry; each of its sub-folders is a method's own (layer 3 of the module docstring)."""
-REGISTRY = ("plugins", METHODS)
+REGISTRY = ("plugins", "methods")
 """Layer 1: the registries' plugin loading and the method registry with its light modules; they import nothing else."""
 FRAMEWORK = ("core", "pem", "stl", "stack", "estimators", "engine")
 """The folders of layer 2 that know no scenario, file, sink, panel or command (:data:`UPPER`)."""
-BELOW_METHODS = (*REGISTRY, "settings", "config", *FRAMEWORK)
-"""Layers 1 and 2: what imports no method's folder, not even lazily."""
 UPPER = ("scenarios", "io", "sinks", "app", "commands", "studies")
-"""Layer 4's folders: none of :data:`FRAMEWORK` or a method's folder imports them."""
+"""Layer 3's folders: none of :data:`FRAMEWORK` imports them."""
 
 
-def is_method_folder(folder: str) -> bool:
-    """Whether ``folder`` (as :func:`folder_of` names it) is a method's own folder, ``methods/<name>``."""
-    return folder.startswith(METHODS + "/")
-
-
-def folder_of(module: str, method_folders: set[str]) -> str | None:
-    """The folder node of ``module``: ``pkg.core.x`` -> ``core``, ``pkg.config`` -> ``config`` (a module at the top is
-    a folder of its own), ``pkg.methods.rows`` -> ``methods``, ``pkg.methods.state.glm`` and ``pkg.methods.state``
-    -> ``methods/state`` for ``state`` in ``method_folders``; None for the package itself."""
+def folder_of(module: str) -> str | None:
+    """The top-level folder node of ``module``: ``pkg.core.x`` -> ``core``, ``pkg.config`` -> ``config`` (a module at
+    the top is a folder of its own), ``pkg.methods.rows`` and ``pkg.methods.state.glm`` -> ``methods``; None for the
+    package itself."""
     parts = module.split(".")[1:]
-    if not parts:
-        return None
-    if parts[0] == METHODS and len(parts) > 1 and parts[1] in method_folders:
-        return f"{METHODS}/{parts[1]}"
-    return parts[0]
+    return parts[0] if parts else None
 
 
 def against_layers(importer: str, imported: str) -> str | None:
     """Why the folder ``importer`` may not import the folder ``imported`` (the layer order of the module docstring),
     or None where it may."""
-    if is_method_folder(imported) and importer in BELOW_METHODS:
-        return "a method's folder sits above it: name its code by text (a Ref), resolved when used"
     if importer in REGISTRY and imported not in REGISTRY:
-        return "the registry imports nothing of the package above it"
-    if (importer in FRAMEWORK or is_method_folder(importer)) and imported in UPPER:
+        return "the registry imports nothing of the package above it: name that code by text (a Ref)"
+    if importer in FRAMEWORK and imported in UPPER:
         return "no scenario, file, sink, panel or command below them"
     return None
 
 
 def folder_imports(graph: ImportGraph) -> dict[tuple[str, str], list[str]]:
     """(folder, folder it imports) -> the ``file:line`` of each import statement, of every kind (module-level,
-    function-level, ``TYPE_CHECKING``), each method's folder a node of its own (:func:`folder_of`)."""
-    top = f"{next(iter(graph.modules)).partition('.')[0]}.{METHODS}." if graph.modules else ""
-    method_folders = {
-        m[len(top) :].partition(".")[0]
-        for m in graph.modules
-        if m.startswith(top) and ("." in m[len(top) :] or m in graph.packages)
-    }
+    function-level, ``TYPE_CHECKING``), each top-level folder one node (:func:`folder_of`)."""
     found: dict[tuple[str, str], list[str]] = {}
     for (importer, imported), where in sorted(graph.lines.items()):
-        a, b = folder_of(importer, method_folders), folder_of(imported, method_folders)
+        a, b = folder_of(importer), folder_of(imported)
         if a and b and a != b:
             found.setdefault((a, b), []).extend(where)
     return found

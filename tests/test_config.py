@@ -152,26 +152,31 @@ def cli_error(argv: list[str]) -> str:
 
 def test_every_setting_is_one_field_of_the_config_or_of_its_group_and_every_choice_is_explained():
     """At most 10 fields of the config's own besides its groups and the method's own settings
-    (``method_settings``); a method's settings are a dataclass in the method's home, its group or its own (the state
-    method's); every setting one field of the config or of one group, its owner's (the run's groups hold the run's)."""
+    (``method_settings``); a method's settings are a dataclass in the method's home, its group (splitting's) or its
+    own (the adaptive and state methods': the cross-entropy sampler's, rows of the table, and the state method's
+    besides); every setting one field of the config, of one group or of the sampler's settings, its owner's (the run's
+    groups hold the run's)."""
     from pemviz.config import GROUP_OF, GROUPS
     from pemviz.methods import get_method
+    from pemviz.methods.adaptive import CrossEntropySettings
+    from pemviz.settings import CROSS_ENTROPY
 
     own = [f.name for f in dataclasses.fields(ExperimentConfig) if f.name != "method_settings"]
     assert len([name for name in own if name not in GROUPS]) <= 10 and set(GROUPS) <= set(own)
-    fields = [name for name in own if name not in GROUPS] + list(GROUP_OF)
+    fields = [name for name in own if name not in GROUPS] + list(GROUP_OF) + list(CROSS_ENTROPY)
     assert sorted(fields) == sorted(SETTINGS) and len(fields) == len(set(fields))
-    assert GROUPS["adaptive"].__module__ == "pemviz.methods.adaptive"
+    assert "adaptive" not in GROUPS and get_method("adaptive").settings_class() is CrossEntropySettings
     assert GROUPS["ams"].__module__ == "pemviz.methods.ams"
     assert GROUPS["fallback"].__module__ == "pemviz.settings"  # any method's, below every method's folder
-    assert "state" not in GROUPS and get_method("state").settings_class().__module__ == "pemviz.methods.state"
-    assert not set(dataclasses.fields(get_method("state").settings_class())) & set(
-        SETTINGS
-    )  # the method's, not the table's
+    state = get_method("state").settings_class()
+    assert "state" not in GROUPS and state.__module__ == "pemviz.methods.state"
+    assert issubclass(state, CrossEntropySettings)  # the sampler's settings and its own
+    assert not {f.name for f in dataclasses.fields(state)} - set(CROSS_ENTROPY) & set(SETTINGS)  # its own: not rows
     defaults = ExperimentConfig.of()
     for name, s in SETTINGS.items():
         assert s.name == name and s.owner in (RUN, "adaptive", "ams", FALLBACK), name
-        assert GROUP_OF.get(name) == s.owner if s.owner != RUN else GROUP_OF.get(name) not in ("adaptive", "ams")
+        assert (name in CROSS_ENTROPY) == (s.owner == "adaptive"), name
+        assert GROUP_OF.get(name) == s.owner if s.owner not in (RUN, "adaptive") else GROUP_OF.get(name) != "ams"
         assert s.accepts(defaults.value(name)), name  # the default is inside its own range
         if s.kind == "choice":
             assert [v for v, _ in s.choice_help] == list(s.choices), f"{name}: a hint for every choice, in order"
@@ -259,7 +264,7 @@ def test_each_estimator_reads_its_own_settings_and_the_run_level_ones_only():
     from pemviz.methods.state import StateSettings
     from pemviz.settings import FallbackSettings
 
-    own = {f.name for f in dataclasses.fields(StateSettings)}  # the state method's own settings
+    own = {f.name for f in dataclasses.fields(StateSettings)} - set(settings_of("adaptive"))  # the state method's own
     fields = set(SETTINGS) | own | {"has_final_batch", "n_simulations"}
     # what runs after any method's stages (a Method's ``then``) reads the fallback's settings, whose retry's N and
     # plain Monte Carlo's cap the settings' module gives, and no method's
@@ -298,6 +303,7 @@ def test_the_state_methods_settings_are_its_own_and_recorded_where_runs_always_r
     records them after splitting's, a state run its own values; a recorded config makes the same config again; given
     to another method they are refused in one line (the config's and the flag's)."""
     from pemviz.methods import get_method
+    from pemviz.methods.adaptive import CrossEntropySettings
     from pemviz.methods.state import StateSettings
 
     cfg = ExperimentConfig.of(method="state", state_share=0.3, state_model="network")
@@ -317,9 +323,12 @@ def test_the_state_methods_settings_are_its_own_and_recorded_where_runs_always_r
     ] * 2
     assert (
         ExperimentConfig.of(**cfg.flat()) == cfg
-        and ExperimentConfig.of(**ExperimentConfig.of().flat()).method_settings is None
+        and ExperimentConfig.of(**ExperimentConfig.of().flat()).method_settings == CrossEntropySettings()
     )
-    assert cfg.replace(method="adaptive").method_settings is None
+    # to the adaptive method and back: the cross-entropy sampler's settings carry over, the state method's own do not
+    changed = cfg.replace(n_stages=4).replace(method="adaptive")
+    assert type(changed.method_settings) is CrossEntropySettings and changed.adaptive.n_stages == 4
+    assert changed.replace(method="state").method_settings == StateSettings(n_stages=4)
     with pytest.raises(ConfigError, match=r"^state_share is a setting of method state: give it with method = 'state'$"):
         ExperimentConfig.of(state_share=0.3)
     with pytest.raises(ConfigError, match=r"^state_share = 0.95 is invalid: state_share \+ plain_share must be <= 1$"):
@@ -378,12 +387,13 @@ def test_the_fallbacks_settings_are_a_group_of_their_own_read_whatever_the_metho
     no longer fields of the cross-entropy sampler's settings; the retry's N is theirs."""
     from pemviz.methods import records
     from pemviz.methods.adaptive import CrossEntropySettings
+    from pemviz.methods.state import StateSettings
     from pemviz.settings import RETRY_MOST_N, FallbackSettings
 
     assert [r.name for r in records() if r.then] == ["adaptive", "state"]
     cfg = ExperimentConfig.of(method="state", plain_fallback=7, retry_factor=3)
     assert cfg.fallback == FallbackSettings(plain_fallback=7, retry_factor=3) and cfg.value("retry_factor") == 3
-    assert cfg.adaptive == CrossEntropySettings() and not {"plain_fallback", "retry_factor"} & {
+    assert cfg.adaptive == StateSettings() and not {"plain_fallback", "retry_factor"} & {
         f.name for f in dataclasses.fields(CrossEntropySettings)
     }
     # N x retry_factor, capped at 10,000; none with a stop rule, a factor below 2, no plain fallback or N at the cap

@@ -98,22 +98,23 @@ def tilt(config: ExperimentConfig, problem: Problem, check: Check | None = None)
 
 
 def adaptive_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | None:
-    """The cross-entropy sampler's settings against each other and the scene (:attr:`Method.validate
+    """The cross-entropy sampler's settings (the adaptive and state methods') against each other
+    (:meth:`pemviz.methods.adaptive.CrossEntropySettings.conflict`), the run's and the scene (:attr:`Method.validate
     <pemviz.methods.Method>`): a mixture over rollouts needs frozen weights that stop somewhere, the fit of
     whole elite rollouts one object a step, a stop rule a final batch to add to."""
-    from pemviz.config import has_final_batch, whole_rollout_fit_refusal
-
-    if config.adaptive.target_share + config.adaptive.plain_share > 0.0 and not (
-        config.adaptive.weights == "frozen" and (config.weights_until_failure or config.adaptive.proposal_window)
-    ):
+    ce = config.adaptive
+    own = ce.conflict()
+    if own is not None:
+        return own
+    if ce.target_share + ce.plain_share > 0.0 and ce.fits_whole_rollouts(config.weights_until_failure):
         return "target_share", (
             "a mixture over rollouts needs weights = 'frozen' and weights_until_failure or "
             "proposal_window; set target_share = plain_share = 0 (preset state-ce-step) for the "
             "others"
         )
-    if n_objects != 1 and config.fits_whole_rollouts:
-        return "scenario", whole_rollout_fit_refusal(config, n_objects)
-    if config.stop_rule is not None and not has_final_batch(config):
+    if n_objects != 1 and ce.fits_whole_rollouts(config.weights_until_failure):
+        return "scenario", ce.whole_rollouts_refusal(n_objects)
+    if config.stop_rule is not None and not ce.has_final_batch:
         return config.stop_rule, (
             "a stop rule adds final batches; final_estimate = 'last-stage' has none (use pooled " "or fresh)"
         )
@@ -132,11 +133,8 @@ def ams_conflict(config: ExperimentConfig, n_objects: int) -> tuple[str, str] | 
 def adaptive_more_budget(config: ExperimentConfig, text: Any) -> str | None:
     """The cross-entropy sampler's route (:attr:`Method.more_budget <pemviz.methods.Method>`): a run at
     4 N (pretraining, K stages of 4 N and the final batch) or a precision target."""
-    from pemviz.config import has_final_batch
-
-    n = int(getattr(config, "n_per_stage", 100))
-    final = setting_of(config, "n_final", 0) if has_final_batch(config) else 0
-    sims = setting_of(config, "pretrain_rollouts", 0) + setting_of(config, "n_stages", 0) * 4 * n + final
+    ce = config.adaptive
+    sims = ce.pretrain_rollouts + ce.n_stages * 4 * config.n_per_stage + (ce.n_final if ce.has_final_batch else 0)
     return text.importance_route(config, sims)
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from pemviz.config import has_final_batch
 from pemviz.core.plan import RunPlan
 
 if TYPE_CHECKING:
@@ -15,9 +14,10 @@ if TYPE_CHECKING:
 def adaptive_run_plan(config: ExperimentConfig) -> RunPlan:
     """Stage 0 pretraining (``pretrain_rollouts``), 1..K cross-entropy stages of N, K+1 the final batch of N_e (none
     with ``final_estimate = "last-stage"``)."""
-    final = [(config.adaptive.n_stages + 1, "final", config.adaptive.n_final)] if has_final_batch(config) else []
+    ce = config.adaptive
+    final = [(ce.n_stages + 1, "final", ce.n_final)] if ce.has_final_batch else []
     return RunPlan.of(
-        [(0, "pretrain", config.adaptive.pretrain_rollouts)]
-        + [(k, "ce", config.n_per_stage) for k in range(1, config.adaptive.n_stages + 1)]
+        [(0, "pretrain", ce.pretrain_rollouts)]
+        + [(k, "ce", config.n_per_stage) for k in range(1, ce.n_stages + 1)]
         + final
     )

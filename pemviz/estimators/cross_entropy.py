@@ -20,7 +20,7 @@ from typing import cast
 
 import numpy as np
 
-from pemviz.config import ExperimentConfig, whole_rollout_fit_refusal
+from pemviz.config import ExperimentConfig
 from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.detectors import (
     Detector,
@@ -158,16 +158,16 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         """Rollouts of the planned stage observed so far."""
         self._scored: ScoredTarget | None = None
         """The planned mixture stage's target, keeping its proposal components' logits while the rollouts are drawn."""
-        self.tolerance = config.adaptive.fit_tolerance if config.adaptive.fit == "adam" else None
+        self.tolerance = self.ce.fit_tolerance if self.ce.fit == "adam" else None
         """Early stopping of the CE stages' Adam fits (L-BFGS stops at its own tolerance)."""
-        self.fit_dtype = (
-            config.adaptive.fit_precision if config.adaptive.fit_precision in ("float32", "float64") else EXACT
-        )
-        """The arithmetic of the Adam fits (``ExperimentConfig.fit_precision``)."""
+        self.fit_dtype = self.ce.fit_precision if self.ce.fit_precision in ("float32", "float64") else EXACT
+        """The arithmetic of the Adam fits (``fit_precision``)."""
+        self.whole_rollouts = self.ce.fits_whole_rollouts(config.weights_until_failure)
+        """The first CE stage fits whole elite rollouts, one object a step (the ``paper`` preset)."""
         self._parameters = ParameterFit(problem)
         """Over an ODD: the proposal the CE stages draw the parameters from, fitted to the elites (:mod:`.ce_odd`)."""
-        if problem.n_objects != 1 and config.fits_whole_rollouts:  # refused before any rollout, not after pretraining
-            raise ValueError(whole_rollout_fit_refusal(config, problem.n_objects))
+        if problem.n_objects != 1 and self.whole_rollouts:  # refused before any rollout, not after pretraining
+            raise ValueError(self.ce.whole_rollouts_refusal(problem.n_objects))
 
     # -- the interface --------------------------------------------------------------------------------------------
     @staticmethod
@@ -193,14 +193,14 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             self._elites = EliteCandidates(plan.n, self.ce.quantile_level, floor=0.0)
             if self._failure_steps is not None:  # every failure since the failure level was reached
                 self._steps = self._failure_steps
-            elif self.ce.weights == "frozen" and (cfg.weights_until_failure or self.ce.proposal_window):
+            elif not self.whole_rollouts:
                 self._steps = EliteSteps(
                     self.problem.curve_grid,
                     self.ce.fit_rows,
                     self.fit_rng,
                     keep_observations=self.ce.fit_weights == "mixture",
                 )
-        elif k == self.ce.n_stages + 1 and self.ce.final_estimate != "last-stage":
+        elif k == self.ce.n_stages + 1 and self.ce.has_final_batch:
             assert self.sampler is not None, "the final batch's sampler comes with the pretraining fit"
             plan = StagePlan(k, "final", self.ce.n_final, self.sampler, mixture=self._mixture(self.ce.n_final))
         else:
@@ -332,16 +332,16 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         """(verdict, reason): the best verdict this sampler's estimate can claim, whatever its weights show, or None.
 
         ``doubtful`` when no stage's threshold reached the failure level (a proposal never fitted to a failure), and
-        when the first fit takes whole elite rollouts (:attr:`pemviz.config.ExperimentConfig.fits_whole_rollouts`,
-        the paper's own fit): such a proposal can settle on one failure mode and miss others, which no diagnostic of
-        its weights can see (the user guide's Validation page: "reliable" with the exact answer far outside the
-        interval in 1 of 200 seeds of the ``paper`` preset and 1 of 10 of ``authors-code`` at N = 100); else the
-        problem's own cap (:attr:`pemviz.core.problems.Problem.verdict_cap`)."""
+        when the first fit takes whole elite rollouts (:attr:`whole_rollouts`, the paper's own fit): such a proposal can
+        settle on one failure mode and miss others, which no diagnostic of its weights can see (the user guide's
+        Validation page: "reliable" with the exact answer far outside the interval in 1 of 200 seeds of the ``paper``
+        preset and 1 of 10 of ``authors-code`` at N = 100); else the problem's own cap
+        (:attr:`pemviz.core.problems.Problem.verdict_cap`)."""
         if not self.reached_failures:
             return "doubtful", (
                 "no stage's threshold reached the failure level: the proposal was never fitted to a " "failure"
             )
-        if self.config.fits_whole_rollouts:
+        if self.whole_rollouts:
             return "doubtful", (
                 "the paper's fit of whole elite rollouts can settle on one failure mode and miss "
                 "others its weights cannot show (the Validation page); use the default sampler"
@@ -508,7 +508,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         """The elites among ``batch`` (the stage's rollouts at or below gamma_kappa not yet settled,
         :class:`EliteCandidates`, of its ``n``) and the proposal refitted to all elites (in place); returns
         (gamma, elites, their detection rate per bin of the curve grid [G])."""
-        cfg, proposal, grid = self.config, self.proposal, self.problem.curve_grid
+        proposal, grid = self.proposal, self.problem.curve_grid
         assert proposal is not None and self._elites is not None, "a CE stage comes after the pretraining fit"
         self.reached_failures = self.reached_failures or gamma <= 0.0  # latched: the pool's N is fixed once it starts
         elite = robustness <= gamma
@@ -529,7 +529,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
             return gamma, self._steps.n_rollouts, detect_rate(self._steps.counts, self._steps.hits)
         assert batch is not None  # without fitted steps none settled: the elites are all kept (EliteCandidates)
         if batch.n_objects != 1:
-            raise ValueError(whole_rollout_fit_refusal(cfg, batch.n_objects))
+            raise ValueError(self.ce.whole_rollouts_refusal(batch.n_objects))
         features, detected, mask = self._fit_events(batch, self.step_mask(batch, gamma))
         ce_update(
             proposal,

@@ -30,9 +30,7 @@ from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import FeatureProposal, Proposal
 from pemviz.estimators.base import Check
 from pemviz.estimators.cross_entropy import CrossEntropy
-from pemviz.methods import CROSS_ENTROPY_METHOD
-from pemviz.methods.state import StateSettings, state_settings
-from pemviz.settings import settings_of
+from pemviz.methods.state import StateSettings
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
@@ -101,20 +99,21 @@ def reports_state(problem: Problem) -> bool:
 
 class StateCrossEntropy(CrossEntropy):
     """The cross-entropy sampler with the state-dependent proposal (module docstring); settings: the adaptive sampler's
-    and the method's own, :class:`pemviz.methods.state.StateSettings` (:func:`pemviz.methods.state.state_settings`).
+    and the method's own, :class:`pemviz.methods.state.StateSettings` (their defaults in a config of another method: an
+    estimator built on it by hand).
 
     Raises:
         ValueError: the problem's simulator reports no state features (:func:`no_features_refusal`).
     """
 
-    SETTINGS = (*settings_of(CROSS_ENTROPY_METHOD), *StateSettings.__dataclass_fields__)
+    SETTINGS = tuple(StateSettings.__dataclass_fields__)
 
     def __init__(self, config: ExperimentConfig, problem: Problem, check: Check | None = None) -> None:
         if not reports_state(problem):
             raise ValueError(no_features_refusal(problem))
         self._first = FirstColumns(problem.target)
         super().__init__(config, dataclasses.replace(problem, target=self._first), check)
-        self.own = state_settings(config)
+        self.own = self.ce if isinstance(self.ce, StateSettings) else StateSettings()
         self.ce = dataclasses.replace(self.ce, target_share=float(self.own.state_share))
         self.fits_errors = bool(self.own.state_fit_errors)
         self.replayed = 0

@@ -16,13 +16,13 @@ my_package.my_method``, comma-separated, each module registering at import) or a
 This module imports no estimator: a builder (and every hook) may be given as the text ``"package.module:name"``
 (imported when first used), so listing the methods loads no torch. It sits below the config, which asks a method's
 record to check its settings (:attr:`Method.validate`), and below the estimators, which it names only by such texts.
-Each built-in method's settings are a frozen dataclass in a module of this package, light to import: the config holds
-two as groups, :mod:`pemviz.methods.adaptive` (:class:`~pemviz.methods.adaptive.CrossEntropySettings`, the config's
-``adaptive``) and :mod:`pemviz.methods.ams` (:class:`~pemviz.methods.ams.AmsSettings`, its ``ams``); the state
-method's, :class:`pemviz.methods.state.StateSettings`, are its record's :attr:`Method.settings`, as a plugin's are (each
-field made by :func:`pemviz.methods.rows.setting`). A method's own folder (``pemviz/methods/state/``: its settings,
-estimator, fits and hooks) sits above the estimators, the core and the config, which it imports: the registry names
-its code by text only, so that nothing here imports it when loaded (``scripts/import_cycles.py`` checks the layers).
+Each built-in method's settings are a frozen dataclass in a module of this package, light to import: the
+cross-entropy sampler's, :class:`pemviz.methods.adaptive.CrossEntropySettings`, and the state method's,
+:class:`pemviz.methods.state.StateSettings` (the sampler's and its own), are their records' :attr:`Method.settings`,
+as a plugin's are (each field made by :func:`pemviz.methods.rows.setting`); splitting's,
+:class:`pemviz.methods.ams.AmsSettings`, are the config's group ``ams``. A method's estimator, fits and hooks live in
+:mod:`pemviz.estimators`, which imports this package: the registry names them by text only, so that nothing here
+imports them when loaded (``scripts/import_cycles.py`` checks the layers).
 """
 
 from __future__ import annotations
@@ -114,9 +114,10 @@ class Method:
             :func:`pemviz.settings.setting`, are its rows of the settings table (symbol, range, unit, help, flag). A
             run of the method holds them as :attr:`pemviz.config.ExperimentConfig.method_settings`, takes them by
             their names (``ExperimentConfig.of(coin_share=0.2)``), records them with the run's other settings and
-            ``pemviz run`` takes each as a flag; None: it has none (the cross-entropy sampler's and splitting's settings
-            are the config's groups). A :data:`Ref` (a built-in method's names its folder's class by text, so that the
-            registry imports no method's folder): read it with :meth:`settings_class`.
+            ``pemviz run`` takes each as a flag (the cross-entropy sampler's fields, which a subclass of
+            :class:`pemviz.methods.adaptive.CrossEntropySettings` inherits, are rows of the table itself); None: it has
+            none (splitting's settings are the config's group ``ams``). A :data:`Ref`: read it with
+            :meth:`settings_class`.
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """
@@ -337,6 +338,7 @@ def _cross_entropy(name: str, description: str, build: str, **more: Any) -> Meth
         description,
         build,
         plan="pemviz.estimators.ce_plan:adaptive_run_plan",
+        validate="pemviz.estimators.builtin:adaptive_conflict",
         more_budget="pemviz.estimators.builtin:adaptive_more_budget",
         no_failure_advice="pemviz.estimators.builtin:adaptive_no_failure",
         cost_model="proposal",
@@ -352,10 +354,10 @@ for _record in (
         CROSS_ENTROPY_METHOD,
         "cross-entropy adaptive importance sampling (Algorithm 1 of Innes & Ramamoorthy 2022)",
         "pemviz.estimators.cross_entropy:CrossEntropy",
-        validate="pemviz.estimators.builtin:adaptive_conflict",
         proposal_curves=True,
         then_drawn="pemviz.estimators.builtin:adaptive_then_drawn",
         describe="pemviz.methods.words:adaptive",
+        settings="pemviz.methods.adaptive:CrossEntropySettings",
     ),
     Method(
         PLAIN_METHOD,
@@ -414,7 +416,6 @@ for _record in (
         "scale) by the object's row and the state the stack acts on (the tracker's features, the ego's); scenes that "
         "report them",
         "pemviz.estimators.state:StateCrossEntropy",
-        validate="pemviz.estimators.state_hooks:state_conflict",
         run_adds="plus the replay of each batch's state features",
         baseline=True,
         feature_view=True,

@@ -1,9 +1,10 @@
-"""The cross-entropy sampler's settings (``method = "adaptive"``): :class:`CrossEntropySettings`, the
-:attr:`pemviz.config.ExperimentConfig.adaptive` of a run, with their choices and limits. Each field, made by
-:func:`pemviz.methods.setting`, carries its row of :data:`pemviz.settings.SETTINGS` (symbol, range, unit, help, flag;
-owner ``adaptive``): a setting added here is the config's, checked, a flag (where it names one) and recorded after the
-keys runs record today; :class:`pemviz.estimators.cross_entropy.CrossEntropy` reads them. Light to import: no estimator
-is loaded."""
+"""The cross-entropy sampler's settings (``method = "adaptive"``): :class:`CrossEntropySettings`, the adaptive method's
+:attr:`pemviz.methods.Method.settings` (a run's :attr:`pemviz.config.ExperimentConfig.method_settings`, read as its
+:attr:`~pemviz.config.ExperimentConfig.adaptive`; the state method's settings add theirs to them), with their choices
+and limits. Each field, made by :func:`pemviz.methods.setting`, carries its row of :data:`pemviz.settings.SETTINGS`
+(symbol, range, unit, help, flag; owner ``adaptive``): a setting added here is the config's, checked, a flag (where it
+names one) and recorded after the keys runs record today; :class:`pemviz.estimators.cross_entropy.CrossEntropy` reads
+them. Light to import: no estimator is loaded."""
 
 from __future__ import annotations
 
@@ -403,3 +404,38 @@ class CrossEntropySettings:
     def reads_state(self) -> bool:
         """Whether the proposal reads every observation column (``proposal_inputs`` :data:`STATE_INPUTS`)."""
         return self.proposal_inputs == STATE_INPUTS
+
+    @property
+    def has_final_batch(self) -> bool:
+        """Whether a run ends with N_e fresh rollouts from its final proposal (``final_estimate`` not last-stage)."""
+        return self.final_estimate != "last-stage"
+
+    def fits_whole_rollouts(self, weights_until_failure: bool) -> bool:
+        """Whether the first cross-entropy stage fits whole elite rollouts, one object a step
+        (:func:`pemviz.estimators.ce_fit.ce_update`): the weights are not frozen, or neither the window nor the run's
+        weights until failure mark the steps that count (the ``paper`` preset)."""
+        return not (self.weights == "frozen" and (weights_until_failure or self.proposal_window))
+
+    def whole_rollouts_refusal(self, n_objects: int) -> str:
+        """The one line refusing :meth:`fits_whole_rollouts` on a problem of ``n_objects`` objects a step."""
+        return (
+            f"the cross-entropy fit of whole elite rollouts (weights {self.weights!r}, without the window or weights "
+            f"until failure) takes one object per step; this problem perceives {n_objects}: use the default sampler"
+        )
+
+    def conflict(self) -> tuple[str, str] | None:
+        """(setting, what is allowed) of the first of these settings that conflicts with another, or None: checked
+        when a config is made (:func:`pemviz.estimators.builtin.adaptive_conflict`)."""
+        if self.target_share + self.plain_share > 1.0:
+            return "target_share", "target_share + plain_share must be <= 1"
+        if self.fit_weights == "mixture" and not self.fit_all_failures:
+            return (
+                "fit_weights",
+                "'mixture' weighs the failures of fit_all_failures; set fit_weights = 'sampler' without it",
+            )
+        if self.final_smoothing is not None and self.fit_weights != "mixture":
+            return "final_smoothing", (
+                "a last fit of its own needs fit_weights = 'mixture' (which weighs the pool again at every fit); "
+                "set final_smoothing = None with fit_weights = 'sampler'"
+            )
+        return None

@@ -1,13 +1,14 @@
-"""The state method's settings (``method = "state"``: the cross-entropy sampler whose proposal reads the state the
-stack acts on), light: it imports :mod:`pemviz.methods.rows` alone. Its estimator is :mod:`pemviz.estimators.state`
-(``StateCrossEntropy``), the proposal's linear model :mod:`pemviz.estimators.state_glm`, the check of its settings
-against the others :mod:`pemviz.estimators.state_hooks`; the registry (:mod:`pemviz.methods`) names them by text."""
+"""The state method's settings (``method = "state"``: the cross-entropy sampler whose proposal reads the state the stack
+acts on), light: it imports :mod:`pemviz.methods.rows` and :mod:`pemviz.methods.adaptive` alone. Its estimator is
+:mod:`pemviz.estimators.state` (``StateCrossEntropy``), the proposal's linear model :mod:`pemviz.estimators.state_glm`,
+the check of its settings against the others :meth:`StateSettings.conflict`; the registry (:mod:`pemviz.methods`) names
+them by text."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
+from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.rows import setting
 
 STATE_MODELS = ("network", "glm")
@@ -15,10 +16,11 @@ STATE_MODELS = ("network", "glm")
 
 
 @dataclass(frozen=True)
-class StateSettings:
+class StateSettings(CrossEntropySettings):
     """The cross-entropy sampler of Innes & Ramamoorthy (2022) with the paper's q(detect | salient variables)
     generalised to every perception event of a step as a function of the state the stack acts on
-    (:mod:`pemviz.core.features`).
+    (:mod:`pemviz.core.features`): the sampler's settings (:class:`~pemviz.methods.adaptive.CrossEntropySettings`,
+    rows of the settings table) and these of its own.
 
     Attributes:
     state_share: the PEM's own share of the rollouts of every stage drawn after a stage reached the failure level
@@ -68,10 +70,9 @@ class StateSettings:
         flags=("--state-fit-errors",),
     )
 
-
-def state_settings(config: Any) -> StateSettings:
-    """The state method's settings of ``config`` (a :class:`pemviz.config.ExperimentConfig`): its
-    :attr:`~pemviz.config.ExperimentConfig.method_settings` in a run of the method, their defaults in a config of
-    another (an estimator built on it by hand)."""
-    own = config.method_settings
-    return own if isinstance(own, StateSettings) else StateSettings()
+    def conflict(self) -> tuple[str, str] | None:
+        """As the cross-entropy sampler's (:meth:`CrossEntropySettings.conflict`), the PEM's share with the plain
+        proposal's at most all of a stage first."""
+        if self.state_share + self.plain_share > 1.0:
+            return "state_share", "state_share + plain_share must be <= 1"
+        return super().conflict()

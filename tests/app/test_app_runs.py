@@ -235,7 +235,7 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     model = functools.partial(run_cost, n_steps=100)
     # plain Monte Carlo: 500 times the stages' 240, at most a million
     alone = model(cfg.replace(retry_factor=0), slowdown=1.0)
-    plain = stage_cost(dataclasses.replace(cfg, method="mc"), "final", 120_000).seconds
+    plain = stage_cost(cfg.replace(method="mc"), "final", 120_000).seconds
     assert (alone.then_simulations, alone.then_seconds) == (120_000, pytest.approx(plain, rel=1e-12))
     said = f"~{duration_text(alone.seconds)}, up to ~{duration_text(alone.seconds + plain)} with 120,000 plain rollouts"
     assert f"{said} if the stages' weights back no interval" in alone.text()
@@ -245,7 +245,7 @@ def test_run_cost_counts_the_simulations_and_asks_above_the_limits():
     assert cost.then_simulations == 690 + 465_000
     again = cfg.replace(n_per_stage=200)
     retry = sum(stage_cost(again, s.kind, s.n_rollouts, stage=s.stage).seconds for s in run_plan(again).stages)
-    plain = stage_cost(dataclasses.replace(cfg, method="mc"), "final", 465_000).seconds
+    plain = stage_cost(cfg.replace(method="mc"), "final", 465_000).seconds
     assert cost.then_seconds == pytest.approx(retry + plain, rel=1e-12) and retry > 690 * plain / 465_000
     said = "with 465,690 rollouts if the stages' weights back no interval (their retry at N = 200, then plain"
     assert said in cost.text()

@@ -326,8 +326,6 @@ def test_a_plain_rollout_s_seconds_are_the_run_s_scaled_by_the_cost_model_s_rati
     """After a run of another method, a plain rollout's seconds are the run's measured seconds a simulation times the
     cost model's seconds of a plain rollout (a large plain batch's, a rollout) over its seconds of one of the run's
     simulations (its whole plan's, over its planned simulations); a plain Monte Carlo run's are its own."""
-    from dataclasses import replace
-
     from pemviz.engine.cost import N_STEPS, run_cost, stage_cost
     from pemviz.estimators import run_plan
 
@@ -336,7 +334,7 @@ def test_a_plain_rollout_s_seconds_are_the_run_s_scaled_by_the_cost_model_s_rati
         ExperimentConfig.of(method="adaptive", scenario="braking"),
         ExperimentConfig.of(method="tilt", scenario="cut-in"),
     ):
-        plain = stage_cost(replace(cfg, method="mc"), "final", 100_000, N_STEPS).seconds / 100_000
+        plain = stage_cost(cfg.replace(method="mc"), "final", 100_000, N_STEPS).seconds / 100_000
         run = run_cost(cfg, run_plan(cfg), N_STEPS).seconds / cfg.n_simulations
         ratios.append(plain / run)
         assert 0.0 < plain / run < 1.0, cfg.method  # a plain rollout is cheaper than a fitted or tilted simulation
@@ -352,14 +350,12 @@ def test_a_plain_rollout_s_seconds_are_the_run_s_scaled_by_the_cost_model_s_rati
 def test_a_tilt_run_s_plain_rollout_seconds_divide_its_wall_time_not_its_look_aheads():
     # a tilt run reports its look-aheads in its simulations (1,623 for 100 rollouts on the cut-in): a plain rollout's
     # seconds are its wall time over the model's seconds of its plan, times the model's plain rollout
-    from dataclasses import replace
-
     from pemviz.engine.cost import N_STEPS, run_cost, stage_cost
     from pemviz.estimators import run_plan
 
     cfg = ExperimentConfig.of(method="tilt", scenario="cut-in")
     wall, reported = 2.8, 1623
-    plain = stage_cost(replace(cfg, method="mc"), "final", 100_000, N_STEPS).seconds / 100_000
+    plain = stage_cost(cfg.replace(method="mc"), "final", 100_000, N_STEPS).seconds / 100_000
     model = run_cost(cfg, run_plan(cfg), N_STEPS).seconds
     got = plain_rollout_seconds(cfg, wall / reported, reported)
     assert got == pytest.approx(plain * wall / model, rel=1e-12)

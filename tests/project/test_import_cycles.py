@@ -1,5 +1,6 @@
-"""scripts/import_cycles.py: no import circle among pemviz's modules or folders, the folders in the layer order (each
-method's folder a node of its own), and the script finds the circles and the imports against the order it should."""
+"""scripts/import_cycles.py: no import circle among pemviz's modules or folders, the top-level folders in the layer
+order (``methods`` one node, its sub-folders included), and the script finds the circles and the imports against the
+order it should."""
 
 from __future__ import annotations
 
@@ -119,44 +120,35 @@ def test_an_upward_import_and_a_folder_circle_are_found(tmp_path):
     assert against == {("core", "sinks"): ["core/a.py:2"]}  # the core knows no sink, lazily neither
 
 
-def test_a_method_folder_is_a_node_above_the_framework_and_a_low_module_importing_it_is_reported(tmp_path, capsys):
+def test_the_methods_folder_is_one_node_so_a_circle_through_a_methods_sub_folder_is_found(tmp_path, capsys):
     ic = load_script(SCRIPT)
     root = planted(
         tmp_path,
         {
             "__init__.py": "",
-            # the registry names the folder's code by text (a Ref): no edge; importing its settings is one
-            "methods/__init__.py": 'BUILD = "pemviz.methods.coin.estimator:Coin"\nfrom .coin import CoinSettings\n',
+            # the registry names a method's code by text (a Ref): no edge
+            "methods/__init__.py": 'BUILD = "pemviz.estimators.coin:Coin"\n',
             "methods/rows.py": "",
+            # a method's sub-folder importing the estimators: an edge of the methods folder itself
             "methods/coin/__init__.py": "from pemviz.methods.rows import setting\n",
-            "methods/coin/estimator.py": "from typing import TYPE_CHECKING\nfrom pemviz.estimators.base import Check\n"
-            "from pemviz.settings import settings_of\nif TYPE_CHECKING:\n    from pemviz.config import C\n",
+            "methods/coin/estimator.py": "from pemviz.estimators.base import Check\n",
             "estimators/base.py": "from pemviz.methods import rows\n",
-            "estimators/builtin.py": "def f():\n    from pemviz.methods import coin\n",  # lazy: reported too
-            "settings.py": "from pemviz.methods.rows import setting\n",
-            "config.py": "from pemviz.methods.coin import CoinSettings\n",  # at import time
-            "sinks/words.py": "from pemviz.methods.coin.estimator import Coin\n",  # above the method: allowed
+            "sinks/words.py": "from pemviz.methods.coin.estimator import Coin\n",
         },
     )
     graph = ic.build_graph(root)
     found = ic.folder_imports(graph)
-    assert found[("methods/coin", "methods")] == ["methods/coin/__init__.py:1"]  # its own node, not the registry's
-    assert found[("sinks", "methods/coin")] == ["sinks/words.py:1"]
+    assert found[("methods", "estimators")] == ["methods/coin/estimator.py:1"]  # the methods folder's, one node
+    assert found[("sinks", "methods")] == ["sinks/words.py:1"] and not any("methods/" in a for a, _ in found)
     circles, against = ic.folder_rules(graph)
-    assert against == {
-        ("config", "methods/coin"): ["config.py:1"],
-        ("estimators", "methods/coin"): ["estimators/builtin.py:2"],
-        ("methods", "methods/coin"): ["methods/__init__.py:2"],
-    }
-    assert circles == [["config", "estimators", "methods", "methods/coin", "settings"]]
+    assert circles == [["estimators", "methods"]]
+    assert against == {("methods", "estimators"): ["methods/coin/estimator.py:1"]}
     assert ic.main(["--root", str(root)]) == 0  # no circle among module-level imports
     assert ic.main(["--root", str(root), "--strict"]) == 1
     out = capsys.readouterr().out
-    assert "3 folder imports against the layer order" in out
-    assert "  config -> methods/coin (a method's folder sits above it: name its code by text" in out
-    # the registry's text reference alone, with nothing low importing the folder: no rule broken
-    (root / "methods" / "__init__.py").write_text('BUILD = "pemviz.methods.coin.estimator:Coin"\n')
-    (root / "config.py").write_text("")
-    (root / "estimators" / "builtin.py").write_text("")
+    assert "1 folder circle" in out and "1 folder import against the layer order" in out
+    assert "  methods -> estimators (the registry imports nothing of the package above it" in out
+    # the registry's text reference alone, with the sub-folder importing nothing above the registry: no rule broken
+    (root / "methods" / "coin" / "estimator.py").write_text("")
     assert ic.folder_rules(ic.build_graph(root)) == ([], {})
     assert ic.main(["--root", str(root), "--strict"]) == 0
