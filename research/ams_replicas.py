@@ -159,23 +159,30 @@ def table(runs: list[list[Replica]], p_true: float, show: bool = True) -> dict[s
         errors.append(abs(ratio - 1.0))
         within += 0.5 <= ratio <= 2.0
         cost.append(sum(x.cost for x in run))
+        if p.size < 2:  # one replica: the method's own run, its own verdict (its interval is not kept)
+            reliable += run[0].verdict == "reliable"
+            reliable_out += run[0].verdict == "reliable" and not 0.5 <= ratio <= 2.0
+            continue
         ivs = intervals(p, np.random.default_rng(i))
         for name, (lo, hi) in ivs.items():
             backed = lo > 0 and hi > lo
             printed[name] += backed
             held[name] += backed and lo <= p_true <= hi
-        v = verdict(p, ivs["log-t"])
-        reliable += v == "reliable"
-        reliable_out += v == "reliable" and not 0.5 <= ratio <= 2.0
+        said = verdict(p, ivs["log-t"])
+        reliable += said == "reliable"
+        reliable_out += said == "reliable" and not 0.5 <= ratio <= 2.0
         if show:
             lo, hi = ivs["log-t"]
             print(
-                f"seed {run[0].seed}: p_bar {mean:.3e} (x{ratio:.2f}) [{lo:.3e}, {hi:.3e}] {v}; replicas/p "
+                f"seed {run[0].seed}: p_bar {mean:.3e} (x{ratio:.2f}) [{lo:.3e}, {hi:.3e}] {said}; replicas/p "
                 + " ".join(f"{x.p_hat / p_true:.2f}" for x in run)
                 + f"; cost {cost[-1]:,}"
             )
     m = float(np.median(errors))
     plain = (0.6745 / m) ** 2 * (1.0 - p_true) / p_true if m > 0 else math.inf
+    each = np.array([x.p_hat / p_true for run in runs for x in run])
+    v = float(np.mean(np.square(each - 1.0)))  # one replica's relative variance, about the reference
+    per = float(np.mean([x.cost for run in runs for x in run]))
     row = {
         "runs": len(runs),
         "median": m,
@@ -188,6 +195,13 @@ def table(runs: list[list[Replica]], p_true: float, show: bool = True) -> dict[s
         **{f"held {k}": held[k] for k in held},
         **{f"printed {k}": printed[k] for k in printed},
         "mean ratio": float(np.mean([sum(x.p_hat for x in r) / len(r) for r in runs])) / p_true,
+        "v": v,
+        "work ratio": per * v * p_true / (1.0 - p_true),
+        "single median": float(np.median(np.abs(each - 1.0))),
+        "single within": int(np.count_nonzero((each >= 0.5) & (each <= 2.0))),
+        "single reliable out": sum(
+            x.verdict == "reliable" and not 0.5 <= x.p_hat / p_true <= 2.0 for r in runs for x in r
+        ),
     }
     print(
         f"R = {len(runs[0])} x N = {runs[0][0].n}, {len(runs)} runs: median rel. error {m:.3f}; within x2 {within}/"
@@ -195,6 +209,11 @@ def table(runs: list[list[Replica]], p_true: float, show: bool = True) -> dict[s
         f"{printed['log-t']}, boot-t {held['boot-t']}/{printed['boot-t']}; reliable {reliable}, outside x2 "
         f"{reliable_out}; cost {row['cost']:,.0f}; plain MC for that error {plain:,.0f}; ratio {row['ratio']:.3f}; "
         f"mean p_bar/p {row['mean ratio']:.3f}"
+    )
+    print(
+        f"  each replica alone ({each.size}): median rel. error {row['single median']:.3f}; within x2 "
+        f"{row['single within']}/{each.size}; reliable outside x2 {row['single reliable out']}; relative variance "
+        f"{v:.3f}; cost {per:,.0f}; its cost over plain MC's at any error, cost v p / (1 - p): {row['work ratio']:.3f}"
     )
     return row
 
