@@ -12,7 +12,8 @@ Pommier, "A multiple replica approach to simulate reactive trajectories", J. Che
 Intervals compared (:func:`intervals`; their coverage measured by ``--coverage`` on scenes with an exact answer):
 
 - ``t``: Student-t on p_bar, ``p_bar -+ t_{R-1} s / sqrt(R)`` (a lower end <= 0 backs no interval: a bound only);
-- ``log-t``: the same relative half-width on the log scale (delta method), ``p_bar exp(-+ t_{R-1} s / (sqrt(R)
+- ``log-t`` (chosen: it always backs an interval and covers best, below): the same relative half-width on the
+  log scale (delta method), ``p_bar exp(-+ t_{R-1} s / (sqrt(R)
   p_bar))``, always positive;
 - ``boot-t``: a bootstrap-t (studentised) interval of the mean, 2,000 resamples of the R replicas.
 
@@ -21,15 +22,28 @@ interval backs an interval (a positive lower end) and the replicas' own effectiv
 least :data:`MIN_SPREAD_ESS` (the spread not carried by one replica); ``unreliable`` when every replica is 0; else
 ``doubtful``.
 
-Commands (one process at a time on the shared machine; each appends one JSON line per replica to ``--out``, and
-``--summary`` prints the tables from such files)::
+Measured (docs/validation.md, "Splitting with independent replicas"): the delta-method interval holds the exact
+answer in 93 % of 1,050 runs (toy-1e-3 and the crowd, R = 4 and 8), Student-t on p_bar in 82 %, the bootstrap-t in 74
+%; at the crossing's 1e-4 rung R = 4 x 400 gives median error 0.17, 9/10 within x2 and 9/10 intervals holding, at
+0.38 of plain Monte Carlo's cost (one replica's cost v p / (1 - p) = 0.39 whatever R): the rung's cost target (0.2)
+is not met, so pemviz does not ship replicas.
 
-    nice -n 10 python research/ams_replicas.py --scenario crossing --param brake_ttc_s=1.5 --reference 1.294e-4 \
-        --n 400 --killed 40 --replicas 4 --seeds 1 2 3 4 5 6 7 8 9 10 --out /tmp/rep-crossing-400.jsonl
-    nice -n 10 python research/ams_replicas.py --problem crowd --score lookahead --n 200 --killed 20 --replicas 64 \
-        --seeds 0 --out /tmp/rep-crowd-200.jsonl
-    python research/ams_replicas.py --summary /tmp/rep-crossing-400.jsonl --reference 1.294e-4 --replicas 4
-    python research/ams_replicas.py --coverage /tmp/rep-crowd-200.jsonl --exact 3.4e-5 --replicas 4 8
+Commands (one process at a time on the shared machine; each appends one JSON line per replica to ``--out``, and
+``--summary`` / ``--coverage`` print the tables from such files)::
+
+    nice -n 10 python research/ams_replicas.py --scenario crossing --param brake_ttc_s=1.5 --n 400 --killed 40 \
+        --replicas 4 --seeds 1 2 3 4 5 6 7 8 9 10 --out /tmp/rep-crossing-400.jsonl
+    nice -n 10 python research/ams_replicas.py --scenario crossing --param brake_ttc_s=1.5 --n 200 --killed 20 \
+        --replicas 8 --seeds 1 2 3 4 5 6 7 8 9 10 --out /tmp/rep-crossing-200.jsonl
+    nice -n 10 python research/ams_replicas.py --problem crowd --n 200 --killed 20 --replicas 8 \
+        --seeds $(seq 1 100) --out /tmp/rep-crowd-200.jsonl
+    nice -n 10 python research/ams_replicas.py --problem crowd --n 400 --killed 40 --replicas 4 \
+        --seeds $(seq 1 100) --out /tmp/rep-crowd-400.jsonl
+    nice -n 10 python research/ams_replicas.py --problem toy-1e-3 --score robustness --n 100 --killed 10 \
+        --replicas 8 --seeds $(seq 1 200) --out /tmp/rep-toy-100.jsonl
+    nice -n 10 python research/ams_replicas.py --scenario cut-in --n 200 --killed 20 --replicas 4 --seeds 1
+    python research/ams_replicas.py --summary /tmp/rep-crossing-400.jsonl --reference 1.294e-4 --replicas 4 1
+    python research/ams_replicas.py --coverage /tmp/rep-crowd-200.jsonl --exact 3.39835e-5 --replicas 4 8
     python -m pytest research/tests/test_ams_replicas.py
 """
 
