@@ -13,8 +13,7 @@ Intervals compared (:func:`intervals`; their coverage measured by ``--coverage``
 
 - ``t``: Student-t on p_bar, ``p_bar -+ t_{R-1} s / sqrt(R)`` (a lower end <= 0 backs no interval: a bound only);
 - ``log-t`` (chosen: it always backs an interval and covers best, below): the same relative half-width on the
-  log scale (delta method), ``p_bar exp(-+ t_{R-1} s / (sqrt(R)
-  p_bar))``, always positive;
+  log scale (delta method), ``p_bar exp(-+ t_{R-1} s / (sqrt(R) p_bar))``, always positive;
 - ``boot-t``: a bootstrap-t (studentised) interval of the mean, 2,000 resamples of the R replicas.
 
 Verdict (:func:`verdict`): ``reliable`` only when R >= :data:`MIN_REPLICAS`, at most one replica is 0, the chosen
