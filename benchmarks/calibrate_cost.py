@@ -6,6 +6,8 @@ and panel).
     python benchmarks/calibrate_cost.py --repeat 3   # the median of 3 runs of each configuration
     python benchmarks/calibrate_cost.py --tilt --repeat 3   # the tilt's constants from the cut-in's rollouts
     python benchmarks/calibrate_cost.py --parts crossing     # a scene's cost parts against braking's, in CPU seconds
+    python benchmarks/calibrate_cost.py --probe braking crossing cut-in --repeat 3   # each scene's ``probe`` part
+    python benchmarks/calibrate_cost.py --speed braking cut-in --repeat 3   # S and the crowding against the runs
 
 What it does: runs a handful of configurations (the default, ``--preset quick``, N = 1000, plain Monte Carlo with
 N = 10,000, ``--preset paper``, the agm run of the panel's screenshots, a small highway-env run) as the panel runs
@@ -381,6 +383,87 @@ def calibrate_parts(scene: str, repeat: int) -> None:
         )
 
 
+PROBE_RUNS = {
+    "braking": ["run", "--no-record"],
+    "crossing": ["run", "--scenario", "crossing", "--no-record", "--plain-fallback", "0", "--retry-factor", "0"],
+    "cut-in": ["run", "--scenario", "cut-in", "--no-record"],
+}
+"""Scene -> the run whose CPU seconds over the model's its pilot is set against (``--probe``): its default's planned
+stages."""
+
+
+def calibrate_probe(scenes: list[str], repeat: int) -> None:
+    """Each scene's ``probe`` part (:attr:`pemviz.scenarios.registry.Scenario.cost_parts`,
+    :func:`pemviz.engine.cost.pilot_seconds`): the pilot of :func:`pemviz.engine.cost.pilot_speed` (its CPU
+    seconds over the model's, the part left out), over the CPU seconds of the scene's default run (:data:`PROBE_RUNS`)
+    over its model's, the pilot just before the run in the same process (the machine's speed cancels). A fresh
+    process per reading, as ``pemviz run`` (torch's import counted where the model counts it)."""
+    import subprocess
+
+    code = (
+        "import sys, time; from pemviz.cli import build_parser; from pemviz.commands.run import config_from_args;"
+        "from pemviz.engine import cost, experiment as engine; from pemviz.engine.resources import torch_threads;"
+        "from pemviz.estimators import run_plan; from pemviz.scenarios.registry import problem_for;"
+        "from pemviz.settings import SCENARIO_COST_PARTS as P;"
+        "cfg = config_from_args(build_parser('run').parse_args(sys.argv[1:])); pb = problem_for(cfg);"
+        "T = pb.n_steps or cost.N_STEPS; share = P.get(cfg.scenario, {}).get('probe', cost.COST.probe_share);"
+        "raw = cost.pilot_speed(cfg, engine.scene_pilot(pb), T) * share;"
+        "model = cost.run_cost(cfg, run_plan(cfg), T, look_ahead_s=pb.look_ahead_s).seconds;"
+        "ex = engine.Experiment(cfg, problem=pb); c0 = time.process_time();"
+        "exec('with torch_threads(1, blas=1): ex.run()'); cpu = time.process_time() - c0;"
+        "print(f'{raw:.3f} {cpu:.3f} {model:.3f} {raw / (cpu / model):.3f}')"
+    )
+    for scene in scenes:
+        shares = []
+        for _ in range(repeat):
+            out = subprocess.run(
+                [sys.executable, "-c", code, *PROBE_RUNS[scene]], capture_output=True, text=True, check=True
+            ).stdout.split()
+            raw, cpu, model, share = map(float, out[-4:])
+            shares.append(share)
+            print(
+                f"  {scene}: pilot {raw:.2f} times the model's, the run {cpu:.2f} CPU s for {model:.2f} model s "
+                f"({cpu / model:.2f} times): probe {share:.3f} (load average {os.getloadavg()[0]:.1f})",
+                flush=True,
+            )
+        print(f"{scene}: probe {statistics.median(shares):.3g} (median of {len(shares)})")
+
+
+SPEED_CODE = (
+    "import sys, time; from pemviz.cli import build_parser; from pemviz.commands.run import config_from_args;"
+    "from pemviz.engine import cost, experiment as engine; from pemviz.engine import resources as r;"
+    "from pemviz.estimators import run_plan; from pemviz.scenarios.registry import problem_for;"
+    "cfg = config_from_args(build_parser('run').parse_args(sys.argv[1:]));"
+    "exec('with r.torch_threads(1, blas=1):\\n t0 = r.tasks_now(); pb = problem_for(cfg); T = pb.n_steps or 100;"
+    " s = cost.pilot_speed(cfg, engine.scene_pilot(pb), T); load = r.load_slowdown(since=t0, speed=s);"
+    " model = cost.run_cost(cfg, run_plan(cfg), T, look_ahead_s=pb.look_ahead_s, speed=s).seconds;"
+    " ex = engine.Experiment(cfg, problem=pb); c0, w0 = time.process_time(), time.perf_counter(); ex.run();"
+    " cpu, wall = time.process_time() - c0, time.perf_counter() - w0');"
+    "print(f'{s:.3f} {load / s:.3f} {model:.3f} {cpu:.3f} {wall:.3f}')"
+)
+"""One ``pemviz run`` of ``sys.argv[1:]`` as the command runs it, printing S (the pilot), the crowding read at its
+start, the model's seconds, and the run's CPU and wall seconds."""
+
+
+def check_speed(scenes: list[str], repeat: int) -> None:
+    """Where a run's first estimate errs (``--speed``): the pilot's S against the run's CPU seconds over the model's,
+    and the crowding read before the run against its wall over its CPU seconds, a fresh process per reading."""
+    import subprocess
+
+    for scene in scenes:
+        for _ in range(repeat):
+            out = subprocess.run(
+                [sys.executable, "-c", SPEED_CODE, *PROBE_RUNS[scene]], capture_output=True, text=True, check=True
+            ).stdout.split()
+            speed, crowd, model, cpu, wall = map(float, out[-5:])
+            print(
+                f"  {scene}: S {speed:.2f} against the run's CPU / model {cpu / model:.2f}; crowding {crowd:.2f} "
+                f"against its wall / CPU {wall / cpu:.2f}; estimate {model * speed * crowd:.1f} s, wall {wall:.1f} s "
+                f"(load average {os.getloadavg()[0]:.1f})",
+                flush=True,
+            )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fit", action="store_true", help="fit the constants to these runs and print them")
@@ -388,7 +471,15 @@ def main() -> int:
     ap.add_argument("--only", default=None, help="comma-separated names of CONFIGS to run (default all)")
     ap.add_argument("--tilt", action="store_true", help="measure the tilt's constants (the cut-in's) only")
     ap.add_argument("--parts", metavar="SCENE", default=None, help="measure a scene's cost parts against braking's")
+    ap.add_argument("--probe", nargs="+", choices=list(PROBE_RUNS), help="measure each scene's probe part")
+    ap.add_argument("--speed", nargs="+", choices=list(PROBE_RUNS), help="the pilot and the crowding against runs")
     args = ap.parse_args()
+    if args.probe:
+        calibrate_probe(args.probe, args.repeat)
+        return 0
+    if args.speed:
+        check_speed(args.speed, args.repeat)
+        return 0
     if args.tilt:
         calibrate_tilt(args.repeat)
         return 0

@@ -13,10 +13,12 @@ after it are not the run). A line's prediction of the whole run is its "elapsed 
   rollouts' first batch (its low-high) and, once it has seen failures, its estimate after that first batch;
 - panel: the cost line's range, made just before the run starts, and whether it holds the wall time.
 
-Both read the machine's load when they predict (:func:`pemviz.engine.resources.load_slowdown`); the load average is
-printed before and after. ``--busy K`` runs K busy loops (other processes) throughout.
+Both price the run by a pilot of the scene's own rollouts (:func:`pemviz.engine.cost.pilot_speed`) and the
+machine's load (:func:`pemviz.engine.resources.load_slowdown`); the load average is printed before and after.
+``--busy K`` runs K busy loops (other processes) throughout.
 
     nice -n 5 python benchmarks/time_estimates.py             # 1 run of each scene (~3-10 min on 2 loaded cores)
+    nice -n 5 python benchmarks/time_estimates.py --scenes crossing-mc-1 crossing-mc   # one worker against every core
     python benchmarks/time_estimates.py --repeat 3 --scenes braking cut-in
     python benchmarks/time_estimates.py --log runs.log       # also every line of the runs, with its second
 """
@@ -34,7 +36,22 @@ SCENES = {
     "braking": ["run", "--no-record"],
     "crossing": ["run", "--scenario", "crossing", "--no-record"],
     "cut-in": ["run", "--scenario", "cut-in", "--no-record"],
+    "crossing-mc": ["run", "--scenario", "crossing", "--method", "mc", "--n", "200000", "--no-record"],
+    "crossing-mc-1": [
+        "run",
+        "--scenario",
+        "crossing",
+        "--method",
+        "mc",
+        "--n",
+        "200000",
+        "--workers",
+        "1",
+        "--no-record",
+    ],
 }
+"""Scene -> its run; ``crossing-mc`` and ``crossing-mc-1``: 200,000 plain crossing rollouts on every core and on one
+worker."""
 UNIT = {"s": 1.0, "min": 60.0, "h": 3600.0}
 LINE = re.compile(
     r"^\s*(?P<label>[^:]+): (?P<n>\d+) rollouts .*elapsed (?P<e>[0-9.]+) s.*run ~(?P<lo>[0-9.]+) (?P<lu>s|min|h) left"
@@ -147,7 +164,7 @@ def report(scene: str, run: dict) -> tuple[str, bool]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--repeat", type=int, default=1)
-    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    ap.add_argument("--scenes", nargs="+", default=["braking", "crossing", "cut-in"], choices=list(SCENES))
     ap.add_argument("--busy", type=int, default=0, help="busy loops running throughout (a loaded machine)")
     ap.add_argument("--log", default=None, help="write every line of the runs here, with its second")
     a = ap.parse_args()

@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import time
 import types
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -260,7 +260,7 @@ def parse_form(
         return FormResult(None, {"": str(exc)})
 
 
-_HORIZONS: dict[tuple[Any, ...], tuple[int, float, Any]] = {}
+_HORIZONS: dict[tuple[Any, ...], tuple[int, float, Any, Any]] = {}
 
 
 def horizon(cfg: ExperimentConfig) -> tuple[int, float]:
@@ -272,22 +272,26 @@ def horizon(cfg: ExperimentConfig) -> tuple[int, float]:
     return _horizon(cfg)[:2]
 
 
-def _horizon(cfg: ExperimentConfig) -> tuple[int, float, Any]:
-    """:func:`horizon` and what the problem states of its answer (its ``exact_log_p``, ``reference`` and
-    ``verdict_cap``, as the run's :class:`~pemviz.engine.events.RunStarted` carries them; None where it cannot be
-    built)."""
+def _key(cfg: ExperimentConfig) -> tuple[Any, ...]:
+    return (cfg.scenario, cfg.scenario_params, cfg.value("pem"), cfg.margin, cfg.sim)
+
+
+def _horizon(cfg: ExperimentConfig) -> tuple[int, float, Any, Any]:
+    """:func:`horizon`, what the problem states of its answer (its ``exact_log_p``, ``reference`` and
+    ``verdict_cap``, as the run's :class:`~pemviz.engine.events.RunStarted` carries them) and the problem (both None
+    where it cannot be built)."""
     from pemviz.scenarios.registry import problem_for
 
-    key = (cfg.scenario, cfg.scenario_params, cfg.value("pem"), cfg.margin, cfg.sim)
+    key = _key(cfg)
     if key not in _HORIZONS:
         try:
             problem = problem_for(cfg)
             stated = types.SimpleNamespace(
                 exact_log_p=problem.exact_log_p, reference=problem.reference, verdict_cap=problem.verdict_cap
             )
-            _HORIZONS[key] = (int(problem.n_steps or N_STEPS), float(problem.look_ahead_s), stated)
+            _HORIZONS[key] = (int(problem.n_steps or N_STEPS), float(problem.look_ahead_s), stated, problem)
         except (OSError, ValueError, KeyError):  # a PEM that cannot be read, parameters refused: the run says which
-            _HORIZONS[key] = (N_STEPS, 0.0, None)
+            _HORIZONS[key] = (N_STEPS, 0.0, None, None)
     return _HORIZONS[key]
 
 
@@ -296,33 +300,39 @@ def run_cost(cfg: ExperimentConfig, n_steps: int | None = None, slowdown: float 
     :func:`pemviz.estimators.run_plan`, on its problem's :func:`horizon`, or ``n_steps`` steps, no look-ahead and no
     problem): simulations, memory of the largest batch, expected seconds as planned and with what may follow on its
     scene (whatever the scene with ``n_steps``), on this machine as loaded now (times ``slowdown``; None:
-    :func:`pemviz.engine.resources.load_slowdown`), as the console's first progress line says them
-    (:class:`pemviz.sinks.StageClock`)."""
+    :func:`pemviz.engine.resources.load_slowdown` of a pilot of the problem's rollouts,
+    :func:`pemviz.engine.cost.pilot_speed`, as the console's first progress line says them,
+    :class:`pemviz.sinks.StageClock`; about 0.3-0.7 s, read again after :data:`LOAD_FRESH_S`)."""
     from pemviz.engine.experiment import stream_above  # the engine and the estimators import torch: only when asked
-    from pemviz.engine.resources import load_slowdown
     from pemviz.estimators import run_plan
 
-    steps, look, stated = _horizon(cfg) if n_steps is None else (n_steps, 0.0, None)
-    idle = cost.run_cost(cfg, run_plan(cfg), steps, stream_above(cfg), look_ahead_s=look, problem=stated)
-    factor = _recent_load(load_slowdown) if slowdown is None else float(slowdown)
+    steps, look, stated, problem = _horizon(cfg) if n_steps is None else (n_steps, 0.0, None, None)
+    speed, factor = (1.0, float(slowdown)) if slowdown is not None else _recent_load(cfg, problem)
+    idle = cost.run_cost(cfg, run_plan(cfg), steps, stream_above(cfg), look_ahead_s=look, problem=stated, speed=speed)
     scaled = dataclasses.replace(idle, seconds=idle.seconds * factor, then_seconds=idle.then_seconds * factor)
     return dataclasses.replace(scaled, slowdown=factor)
 
 
 LOAD_FRESH_S = 3.0
-"""How long the panel's cost line reuses a reading of the machine's load (one reading takes a quarter of a second
-of wall time: every change to the form would wait on it)."""
-_LOAD: list[tuple[float, float]] = []
+"""How long the panel's cost line reuses a reading of a scene's speed and the machine's load (one reading takes
+a quarter of a second of wall time and a pilot of the scene's rollouts: every change to the form would wait on it)."""
+_LOAD: dict[tuple[Any, ...], tuple[float, float, float]] = {}
 
 
-def _recent_load(read: Callable[[], float]) -> float:
-    """``read()`` (the load's slowdown), reused for :data:`LOAD_FRESH_S` seconds."""
-    now = time.monotonic()
-    if _LOAD and now - _LOAD[-1][0] <= LOAD_FRESH_S:
-        return _LOAD[-1][1]
-    factor = float(read())
-    _LOAD[:] = [(now, factor)]
-    return factor
+def _recent_load(cfg: ExperimentConfig, problem: Any) -> tuple[float, float]:
+    """``(speed, slowdown)`` of a run of ``cfg`` on ``problem`` (:func:`pemviz.engine.cost.pilot_speed`, 1
+    without one; :func:`pemviz.engine.resources.load_slowdown`), reused for :data:`LOAD_FRESH_S` s per scene."""
+    from pemviz.engine.experiment import scene_pilot
+    from pemviz.engine.resources import load_slowdown, tasks_now
+
+    now, key = time.monotonic(), _key(cfg)
+    if key in _LOAD and now - _LOAD[key][0] <= LOAD_FRESH_S:
+        return _LOAD[key][1:]
+    opened = tasks_now()
+    speed = 1.0 if problem is None else cost.pilot_speed(cfg, scene_pilot(problem), problem.n_steps or N_STEPS)
+    factor = load_slowdown(since=opened, speed=speed)
+    _LOAD[key] = (now, speed, factor)
+    return speed, factor
 
 
 def setting_name(key: str) -> str:

@@ -205,6 +205,7 @@ class RunControl:
             with torch_threads(1):
                 problem = problem_for(record.config)
                 record.problem = problem
+                record.clock.pilot = experiment.scene_pilot(problem)  # prices the run's time left
                 experiment.Experiment(record.config, [RunListener(self, record)], cancel, problem=problem).run()
         except Exception as exc:  # a bad PEM file, a simulator error: show it, keep serving
             record.fail(f"{type(exc).__name__}: {exc}")

@@ -410,15 +410,15 @@ def _run_experiment(args, cfg: ExperimentConfig, target, outputs: RunOutputs, ea
     built, or None."""
     save_path, asks_results = outputs.recording, outputs.asks_results
     from pemviz.engine.cost import N_STEPS
-    from pemviz.engine.experiment import Experiment, stream_above
-    from pemviz.engine.resources import open_load_window, torch_threads
+    from pemviz.engine.experiment import Experiment, scene_pilot, stream_above
+    from pemviz.engine.resources import tasks_now, torch_threads
     from pemviz.estimators import check_runnable
     from pemviz.scenarios.registry import problem_for  # any registered scenario: the built-in ones and plugins
     from pemviz.sinks.console import ConsoleSink
     from pemviz.sinks.most_likely import MostLikelyFailure
     from pemviz.sinks.population import FailureGroups, grouping_document
 
-    opened = open_load_window()  # the load is read from here to the run's start: over the problem's build
+    opened = tasks_now()  # the load is read from here to the run's start: over the problem's build
     problem = problem_for(cfg)  # loads the PEM: a bad --pem fails here, before any output exists
     check_run_memory(cfg, problem.n_steps or N_STEPS, stream_above=stream_above(cfg))
     try:
@@ -430,6 +430,7 @@ def _run_experiment(args, cfg: ExperimentConfig, target, outputs: RunOutputs, ea
     groups = FailureGroups(problem.drawing, problem, keys=wanted)  # the failures' severity (console), groups
     console = ConsoleSink(out=sys.stderr) if target == "stdout" else ConsoleSink()
     console.clock.load_since = opened
+    console.clock.pilot = scene_pilot(problem)  # a pilot of the scene's rollouts prices the run
     # prints the failures' severity, which groups (heard first) reads at the final estimate
     console.failures = groups
     listeners: list[Listener] = [groups, console]

@@ -25,6 +25,7 @@ left. No numpy, no torch.
 from __future__ import annotations
 
 import math
+import statistics
 import sys
 from dataclasses import dataclass, field
 from typing import Any
@@ -73,6 +74,9 @@ class CostConstants:
         tilt_rollouts: the seconds of a rollout of ``method = "tilt"`` in plain rollouts' of its scene (its draw, its
             look-aheads and its weights), about.
         tilt_solve_s: the seconds of the tilt's solve, once a run (on its first stage), about.
+        probe_share: a pilot of the reference scene's plain rollouts' CPU seconds over the model's where its run takes
+            the model's (:func:`pilot_seconds`; another scene may declare its own ``probe`` part).
+        pool_gain: the speed each worker process after the first adds to a pooled batch, in one process's.
         measured: when, where and how the constants were measured.
     """
 
@@ -95,6 +99,8 @@ class CostConstants:
     ams_rollouts: float = 5.0
     tilt_rollouts: float = 6.0
     tilt_solve_s: float = 4.0
+    probe_share: float = 1.0
+    pool_gain: float = 1.0
     measured: str = field(default="", compare=False)
 
 
@@ -118,6 +124,8 @@ COST = CostConstants(
     ams_rollouts=5,
     tilt_rollouts=2.7,
     tilt_solve_s=2.5,
+    probe_share=0.49,
+    pool_gain=0.5,
     measured="2026-11-28, benchmarks/calibrate_cost.py --fit --repeat 1 (wall seconds), 2 cores, load average 0.5; "
     "tilt_rollouts and tilt_solve_s from per-rollout CPU seconds against a scene's plain rollouts in the same "
     "process (2026-11-29, benchmarks/calibrate_cost.py --tilt: a tilted rollout 2.5-3.0 plain ones, its weights "
@@ -127,7 +135,9 @@ COST = CostConstants(
     "against the model's in one process, on 2 loaded cores (2026-11-29, benchmarks/calibrate_cost.py --parts: "
     "the reference scene's proposal steps 1.8-2.1 times, its pretraining fit 0.4-0.6 times, the rest's 1.0); "
     "streamed_share from the CPU seconds of the two-pedestrian scene's plain rollouts, 40,000 streamed against "
-    "10,000 held whole (0.64-0.82, 4 readings)",
+    "10,000 held whole (0.64-0.82, 4 readings); probe_share 0.37-0.51, 3 readings (2026-11-30, calibrate_cost.py "
+    "--probe, load average 6.5); pool_gain: 200,000 plain rollouts of the two-pedestrian and the five-car scenes on "
+    "2 workers 1.41 and 1.66 times as fast as on 1, 2 cores",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 
@@ -166,6 +176,7 @@ def stage_cost(
     stage: int | None = None,
     model: str | None = None,
     stream_above: int = 20_000,
+    speed: float = 1.0,
 ) -> StageCost:
     """Predicted seconds of a stage of ``kind`` (``pretrain`` | ``ce`` | ``final`` | ``ams``) with ``n`` rollouts.
 
@@ -183,6 +194,9 @@ def stage_cost(
         stream_above: rollouts above which the stage is streamed chunk by chunk, its rollouts at
             :attr:`CostConstants.streamed_share` of a whole batch's (:data:`pemviz.engine.experiment.STREAM_ABOVE`, a
             rollout of one object).
+        speed: how many times the model's seconds the run's work takes here now: the pool starts where ``speed``
+            times the model's seconds pay for it (:func:`pemviz.engine.resources.pool_workers`, as it starts on a
+            block's measured seconds); the seconds returned are the model's.
     """
     model = cfg.method_record.cost_model if model is None else model
     proposal = model == "proposal" and kind in ("ce", "final")
@@ -195,7 +209,8 @@ def stage_cost(
     rollouts = n * (c.ams_rollouts if kind == AMS_STAGE else c.tilt_rollouts if tilt else 1.0)
     blocks = max(1, math.ceil(n / POOL_BLOCK))  # a large batch is simulated block by block, each its steps
     simulate = n_steps * (per_step * blocks + per_rollout * rollouts)
-    simulate /= pool_workers(cfg.execution, n, simulate)  # worker processes share a large batch
+    workers = pool_workers(cfg.execution, n, simulate * speed)  # worker processes share a large batch
+    simulate /= 1.0 + (workers - 1) * c.pool_gain
     simulate += c.tilt_solve_s if tilt and stage == 1 else 0.0
     cap = math.inf if cfg.adaptive.fit_rows is None else float(cfg.adaptive.fit_rows)
     inputs = cfg.adaptive.proposal_inputs
@@ -216,11 +231,29 @@ def stage_cost(
     return StageCost(simulate, fit)
 
 
+def pilot_seconds(cfg: ExperimentConfig, n: int, n_steps: int = N_STEPS, c: CostConstants = COST) -> float:
+    """The CPU seconds the model expects ``n`` plain rollouts of ``cfg``'s scene (:func:`stage_cost` of a plain final
+    batch), drawn alone, to take at the speed its constants hold: their model seconds times the scene's ``probe`` part
+    (:data:`pemviz.settings.SCENARIO_COST_PARTS`), else :attr:`CostConstants.probe_share`."""
+    share = SCENARIO_COST_PARTS.get(cfg.scenario, {}).get("probe", c.probe_share)
+    return stage_cost(cfg, "final", n, n_steps, c, model="plain").simulate_s * share
+
+
+def pilot_speed(cfg: ExperimentConfig, pilot: list[tuple[int, float]], n_steps: int = N_STEPS) -> float:
+    """How many times the model's CPU seconds a run of ``cfg`` takes here now, its share of the CPUs left out
+    (:func:`pemviz.engine.resources.load_slowdown` adds it): the median over ``pilot``'s batches of plain rollouts of
+    the run's scene (``(rollouts, CPU seconds)``, :func:`pemviz.engine.experiment.scene_pilot`) of their seconds over
+    :func:`pilot_seconds`; 1 without a pilot (docs/validation.md, "Time estimates")."""
+    if not pilot:
+        return 1.0
+    return statistics.median(seconds / max(pilot_seconds(cfg, n, n_steps), 1e-12) for n, seconds in pilot)
+
+
 def plan_costs(
-    cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, c: CostConstants = COST
+    cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, c: CostConstants = COST, speed: float = 1.0
 ) -> dict[int, StageCost]:
-    """Stage number -> :func:`stage_cost` of each stage of ``plan``."""
-    return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage) for s in plan.stages}
+    """Stage number -> :func:`stage_cost` of each stage of ``plan`` (``speed``: as there)."""
+    return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, speed=speed) for s in plan.stages}
 
 
 def then_adds(cfg: ExperimentConfig, simulations: int) -> tuple[int, str]:
@@ -292,14 +325,22 @@ def follow_on(cfg: ExperimentConfig, plan: RunPlan, problem: Any = None) -> Foll
 
 
 def follow_on_seconds(
-    cfg: ExperimentConfig, follow: FollowOn, n_steps: int = N_STEPS, look_ahead_s: float = 0.0, c: CostConstants = COST
+    cfg: ExperimentConfig,
+    follow: FollowOn,
+    n_steps: int = N_STEPS,
+    look_ahead_s: float = 0.0,
+    c: CostConstants = COST,
+    speed: float = 1.0,
 ) -> float:
     """The model's seconds of all of ``follow``: the retry's stages (:func:`stage_cost`, each rollout's look-ahead
-    ``look_ahead_s`` added) and ``plain_most`` plain rollouts (``stage_cost`` of a ``plain`` final batch)."""
+    ``look_ahead_s`` added) and ``plain_most`` plain rollouts (``stage_cost`` of a ``plain`` final batch; ``speed``:
+    as there)."""
     again = 0.0
     for s in () if follow.retry is None else follow.retry.stages:
-        again += stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage).seconds + s.n_rollouts * look_ahead_s
-    plain = stage_cost(cfg, "final", follow.plain_most, n_steps, c, model="plain").seconds if follow.plain_most else 0
+        cost = stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, speed=speed)
+        again += cost.seconds + s.n_rollouts * look_ahead_s
+    most = follow.plain_most
+    plain = stage_cost(cfg, "final", most, n_steps, c, model="plain", speed=speed).seconds if most else 0.0
     return again + plain
 
 
@@ -346,7 +387,7 @@ def duration_text(seconds: float) -> str:
 LOAD_DRIFT = 0.4
 """How much longer than its first estimate a run on a loaded machine may take, nothing following its stages, as a
 share: the estimate is the model's seconds times the load read over a fraction of a second at the start
-(:func:`pemviz.engine.resources.load_slowdown`), whose CPU-speed probe drifts by 10-40 % within seconds, and whose
+(:func:`pemviz.engine.resources.load_slowdown`), whose speed reading drifts by 10-40 % within seconds, and whose
 sharing moves as the other sessions' jobs start and end. A run with one stage and nothing after it took 0.75-1.30
 times its first estimate in 9 runs at load average 4-15 (e.g. the cut-in's tilt) where its CPU seconds were the
 model's times the probe's reading (the Validation page, "Time estimates")."""
@@ -424,23 +465,25 @@ def run_cost(
     c: CostConstants = COST,
     look_ahead_s: float = 0.0,
     problem: Any = None,
+    speed: float = 1.0,
 ) -> RunCost:
     """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, and the seconds of ``plan``
     (the sum of :func:`stage_cost`, each rollout's look-ahead ``look_ahead_s`` added, as
     :class:`pemviz.sinks.StageClock` adds it; an open-ended plan counts its first stage only) and of what may follow
-    it (:func:`follow_on` on ``problem``, :func:`follow_on_seconds`; ``problem`` None: whatever the scene).
+    it (:func:`follow_on` on ``problem``, :func:`follow_on_seconds`; ``problem`` None: whatever the scene), in the
+    model's seconds (``speed``: as :func:`stage_cost` takes it).
 
     A stage above ``stream_above`` rollouts (:data:`pemviz.engine.experiment.STREAM_ABOVE`) is simulated in chunks, so
     it does not count in full towards memory. The memory is the run's memory check's model
     (:func:`pemviz.engine.resources.run_memory`, :data:`pemviz.engine.resources.BYTES_PER_ROLLOUT_STEP`) without the
     process's own :data:`pemviz.engine.resources.BASE_BYTES`: one model of a step's bytes for both.
     """
-    seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c).values())
+    seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c, speed).values())
     seconds += look_ahead_s * sum(s.n_rollouts for s in plan.stages)
     batch = run_memory(plan, n_steps, cfg.adaptive.quantile_level, stream_above=stream_above) - BASE_BYTES
     follow = follow_on(cfg, plan, problem)
     if follow is None:
         return RunCost(int(cfg.n_simulations), int(batch), float(seconds), cfg.method_record.run_adds)
-    then_s = follow_on_seconds(cfg, follow, n_steps, look_ahead_s, c)
+    then_s = follow_on_seconds(cfg, follow, n_steps, look_ahead_s, c, speed)
     sims, adds = int(cfg.n_simulations), cfg.method_record.run_adds
     return RunCost(sims, int(batch), float(seconds), adds, follow.simulations, then_s, follow.words)

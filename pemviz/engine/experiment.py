@@ -351,28 +351,53 @@ own on the shipped scenes with objects (e.g. 0.063 vs 0.066 ms on the crossing, 
 over-estimate it 3 times (each step's fixed cost spread over fewer rollouts)."""
 
 PROBE_PILOT, PROBE_BUDGET_S = 50, 1.0
-""":func:`plain_probe` first times this many rollouts; where they say the whole probe would take more than this many
-seconds (a simulator whose cost is per rollout, not per batched step, e.g. highway-env's: 1,000 of its rollouts take
-13-15 CPU seconds), their own seconds a rollout are the answer."""
+""":func:`plain_probe` and :func:`scene_pilot` first time this many rollouts (the first also warms the simulator up);
+where they say the probe would take more than this many seconds (a simulator whose cost is per rollout, not per
+batched step, e.g. highway-env's: 1,000 of its rollouts take 13-15 CPU seconds), their own seconds are the answer."""
+
+
+PILOT_ROLLOUTS, PILOT_BATCHES = 50, 4
+""":func:`scene_pilot` times this many batches of this many plain rollouts (mostly each step's fixed cost, as a
+stage of 100 rollouts; on a loaded machine twelve batches of 100 rollouts of the reference scene in a row spread by
+3-12 % of their mean, of 645 by 22-28 %), whose median reading prices the run."""
+
+
+def _timed_plain(problem: Problem, sizes: Iterable[int], clock: Any) -> list[tuple[int, float]]:
+    """``(n, seconds)`` of each batch of plain rollouts of ``problem`` timed by ``clock`` (``time.perf_counter`` or
+    ``time.thread_time``), of ``sizes`` in turn, each drawn from its target on a stream of its own (seed 0: the run's
+    streams are untouched) with BLAS on one thread; the batches after one whose rate says a batch would take more than
+    :data:`PROBE_BUDGET_S` seconds are not drawn."""
+    from threadpoolctl import threadpool_limits
+
+    timed: list[tuple[int, float]] = []
+    with threadpool_limits(1, user_api="blas"):
+        for size in sizes:
+            if timed and timed[-1][1] / timed[-1][0] * size > PROBE_BUDGET_S:
+                break
+            t0 = clock()
+            problem.simulate(size, problem.target, problem.target, np.random.default_rng(0))
+            timed.append((size, clock() - t0))
+    return timed
 
 
 def plain_probe(problem: Problem, config: ExperimentConfig, estimate: Estimate) -> float | None:
     """Seconds a plain rollout of ``problem`` takes here now: :data:`PLAIN_PROBE` rollouts of its target drawn and
-    timed (a stream of their own, seed 0: the run's streams are untouched), where the run's advice will size plain Monte
-    Carlo (its verdict is not ``reliable`` and its method is not ``mc``, whose own speed is measured); else None. A
-    run's own seconds a simulation hold what its method adds (fits, look-aheads, replayed prefixes): up to 10 times a
-    plain rollout's. A pilot of :data:`PROBE_PILOT` rollouts comes first: where the probe would take more than
+    timed (:func:`_timed_plain`: a stream of their own, seed 0), where the run's advice will size plain Monte Carlo (its
+    verdict is not ``reliable`` and its method is not ``mc``, whose own speed is measured); else None. A run's own
+    seconds a simulation hold what its method adds (fits, look-aheads, replayed prefixes): up to 10 times a plain
+    rollout's. A pilot of :data:`PROBE_PILOT` rollouts comes first: where the probe would take more than
     :data:`PROBE_BUDGET_S` seconds at its rate, the pilot's rate is the answer."""
     if estimate.verdict == "reliable" or config.method_record.plain:
         return None
-    from threadpoolctl import threadpool_limits
+    n, seconds = _timed_plain(problem, (PROBE_PILOT, PLAIN_PROBE), time.perf_counter)[-1]
+    return seconds / n
 
-    with threadpool_limits(1, user_api="blas"):
-        per = None
-        for n in (PROBE_PILOT, PLAIN_PROBE):
-            t0 = time.perf_counter()
-            problem.simulate(n, problem.target, problem.target, np.random.default_rng(0))
-            per = (time.perf_counter() - t0) / n
-            if per * PLAIN_PROBE > PROBE_BUDGET_S:
-                break
-        return per
+
+def scene_pilot(problem: Problem) -> list[tuple[int, float]]:
+    """The pilot that prices a run on ``problem`` (:func:`pemviz.engine.cost.pilot_speed`): ``(rollouts, seconds)``
+    of :data:`PILOT_BATCHES` batches of :data:`PILOT_ROLLOUTS` plain rollouts after a warm-up of :data:`PROBE_PILOT`
+    (:func:`_timed_plain`: a stream of their own, seed 0, the run's streams untouched), in this thread's CPU seconds:
+    40-800 ms of CPU in all on the shipped scenes; the warm-up's alone where a batch would take more than
+    :data:`PROBE_BUDGET_S` (e.g. highway-env's rollouts)."""
+    timed = _timed_plain(problem, (PROBE_PILOT,) + (PILOT_ROLLOUTS,) * PILOT_BATCHES, time.thread_time)
+    return timed[1:] or timed

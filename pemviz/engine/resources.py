@@ -136,7 +136,7 @@ def pool_workers(run: Execution, n: int, seconds: float) -> int:
 
 LOAD_WINDOW_S = 0.25
 """The shortest window over which :func:`load_slowdown` averages the other tasks' runnable time: where the reading
-that opens it (:func:`open_load_window`) is taken earlier (``pemviz run`` takes it before the run's problem is built),
+that opens it (:func:`tasks_now`) is taken earlier (``pemviz run`` takes it before the run's problem is built),
 the run waits for no more than what is left of it."""
 LOAD_WINDOW_MAX_S = 30.0
 """The longest: a reading older than this is not the load the run starts in, and a new window opens."""
@@ -182,21 +182,6 @@ class Competition:
     groups: tuple[tuple[float, float], ...] = ()
     inside: float = 0.0
     inside_tasks: float = 0.0
-
-
-@dataclasses.dataclass(frozen=True)
-class LoadWindow:
-    """Where :func:`load_slowdown` opens the window it reads the load over (:func:`open_load_window`).
-
-    Attributes:
-        at: when (``time.perf_counter`` seconds).
-        tasks: the other tasks' times then (:func:`tasks_now`; None where they cannot be read).
-        speed: :func:`cpu_speed` of half :data:`PROBE_PIECES` then (the other half is run when the window closes).
-    """
-
-    at: float
-    tasks: TaskTimes | None
-    speed: float
 
 
 def _autogroup(pid: str) -> tuple[str, int] | None:
@@ -298,68 +283,31 @@ def crowding(c: Competition, cpus: int, threads: int = 1) -> float:
     return max(1.0, (threads + c.inside) / max(got, 1e-12))
 
 
-PROBE_PIECES = 400
-"""Pieces of arithmetic :func:`cpu_speed` times (each a few array operations on 1,000 x 100 floats in place, as a
-simulation step of a batch does)."""
-PROBE_REFERENCE_CPU_S = 0.0236
-"""The CPU seconds of :data:`PROBE_PIECES` pieces at the speed the cost model's constants hold
-(:data:`pemviz.engine.cost.COST`): 200 pieces' CPU seconds beside other runs (e.g. braking and cut-in ones), divided by
-those runs' CPU seconds over the model's (32-48 ms at 3.0-3.9 times the model's on 2 loaded cores, 2026-11-29:
-10.4-13.5 ms, the median 11.8 ms per 200)."""
-
-
-def cpu_speed(pieces: int = PROBE_PIECES) -> float:
-    """How many times the CPU seconds the cost model gives a run's arithmetic takes now: the CPU seconds of ``pieces``
-    pieces of array arithmetic over :data:`PROBE_REFERENCE_CPU_S` (per :data:`PROBE_PIECES`). A CPU second does less
-    where many tasks share a CPU (each time slice starts with caches others filled): on 2 cores with 9-11 runnable
-    tasks a run's CPU seconds were 3.0-3.9 times the model's, with 5 of them 1.5-2.6 times; no count of tasks says by
-    how much, so it is measured. About 25 ms of CPU on an idle machine."""
-    import numpy as np
-
-    a = np.random.default_rng(0).random((1000, 100))
-    buf, row = np.empty_like(a), np.empty(1000)
-    start = time.process_time()
-    for _ in range(max(1, int(pieces))):
-        np.multiply(a, 1.0001, out=buf)
-        np.add(buf, 0.5, out=buf)
-        np.minimum(buf, 0.9, out=buf)
-        np.log1p(buf.sum(axis=1, out=row), out=row)
-    return (time.process_time() - start) / (PROBE_REFERENCE_CPU_S * max(1, int(pieces)) / PROBE_PIECES)
-
-
-def open_load_window() -> LoadWindow:
-    """Open the window :func:`load_slowdown` reads the load over: the other tasks' times now and half the CPU-speed
-    probe (about 12 ms of CPU on an idle machine)."""
-    at = time.perf_counter()
-    return LoadWindow(at, tasks_now(), cpu_speed(PROBE_PIECES // 2))
-
-
-def load_slowdown(threads: int = 1, since: LoadWindow | None = None) -> float:
-    """How many times longer than the cost model says a run of ``threads`` busy threads will take now, from the
-    machine's load: ``crowding x S``, over a window opened at ``since`` (:func:`open_load_window`, at most
-    :data:`LOAD_WINDOW_MAX_S` old; else now) and at least :data:`LOAD_WINDOW_S` long. The crowding is the wall over the
-    CPU seconds the scheduler's sharing gives the run (:func:`crowding` of the other tasks' runnable time over the
-    window): a time average, where a count of the tasks runnable at five instants in 20 ms priced the same run
-    (a tilted multi-car run) at 5.2-9.8 times the model's while it took 6.3-7.8 times. The 1-minute load average is not
-    blended in: it counts tasks, not the sessions the scheduler shares the CPUs among, and lags by a minute. S is the
-    CPU seconds the run's arithmetic takes now over the model's: :func:`cpu_speed`, half of it when the window opens
-    and half when it closes, the mean (it drifts by 10-40 % within seconds on a loaded machine). Where the tasks' times
-    cannot be read, ``max(1, (L + threads) / C) x S`` with L the 1-minute load average; 1 where neither can. On an idle
-    machine 1; beside two other busy sessions on two CPUs a one-thread run gets two thirds of a CPU, 1.5 (times S)."""
+def load_slowdown(threads: int = 1, since: TaskTimes | None = None, speed: float = 1.0) -> float:
+    """How many times longer than the cost model says a run of ``threads`` busy threads will take now: ``crowding x
+    speed``. The crowding is the wall over the CPU seconds the scheduler's sharing gives the run (:func:`crowding` of
+    the other tasks' runnable time from ``since``, a :func:`tasks_now` reading at most :data:`LOAD_WINDOW_MAX_S` old,
+    else now, over at least :data:`LOAD_WINDOW_S`): a time average, where a count of the tasks runnable at five
+    instants in 20 ms priced the same run (a tilted multi-car run) at 5.2-9.8 times the model's while it took 6.3-7.8
+    times. The 1-minute load average is not blended in: it counts tasks, not the sessions the scheduler shares the CPUs
+    among, and lags by a minute. ``speed``: how many times the model's CPU seconds the run's work takes now, e.g. a
+    pilot of the scene's own rollouts (:func:`pemviz.engine.cost.pilot_speed`). Where the tasks' times cannot be
+    read, ``max(1, (L + threads) / C) x speed`` with L the 1-minute load average; ``speed`` where neither can. On an
+    idle machine ``speed``; beside two other busy sessions on two CPUs a one-thread run gets two thirds of a CPU, 1.5
+    times it."""
     fresh = since is not None and time.perf_counter() - since.at <= LOAD_WINDOW_MAX_S
-    opening = since if since is not None and fresh else open_load_window()
-    speed = (opening.speed + cpu_speed(PROBE_PIECES - PROBE_PIECES // 2)) / 2
+    opening = since if fresh else tasks_now()
     cpus = usable_cpus()
-    if opening.tasks is not None:
+    if opening is not None:
         time.sleep(max(0.0, LOAD_WINDOW_S - (time.perf_counter() - opening.at)))
         last = tasks_now()
         if last is not None:
-            return max(1.0, crowding(competition(opening.tasks, last), cpus, threads) * speed)
+            return crowding(competition(opening, last), cpus, threads) * speed
     try:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):
-        return 1.0
-    return max(1.0, max(1.0, (float(load) + threads) / cpus) * speed)
+        return speed
+    return max(1.0, (float(load) + threads) / cpus) * speed
 
 
 def cap_jobs(jobs: int, say: Callable[[str], object] | None = None) -> int:

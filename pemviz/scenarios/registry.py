@@ -39,7 +39,7 @@ def _kind(field: dataclasses.Field) -> str:
     return kind if kind in KINDS else ""
 
 
-COST_PARTS = ("step", "fit", "torch")
+COST_PARTS = ("step", "fit", "torch", "probe")
 """The parts of a run's cost a scenario may declare besides its rollout step (:attr:`Scenario.cost_parts`)."""
 
 
@@ -66,7 +66,8 @@ class Scenario:
         cost_factor: the cost of one rollout step relative to the cost model's reference
             (:mod:`pemviz.engine.cost`), > 0 (default 1).
         cost_parts: the relative cost of the scene's other parts, each > 0: ``step`` (a batch's fixed cost per time
-            step), ``fit`` (a proposal's fit), ``torch`` (its fits run on torch); empty: none.
+            step), ``fit`` (a proposal's fit), ``torch`` (its fits run on torch), ``probe`` (its pilot of plain
+            rollouts against its run, :func:`pemviz.engine.cost.pilot_seconds`); empty: none.
         random_params: the parameters that may be drawn per rollout over an operating design domain (``--param
             NAME~DIST``, :mod:`pemviz.scenarios.odd`); empty: none.
         odd: ``odd(config, params, odd) -> Problem``: the problem over the ODD (:class:`pemviz.core.odd.ODD`) of the
@@ -384,10 +385,11 @@ ones: 20,000 plain rollouts' CPU seconds against the model's, 4.1 and 5.7 times 
 over the factor the model gives each, measured on 2 loaded cores (their median, 4.1; ``benchmarks/time_estimates.py``
 checks it)."""
 
-_CROSSING_COST_PARTS = {"step": 9.0, "fit": 1.55, "torch": 1.0}
+_CROSSING_COST_PARTS = {"step": 9.0, "fit": 1.55, "torch": 1.0, "probe": 0.81}
 """A crossing batch's time step costs 9 braking ones whatever its size (two tracked pedestrians, the noise PEM's
 errors, the measurement-error head on torch), its fits 1.55 braking's; its first fit imports torch
-(``benchmarks/calibrate_cost.py --parts``, docs/validation.md)."""
+(``benchmarks/calibrate_cost.py --parts``, docs/validation.md). Its pilot of plain rollouts takes 0.81 times the
+model's CPU seconds where its run takes the model's, a cut-in's 3.84 (``benchmarks/calibrate_cost.py --probe``)."""
 
 
 def _cut_in(name: str, rarity: str, defaults: str, **more: Any) -> Scenario:
@@ -402,6 +404,7 @@ def _cut_in(name: str, rarity: str, defaults: str, **more: Any) -> Scenario:
         defaults=f"pemviz.scenarios.cut_in.scenario:{defaults}",
         drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing",
         cost_factor=_CUT_IN_COST_FACTOR,
+        cost_parts={"probe": 3.84},
         random_params=("cut_in_gap_m",),
         odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
         n_objects=5,

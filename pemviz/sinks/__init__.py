@@ -21,13 +21,14 @@ from pemviz.engine.cost import (
     StageCost,
     follow_on,
     mc_rollouts,
+    pilot_speed,
     stage_cost,
     with_drift,
 )
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
-    from pemviz.engine.resources import LoadWindow
+    from pemviz.engine.resources import TaskTimes
 
 MAX_SCALE = 20.0
 """The most a :class:`StageClock` scales a prediction by (either way): a first stage slowed by a one-off start
@@ -87,9 +88,9 @@ class StageClock(Sink):
     (:func:`pemviz.engine.cost.plan_costs`). As stages end the clock measures both and scales what is left by
     measured / predicted, separately: simulating over every stage, what follows per kind of stage. Before any stage
     the predictions are scaled by the machine's load (``slowdown()``, default
-    :func:`pemviz.engine.resources.load_slowdown`). What may follow the planned stages
-    (:func:`pemviz.engine.cost.follow_on`) gives the upper end, :meth:`run_most_s`; plain Monte Carlo's remaining
-    rollouts are those its precision target needs at the failure rate seen so far
+    :func:`pemviz.engine.resources.load_slowdown` of :attr:`speed`, a pilot of the scene's rollouts). What may follow
+    the planned stages (:func:`pemviz.engine.cost.follow_on`) gives the upper end, :meth:`run_most_s`; plain Monte
+    Carlo's remaining rollouts are those its precision target needs at the failure rate seen so far
     (:func:`pemviz.engine.cost.mc_rollouts`), at most the cap.
 
     Attributes:
@@ -112,13 +113,19 @@ class StageClock(Sink):
         self.load = 1.0
         """The machine's load at the run's start as a slowdown (:func:`pemviz.engine.resources.load_slowdown`): the
         scale of every prediction before the run has measured its own speed."""
-        self.load_since: LoadWindow | None = None
-        """Where the window the load is read over opens (:func:`pemviz.engine.resources.open_load_window`): when the
-        clock is made, or earlier where its maker sets it (``pemviz run``: before the run's problem is built)."""
+        self.load_since: TaskTimes | None = None
+        """Where the window the load is read over opens (:func:`pemviz.engine.resources.tasks_now`): when the clock is
+        made, or earlier where its maker sets it (``pemviz run``: before the run's problem is built)."""
+        self.pilot: list[tuple[int, float]] = []
+        """The pilot of the scene's rollouts its maker timed before the run (:func:`pemviz.engine.experiment.
+        scene_pilot`), which sets :attr:`speed` at the run's start; none: the model's speed."""
+        self.speed = 1.0
+        """How many times the model's CPU seconds the run's work takes here now (:func:`pemviz.engine.cost.
+        pilot_speed` of :attr:`pilot`)."""
         if slowdown is None:
-            from pemviz.engine.resources import open_load_window
+            from pemviz.engine.resources import tasks_now
 
-            self.load_since = open_load_window()
+            self.load_since = tasks_now()
         self.t0 = self.stage_t0 = now()
         self.sampled_t: float | None = None
         self.plan: RunPlan | None = None
@@ -138,13 +145,15 @@ class StageClock(Sink):
         self.t0 = self.stage_t0 = self.now()
         self.sampled_t, self.current, self.done = None, None, []
         self.plan = event.plan
+        self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
+        if self.pilot:
+            self.speed = pilot_speed(event.config, self.pilot, self._n_steps)
         if self._slowdown is None:
             from pemviz.engine.resources import load_slowdown
 
-            self.load = load_slowdown(since=self.load_since)
+            self.load = load_slowdown(since=self.load_since, speed=self.speed)
         else:
             self.load = float(self._slowdown())
-        self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
         self._look_ahead_s = float(event.problem.look_ahead_s)
         # an open-ended plan's added batches follow its last stage: no time is said for it (run_left_s)
         self.follow = None if event.plan.open_ended else follow_on(event.config, event.plan, event)
@@ -224,10 +233,11 @@ class StageClock(Sink):
             return StageCost(math.nan, math.nan)
         phase = "plan" if stage is None else self.phase(stage)
         if phase == "plain":
-            return stage_cost(self._config, "final", n_rollouts, self._n_steps, self.constants, model="plain")
+            c = self.constants
+            return stage_cost(self._config, "final", n_rollouts, self._n_steps, c, model="plain", speed=self.speed)
         if phase == "retry" and stage is not None:
             stage -= self._last + 1
-        cost = stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage)
+        cost = stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage, speed=self.speed)
         if self._look_ahead_s > 0.0:  # the problem's look-ahead: the estimator weighs the rollouts before they are out
             cost = StageCost(cost.simulate_s + n_rollouts * self._look_ahead_s, cost.after_s)
         return cost

@@ -1,14 +1,17 @@
 """Time predictions on a loaded machine: the CPU share a run gets from the other tasks' runnable time (Linux's
-autogroups: a session's tasks split its share), hand-computed, and the console's first prediction and the panel's cost
-line scaled by it before anything is measured."""
+autogroups: a session's tasks split its share), hand-computed; the speed a pilot of the scene's own rollouts reads;
+and the console's first prediction and the panel's cost line scaled by both before anything is measured."""
 
 from __future__ import annotations
 
 import io
+import types
 
+import numpy as np
 import pytest
 from pemviz.engine import resources
 from pemviz.engine.resources import Competition, TaskTimes, competition, crowding
+from pemviz.settings import SCENARIO_COST_PARTS
 
 NICE5 = 1.25**-5  # a session at autogroup nice 5 against this one at 0: 1024 / 1.25^5 of 1024 (sched_prio_to_weight)
 
@@ -85,50 +88,89 @@ def test_the_competition_is_each_thread_s_runnable_share_of_the_window_summed_pe
     assert c.inside_tasks == pytest.approx(1.0 + 0.2 + 0.75 + 1.0 + 0.02)
 
 
-def test_the_slowdown_is_the_crowding_times_the_cpu_speed_over_the_window(monkeypatch):
+def test_the_slowdown_is_the_crowding_times_the_speed_over_the_window(monkeypatch):
     s = 1_000_000_000
     two = {"31": ("/autogroup-2", 0, 0, 0), "41": ("/autogroup-3", 0, 0, 0)}
     busy = {k: (*v[:3], s // 4) for k, v in two.items()}  # both runnable throughout the 0.25 s
     readings = iter([_times(100.0, two), _times(100.25, busy)])
-    speeds = iter([2.0, 4.0])  # the probe's two halves: S their mean, 3
     slept: list[float] = []
     monkeypatch.setattr(resources, "tasks_now", lambda: next(readings))
     monkeypatch.setattr(resources, "usable_cpus", lambda: 2)
-    monkeypatch.setattr(resources, "cpu_speed", lambda pieces=0: next(speeds))
     monkeypatch.setattr(resources.time, "perf_counter", lambda: 100.1)
     monkeypatch.setattr(resources.time, "sleep", slept.append)
-    # two other busy sessions on two CPUs: (2 + 1) / 2 = 1.5, times 3 the CPU seconds
-    assert resources.load_slowdown() == pytest.approx(4.5)
-    assert slept == [pytest.approx(resources.LOAD_WINDOW_S)]  # the window opened at 100.1 (perf_counter, patched)
-    # a window opened earlier: no wait where it is already longer; its half of the probe counts
-    early = resources.LoadWindow(99.0, _times(99.0, {"31": ("/autogroup-2", 0, 0, 0)}), 1.0)
+    # two other busy sessions on two CPUs: (2 + 1) / 2 = 1.5, times the speed 3
+    assert resources.load_slowdown(speed=3.0) == pytest.approx(4.5)
+    assert slept == [pytest.approx(resources.LOAD_WINDOW_S - 0.1)]  # opened at 100.0, now 100.1 (patched)
+    # a window opened earlier: no wait where it is already longer
+    early = _times(99.0, {"31": ("/autogroup-2", 0, 0, 0)})
     readings = iter([_times(100.1, {"31": ("/autogroup-2", 0, 0, 0)})])
-    speeds = iter([5.0])
     slept.clear()
-    assert resources.load_slowdown(since=early) == pytest.approx(3.0)  # asleep throughout: the run alone, x (1 + 5) / 2
+    assert resources.load_slowdown(since=early, speed=2.5) == pytest.approx(2.5)  # asleep throughout: the run alone
     assert slept == [0.0]
     # one older than LOAD_WINDOW_MAX_S is not used: a new window opens
-    stale = resources.LoadWindow(100.1 - resources.LOAD_WINDOW_MAX_S - 1.0, early.tasks, 100.0)
+    stale = _times(100.1 - resources.LOAD_WINDOW_MAX_S - 1.0, early.tasks)
     readings = iter([_times(99.9, two), _times(100.1, {k: (*v[:3], s) for k, v in two.items()})])
-    speeds = iter([3.0, 3.0])
-    assert resources.load_slowdown(since=stale) == pytest.approx(4.5)  # both busy in the new window: 1.5 x 3
-    assert next(readings, None) is None and next(speeds, None) is None  # both readings and probes were taken
+    assert resources.load_slowdown(since=stale) == pytest.approx(1.5)  # both busy in the new window; speed 1
+    assert next(readings, None) is None  # both readings were taken
 
 
 def test_the_slowdown_falls_back_to_the_load_average(monkeypatch):
     monkeypatch.setattr(resources, "tasks_now", lambda: None)
     monkeypatch.setattr(resources.os, "getloadavg", lambda: (5.0, 1.0, 1.0))
     monkeypatch.setattr(resources, "usable_cpus", lambda: 2)
-    monkeypatch.setattr(resources, "cpu_speed", lambda pieces=0: 1.0)
-    assert resources.load_slowdown() == pytest.approx(3.0)  # (5 + 1) / 2, the 1-minute average where nothing better
+    assert resources.load_slowdown(speed=2.0) == pytest.approx(6.0)  # (5 + 1) / 2 x 2: the 1-minute average
 
 
-def test_the_cpu_speed_is_the_probe_s_cpu_seconds_over_its_reference(monkeypatch):
-    ticks = iter([10.0, 10.0 + 2 * resources.PROBE_REFERENCE_CPU_S])  # the probe took twice its reference
-    monkeypatch.setattr(resources.time, "process_time", lambda: next(ticks))
-    assert resources.cpu_speed() == pytest.approx(2.0, rel=1e-12)
-    ticks = iter([0.0, resources.PROBE_REFERENCE_CPU_S / 2])  # half the pieces in half the reference: as fast
-    assert resources.cpu_speed(resources.PROBE_PIECES // 2) == pytest.approx(1.0, rel=1e-12)
+def test_the_scene_s_speed_is_its_pilot_s_cpu_seconds_over_the_model_s(monkeypatch):
+    """A fake scene whose pilot batches cost 2, 9, 2.5 and 3 times what the model expects of them (the pilot's share
+    included) reads 2.75, their median: the warm-up of 50 (10 times) is not counted; each batch is drawn on a fresh
+    seed-0 stream, and timed in this thread's CPU seconds."""
+    from pemviz.config import ExperimentConfig
+    from pemviz.engine import cost, experiment
+    from pemviz.scenarios.problems import build_problem
+
+    cfg, n = ExperimentConfig.of(), experiment.PILOT_ROLLOUTS
+    # what the model expects of a batch at braking's share (COST.probe_share), fixed before a share is declared; by
+    # hand: 50 rollouts, 100 x (7.19e-5 + 50 x 3.53e-7) = 0.008955 s of the model, times the share
+    expected = cost.pilot_seconds(cfg, n, 100)
+    assert expected == pytest.approx(0.008955 * cost.COST.probe_share, rel=1e-12)
+    clock, asked = [0.0], []
+    factors = [10.0, 2.0, 9.0, 2.5, 3.0]  # the warm-up, then the pilot's four batches
+    problem = build_problem("toy")
+    first_draw = np.random.default_rng(0).random(3)
+
+    def simulate(k, sampler, target, rng):
+        assert np.array_equal(rng.random(3), first_draw)  # a fresh stream of its own, seed 0
+        clock[0] += factors[len(asked)] * expected * k / n
+        asked.append(k)
+
+    fake = types.SimpleNamespace(n_steps=100, target=problem.target, simulate=simulate)
+    monkeypatch.setattr(experiment.time, "thread_time", lambda: clock[0])
+    pilot = experiment.scene_pilot(fake)
+    assert asked == [experiment.PROBE_PILOT] + [n] * experiment.PILOT_BATCHES
+    assert [k for k, _ in pilot] == [n] * 4 and [s for _, s in pilot] == pytest.approx(
+        [f * expected for f in factors[1:]]
+    )
+    assert cost.pilot_speed(cfg, pilot, 100) == pytest.approx(2.75, rel=1e-12)
+    assert cost.pilot_speed(cfg, [], 100) == 1.0  # no pilot: the model's speed
+    # a scene whose pilot runs twice as long against its run as the reference's (its declared probe part): 1.375
+    monkeypatch.setitem(SCENARIO_COST_PARTS, "braking", {"probe": 2.0 * cost.COST.probe_share})
+    assert cost.pilot_speed(cfg, pilot, 100) == pytest.approx(1.375, rel=1e-12)
+
+
+def test_the_pilot_leaves_the_run_s_streams_as_they_were():
+    """The same seed gives the same run, bit for bit, with the pilot drawn on its problem before it and without."""
+    from pemviz.config import ExperimentConfig
+    from pemviz.engine.experiment import Experiment, scene_pilot
+    from pemviz.scenarios.problems import build_problem
+
+    cfg = ExperimentConfig.of(scenario="toy", n_stages=2, n_per_stage=40, n_final=60, pretrain_rollouts=20, seed=3)
+    alone = Experiment(cfg, problem=build_problem("toy")).run()
+    problem = build_problem("toy")
+    assert len(scene_pilot(problem)) == 4
+    probed = Experiment(cfg, problem=problem).run()
+    a, b = alone.final.estimate, probed.final.estimate
+    assert (a.n, a.n_failures, a.log_mu_hat, a.ess) == (b.n, b.n_failures, b.log_mu_hat, b.ess)
 
 
 def test_the_panels_cost_line_scales_by_the_load():

@@ -70,9 +70,9 @@ def test_a_batch_goes_to_the_pool_only_from_two_blocks_that_pay_for_its_start():
     assert not ex._pays(10, 1.9) and ex._pays(10, 2.0)  # 20 CPU seconds left: resources.POOL_PAYS_S
 
 
-def test_the_first_time_estimate_divides_a_pooled_batch_s_simulation_by_the_workers_used():
+def test_the_first_time_estimate_divides_a_pooled_batch_s_simulation_by_what_the_workers_add():
     from pemviz.core.rng import RQMC_BLOCK
-    from pemviz.engine.cost import stage_cost
+    from pemviz.engine.cost import COST, stage_cost
     from pemviz.engine.resources import POOL_BLOCK, pool_workers
 
     assert POOL_BLOCK == RQMC_BLOCK
@@ -87,9 +87,17 @@ def test_the_first_time_estimate_divides_a_pooled_batch_s_simulation_by_the_work
     assert pool_workers(ExperimentConfig.of(executor="serial").execution, 10**6, 99.0) == 1
     assert pool_workers(ExperimentConfig.of().execution, 10**6, 99.0) == usable_cpus()
     a, b = (stage_cost(cfg, "final", 10**6, model="plain") for cfg in (one, two))
-    assert b.simulate_s == pytest.approx(a.simulate_s / 2, rel=1e-12) and b.after_s == a.after_s
+    # a second worker adds COST.pool_gain (0.5) of one process's speed: 1.5 times as fast, not 2
+    assert b.simulate_s == pytest.approx(a.simulate_s / (1 + COST.pool_gain), rel=1e-12) and b.after_s == a.after_s
     small = [stage_cost(cfg, "final", 2100, model="plain").simulate_s for cfg in (one, two)]
     assert small[0] == small[1]
+    # a batch whose model seconds are under the pool's 20 s, on a machine that runs it 2 times slower: pooled
+    mid = 500_000  # 13.7 model seconds of braking's plain rollouts
+    base = stage_cost(one, "final", mid, model="plain").simulate_s
+    assert base < 20.0 <= 2.0 * base
+    assert stage_cost(two, "final", mid, model="plain").simulate_s == base
+    slow = stage_cost(two, "final", mid, model="plain", speed=2.0).simulate_s
+    assert slow == pytest.approx(base / (1 + COST.pool_gain), rel=1e-12)  # the model's seconds, the pool's share
 
 
 def test_pooled_blocks_and_streamed_chunks_are_the_serial_rollouts_and_leave_the_rng_where_it_would_be(monkeypatch):
