@@ -501,7 +501,8 @@ def draw_step(
     if n_objects == 1:
         u_detect = step_uniforms(u_detect, sampler, q_logit, rows, block)
     ls_q = log_expit(q_logit)
-    detected = np.less_equal(libm.log(u_detect, out=u_detect), ls_q)  # u <= sigmoid(logit) <=> log u <= log_expit(logit)
+    # u <= sigmoid(logit) <=> log u <= log_expit(logit); libm's log: the same draw on every CPU
+    detected = np.less_equal(libm.log(u_detect, out=u_detect), ls_q)
     if forced is not None:
         np.copyto(detected, forced[0], where=forced[2])
     log_q = action_log_prob_into(q_logit, detected, ls_q, np.empty(rows.shape[0]))

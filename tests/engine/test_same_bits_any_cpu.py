@@ -76,3 +76,30 @@ def test_a_crossing_run_has_the_same_bits_with_and_without_numpy_s_avx512_loops(
     assert set(found["numpy"]) >= set(avx512_in_use()) and not set(without["numpy"]) & set(WITHOUT_AVX512.split())
     assert found["sizes"] == without["sizes"] and min(found["sizes"].values()) > 0, found["sizes"]
     assert found["digests"] == without["digests"]
+
+
+def test_the_libm_functions_give_python_s_math_bits():
+    # Python's math module calls the C library's log, exp and log1p: pemviz.core.libm must give those bits on every
+    # value, the edges included (numpy's AVX-512 loops differ on a few per cent of these)
+    import math
+
+    import numpy as np
+    from pemviz.core import libm
+
+    rng = np.random.default_rng(0)
+    positive = np.concatenate([rng.uniform(0.0, 1.0, 20_000), np.exp(rng.uniform(-700.0, 700.0, 20_000)), [5e-324]])
+    assert libm.log(positive).tolist() == [math.log(v) for v in positive]
+    x = np.concatenate([rng.uniform(-745.0, 709.0, 20_000), rng.normal(0.0, 3.0, 20_000)])
+    assert libm.exp(x).tolist() == [math.exp(v) for v in x]
+    t = np.concatenate([rng.uniform(-1.0, 1.0, 20_000), np.exp(rng.uniform(-40.0, 40.0, 20_000))])
+    assert libm.log1p(t).tolist() == [math.log1p(v) for v in t]
+    with np.errstate(all="ignore"):
+        edges = (
+            libm.log(np.array([0.0, -1.0, np.inf])),
+            libm.exp(np.array([-800.0, 800.0])),
+            libm.log1p(np.array([-1.0])),
+        )
+    assert edges[0][0] == -np.inf and np.isnan(edges[0][1]) and edges[0][2] == np.inf
+    assert edges[1].tolist() == [0.0, np.inf] and edges[2].tolist() == [-np.inf]
+    u = np.array([0.25, 0.5])
+    assert libm.log(u, out=u) is u and u.tolist() == [math.log(0.25), math.log(0.5)]
