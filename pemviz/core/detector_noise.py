@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from pemviz.core import exact
+from pemviz.core import exact, libm
 from pemviz.core.exact import row_sum
 from pemviz.core.t_quantile import student_t_quantile
 
@@ -41,7 +41,7 @@ def standard_quantile(family: str, df: np.ndarray | None, u: np.ndarray) -> np.n
         return ndtri(u)
     if family == "laplace":  # log 2u below the median, -log 2(1 - u) above: no cancellation in either tail
         with np.errstate(divide="ignore"):
-            return np.where(u < 0.5, np.log(2.0 * u), -np.log(2.0 * (1.0 - u)))
+            return np.where(u < 0.5, libm.log(2.0 * u), -libm.log(2.0 * (1.0 - u)))
     nu = np.asarray(df, dtype=np.float64)
     if not (np.all(np.isfinite(nu)) and np.all(nu >= 1.0)):
         return stdtrit(nu, u)
@@ -65,7 +65,7 @@ def standard_log_density(family: str, df: np.ndarray | None, z: np.ndarray) -> n
     if family == "laplace":
         return -np.abs(z) - math.log(2.0)
     nu = np.asarray(df, dtype=np.float64)
-    return _t_log_constant(nu.tobytes(), nu.shape) - (nu + 1.0) / 2.0 * np.log1p(z * z / nu)
+    return _t_log_constant(nu.tobytes(), nu.shape) - (nu + 1.0) / 2.0 * libm.log1p(z * z / nu)
 
 
 @functools.lru_cache(maxsize=64)
@@ -75,7 +75,7 @@ def _t_log_constant(nu_bytes: bytes, shape: tuple[int, ...]) -> np.ndarray:
     from scipy.special import gammaln
 
     nu = np.frombuffer(nu_bytes, dtype=np.float64).reshape(shape)
-    out = gammaln((nu + 1.0) / 2.0) - gammaln(nu / 2.0) - 0.5 * np.log(nu * math.pi)
+    out = gammaln((nu + 1.0) / 2.0) - gammaln(nu / 2.0) - 0.5 * libm.log(nu * math.pi)
     out.flags.writeable = False
     return out
 

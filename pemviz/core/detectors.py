@@ -13,6 +13,7 @@ from typing import Any, Protocol, cast, runtime_checkable
 import numpy as np
 from scipy.special import expit, log_expit
 
+from pemviz.core import libm
 from pemviz.core.detector_noise import (
     ErrorModelOf,
     draw_noise,
@@ -174,7 +175,7 @@ def defensive_logit(q_logit: np.ndarray, eps: float) -> np.ndarray:
     for a in (detect, miss):
         np.multiply(a, 1.0 - eps, out=a)
         np.add(a, eps / 2.0, out=a)
-        np.log(a, out=a)
+        libm.log(a, out=a)
     return np.subtract(detect, miss, out=detect)
 
 
@@ -278,7 +279,7 @@ class StageSamplers:
         near = self.window_rows(obs)
         if near.any():
             a, b = cast(NoiseShifting, self.proposal).noise_shift_of(obs[near])  # has_noise: it has an error head
-            loc_q[near] += np.exp(ls_p[near]) * a
+            loc_q[near] += libm.exp(ls_p[near]) * a
             ls_q[near] += b
         self._noise_obs, self._noise = obs.copy(), (loc_p, ls_p, loc_q, ls_q)
         return self._noise
@@ -308,7 +309,7 @@ class StageSamplers:
         if index == 1 or self.eps <= 0.0:
             return lq
         lp = noise_log_density(t.noise_family, t.noise_df, loc_p, ls_p, noise)
-        return np.logaddexp(np.log1p(-self.eps) + lq, math.log(self.eps) + lp)
+        return np.logaddexp(math.log1p(-self.eps) + lq, math.log(self.eps) + lp)
 
     def describe(self, index: int, proposal: str = "proposal", target: str = "target") -> str:
         """A short name of one of the detectors (0 target, 1 plain, 2 defensive) for the rollout file's sidecar."""
@@ -500,7 +501,8 @@ def draw_step(
     if n_objects == 1:
         u_detect = step_uniforms(u_detect, sampler, q_logit, rows, block)
     ls_q = log_expit(q_logit)
-    detected = np.less_equal(np.log(u_detect, out=u_detect), ls_q)  # u <= sigmoid(logit) <=> log u <= log_expit(logit)
+    # u <= sigmoid(logit) <=> log u <= log_expit(logit); libm's log: the same draw on every CPU
+    detected = np.less_equal(libm.log(u_detect, out=u_detect), ls_q)
     if forced is not None:
         np.copyto(detected, forced[0], where=forced[2])
     log_q = action_log_prob_into(q_logit, detected, ls_q, np.empty(rows.shape[0]))

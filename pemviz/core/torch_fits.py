@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from pemviz.core import libm
 from pemviz.core.fit_settings import CHECK_EVERY, EXACT, LBFGS_TOLERANCE, PLATEAU_EPOCHS, FitOptions, Objective
 from pemviz.core.torch_use import torch_module
 
@@ -113,7 +114,7 @@ def fit_noise_shift(
     max_rows, tolerance, check = options.max_rows, options.tolerance, options.check
     rng = options.rng or np.random.default_rng(0)
     head = proposal.noise_shift
-    w = np.exp(np.asarray(log_w, dtype=np.float64) - np.max(log_w))
+    w = libm.exp(np.asarray(log_w, dtype=np.float64) - np.max(log_w))
     if max_rows is not None and w.size > max_rows:  # systematic resampling in proportion to the weights
         cum = np.cumsum(w)
         picks = np.searchsorted(cum, (rng.random() + np.arange(max_rows)) * (cum[-1] / max_rows), side="right")

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from pemviz.core import libm
 from pemviz.core.fit_settings import FitOptions
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import Proposal, StateProposal, fit_proposal
@@ -287,7 +288,7 @@ def fit_elite_steps(
     """
     if np.shape(actions)[0] == 0:
         return []
-    w = np.exp(np.asarray(log_w, dtype=np.float64) - log_w_max)[None]
+    w = libm.exp(np.asarray(log_w, dtype=np.float64) - log_w_max)[None]
     rows, actions = np.asarray(rows)[None], np.asarray(actions, dtype=bool)[None]
     if not options.summed(int(np.count_nonzero(w)) if n_steps is None else n_steps):
         return _subsampled_fit(proposal, rows, actions, w, options)
