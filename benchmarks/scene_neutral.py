@@ -18,8 +18,8 @@ engine, no recording) over seeds 0 .. K-1 and prints:
 Scenes: the crossing (two pedestrians, a noisy detector, a Kalman tracker, an emergency brake; reference 2.98e-4),
 the crossing at ``brake_ttc_s=1.5`` (the rarity ladder's crossing-1e-4 rung, reference 1.29e-4,
 :data:`CROSSING_1E4_REFERENCE`), the crowd toy with measurement noise (exact), the cut-in (reference 7.95e-5) and the
-cut-in at ``cut_in_gap_m=21`` (reference 3.18e-5 from 7.2 x 10^6 of the engine's plain rollouts, :data:`GAP_21_REFERENCE`), and
-braking (exact 1.98e-15).
+cut-in at ``cut_in_gap_m=21`` (reference 3.18e-5 from 7.2 x 10^6 of the engine's plain rollouts,
+:data:`GAP_21_REFERENCE`), and braking (exact 1.98e-15).
 
 Usage::
 

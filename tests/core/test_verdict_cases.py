@@ -80,6 +80,7 @@ def test_a_run_whose_stages_never_reached_the_failure_level_is_never_reliable():
         ce = types.SimpleNamespace(
             reached_failures=reached,
             config=config,
+            whole_rollouts=config.adaptive.fits_whole_rollouts(config.weights_until_failure),
             _result=lambda: (good, (11,)),
             problem=types.SimpleNamespace(verdict_cap=None),
         )
@@ -100,7 +101,9 @@ def test_the_paper_s_whole_rollout_fit_never_claims_reliable(preset):
 
     good = distinct(np.full(400, -5.0) + np.random.default_rng(0).normal(0, 0.1, 400), np.ones(400, bool))
     cfg = ExperimentConfig.of(**PRESETS[preset])
-    ce = types.SimpleNamespace(reached_failures=True, config=cfg, _result=lambda: (good, (10,)))
+    whole = cfg.adaptive.fits_whole_rollouts(cfg.weights_until_failure)  # as CrossEntropy reads it
+    assert whole
+    ce = types.SimpleNamespace(reached_failures=True, config=cfg, whole_rollouts=whole, _result=lambda: (good, (10,)))
     ce.verdict_cap = CrossEntropy.verdict_cap.fget(ce)
     est = CrossEntropy.result(ce)[0]
     assert est.verdict == "doubtful" and "whole elite rollouts" in est.reason
