@@ -69,6 +69,18 @@ def load_plugins(
         load(f"entry point {ep.name} ({ep.value}) of group {group}", functools.partial(register_entry_point, ep))
 
 
+def check_record(kind: str, name: object, description: object) -> None:
+    """A registry record's name and description (``kind``: ``Method``, ``Scenario``).
+
+    Raises:
+        ValueError: an empty name, a name with spaces around it, or a description of several lines.
+    """
+    if not isinstance(name, str) or not name.strip() or name != name.strip():
+        raise ValueError(f"{kind}: name must be a non-empty text without surrounding spaces, got {name!r}")
+    if not isinstance(description, str) or "\n" in description:
+        raise ValueError(f"{kind} {name}: description must be one line of text")
+
+
 class PluginNotFound(LookupError):
     """A module an environment variable names that is neither in the current folder nor on the Python path."""
 
@@ -158,3 +170,15 @@ class Plugins:
                 f"expected a {self.record.__name__} or a callable that registers {self.kind}s, got "
                 f"{type(obj).__name__}"
             )
+
+    def get(self, name: str) -> Any:
+        """The record registered as ``name``, plugins loaded first.
+
+        Raises:
+            KeyError: no record of that name (the message lists the registered ones); ``error``: a plugin that cannot
+                be loaded.
+        """
+        self.load()
+        if name not in self.registry:
+            raise KeyError(f"no {self.kind} named {name!r}; registered: {', '.join(self.registry)}")
+        return self.registry[name]

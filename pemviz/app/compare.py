@@ -293,6 +293,22 @@ def result_cells(record: PanelRun) -> list[str]:
     ]
 
 
+def result_table(runs: list[PanelRun], rows: tuple[str, ...] = RESULT_ROWS) -> tuple[str, str]:
+    """HTML of a table of ``runs``, a column each: its head (each run's number in its colour) and the result ``rows``
+    (some of :data:`RESULT_ROWS`, :func:`result_cells`)."""
+    head = "".join(
+        f'<th style="color:{run_colour(r.run_id)}">run {r.run_id}{" (pinned)" if r.pinned else ""}</th>' for r in runs
+    )
+    cells = [result_cells(r) for r in runs]
+    body = "".join(
+        f'<tr><th style="text-align:left">{label}</th>'
+        + "".join(f"<td>{html.escape(c[RESULT_ROWS.index(label)])}</td>" for c in cells)
+        + "</tr>"
+        for label in rows
+    )
+    return head, body
+
+
 def differing_settings(runs: list[PanelRun]) -> tuple[list[tuple[str, list[Any]]], int]:
     """``(label, [value per run])`` of each setting whose values differ between ``runs`` (:func:`settings_of`'s order,
     a method of one's own's settings included), and how many settings are the same in every run."""
@@ -323,16 +339,7 @@ def compare_html(runs: list[PanelRun], notes: list[str] | None = None) -> str:
     their colours, and a table of the result rows and the settings that differ between ``runs``."""
     if not runs:
         return ""
-    head = "".join(
-        f'<th style="color:{run_colour(r.run_id)}">run {r.run_id}{" (pinned)" if r.pinned else ""}</th>' for r in runs
-    )
-    cells = [result_cells(r) for r in runs]
-    body = "".join(
-        f'<tr><th style="text-align:left">{label}</th>'
-        + "".join(f"<td>{html.escape(c[i])}</td>" for c in cells)
-        + "</tr>"
-        for i, label in enumerate(RESULT_ROWS)
-    )
+    head, body = result_table(runs)
     differ, same = differing_settings(runs)
     for label, values in differ:
         body += (

@@ -14,12 +14,11 @@ from pemviz.app.form import FIELDS_BY_KEY, NUMBERS, PANEL_ROWS, FormResult, form
 from pemviz.app.host import PanelHost
 from pemviz.app.html import field_error
 from pemviz.app.params_form import MethodSettingsForm, ScenarioParamsForm
-from pemviz.app.runs import PANEL_PRESETS
 from pemviz.config import ExperimentConfig, scene_defaults
 from pemviz.methods import method_names
 from pemviz.pem import shipped_pems
 from pemviz.pem.recipes import DEFAULT_PEM_NAME
-from pemviz.presets import preset_help
+from pemviz.presets import PRESETS, preset_help
 from pemviz.scenarios.registry import registered, scenario_hint
 from pemviz.settings import SETTINGS, SIMULATORS
 
@@ -61,9 +60,9 @@ class ExperimentTab:
 
         self.preset = gui.add_dropdown(
             "preset",
-            tuple(PANEL_PRESETS),
+            tuple(PRESETS),
             initial_value=self.app.preset_name,
-            hint=f"sampler settings: {preset_help(PANEL_PRESETS)}",
+            hint=f"sampler settings: {preset_help(PRESETS)}",
         )
         self.choices: dict[str, Any] = {}
         self.fields: dict[str, viser.GuiTextHandle] = {}
@@ -117,7 +116,7 @@ class ExperimentTab:
     def read_form(self) -> FormResult:
         """Parse what the form holds now (every field, every error)."""
         name = self.preset.value
-        base = self.app.config0 if name == self.app.preset_name else ExperimentConfig.of(**PANEL_PRESETS[name])
+        base = self.app.config0 if name == self.app.preset_name else ExperimentConfig.of(**PRESETS[name])
         choices = self.choice_values()
         params, own = self.params.texts(choices["scenario"]), self.own.texts(choices["method"])
         return parse_form(self.field_texts(), choices, base, params, own)
@@ -149,7 +148,7 @@ class ExperimentTab:
         them, and back to the preset's where it has none; show its parameters; tell whoever built the tab."""
         fields = scene_defaults(scenario)
         if not fields:
-            preset = ExperimentConfig.of(**PANEL_PRESETS.get(self.preset.value, {}))
+            preset = ExperimentConfig.of(**PRESETS.get(self.preset.value, {}))
             fields = {"method": preset.method, "n_per_stage": preset.n_per_stage}
         with self.client.atomic():
             self.choices["method"].value = fields["method"]
@@ -165,7 +164,7 @@ class ExperimentTab:
 
     def _apply_preset(self, name: str) -> None:
         """Set the fields to ``name``'s settings (metric, seed, PEM, simulator and method stay)."""
-        cfg = ExperimentConfig.of(**PANEL_PRESETS.get(name, {}))
+        cfg = ExperimentConfig.of(**PRESETS.get(name, {}))
         with self.client.atomic():
             for f in PANEL_ROWS:
                 if f.kind not in NUMBERS:

@@ -15,11 +15,10 @@ from pathlib import Path
 import viser
 
 from pemviz.app.drawing import LanePanel, lane_panel, scenario_drawing
-from pemviz.app.runs import PANEL_PRESETS
 from pemviz.app.session import Session
 from pemviz.config import ExperimentConfig
 from pemviz.engine import experiment
-from pemviz.presets import DEFAULT_PRESET
+from pemviz.presets import DEFAULT_PRESET, PRESETS
 from pemviz.scenarios import registry
 from pemviz.scenarios.problems import problem_for
 from pemviz.sinks.colours import BLUE
@@ -51,7 +50,7 @@ class PanelApp:
         port: TCP port (0: any free port; see :attr:`port`).
         recordings_dir: where exports are written (created on the first export).
         config: the form's initial values (default: ``preset``'s settings).
-        preset: the preset the form starts with, one of :data:`pemviz.app.runs.PANEL_PRESETS`.
+        preset: the preset the form starts with, one of :data:`pemviz.presets.PRESETS`.
         pem: the PEM the form starts with (None: the shipped default), without ``config``.
         warm_up: import the simulator and run a tiny experiment in the background.
         verbose: let viser print its banner.
@@ -71,10 +70,10 @@ class PanelApp:
         warm_up: bool = True,
         verbose: bool = False,
     ) -> None:
-        if preset not in PANEL_PRESETS:
-            raise ValueError(f"preset {preset!r} is invalid: use one of {', '.join(PANEL_PRESETS)}")
+        if preset not in PRESETS:
+            raise ValueError(f"preset {preset!r} is invalid: use one of {', '.join(PRESETS)}")
         self.preset_name = preset
-        self.config0 = config or ExperimentConfig.of(**PANEL_PRESETS[preset], pem=pem)
+        self.config0 = config or ExperimentConfig.of(**PRESETS[preset], pem=pem)
         self.recordings_dir = Path(recordings_dir)
         self.drawing: LanePanel = idle_drawing(self.config0.scenario)
         """The lane scene every session builds first (:func:`idle_drawing`), before it draws the chosen scenario's

@@ -41,7 +41,6 @@ from pemviz.engine.events import (
     StageResult,
     StageStarted,
 )
-from pemviz.presets import PRESETS
 from pemviz.scenarios.panel_data import ViewAxis
 from pemviz.sinks import Sink, StageClock
 from pemviz.sinks.population import FailureGrouping, group_failures
@@ -121,12 +120,6 @@ def object_proposal_view(
         float(edges_m[-1]),
     )
 
-
-QUICK: dict[str, Any] = PRESETS["quick"]
-"""The ``quick`` preset (:data:`pemviz.presets.PRESETS`): a run of a few seconds on 2 cores, to try the panel."""
-
-PANEL_PRESETS: dict[str, dict[str, Any]] = PRESETS
-"""Presets offered in the panel: :data:`pemviz.presets.PRESETS`."""
 
 _EXPORT_NAME_OK = re.compile(r"[^A-Za-z0-9._-]")
 

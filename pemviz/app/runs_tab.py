@@ -11,13 +11,13 @@ import viser
 
 from pemviz.app import plots
 from pemviz.app._viser_compat import set_value
+from pemviz.app.compare import result_table
 from pemviz.app.form import NOT_HELD, default_settings, setting_value, settings_of
 from pemviz.app.host import PanelHost
 from pemviz.app.html import GREEN, GREY, RED, TABLE_STYLE, box, display_path
 from pemviz.app.plots_panel import PlotsPanel
 from pemviz.app.rollouts_tab import RolloutsTab
 from pemviz.app.runs import PanelRun, export_path, export_run, keep_runs
-from pemviz.core.estimate import format_probability
 
 
 class RunsTab:
@@ -103,28 +103,7 @@ class RunsTab:
             runs = list(self.runs)
         if not runs:
             return
-        head = "".join(
-            f'<th style="color:{plots.run_colour(r.run_id)}">run {r.run_id}{" (pinned)" if r.pinned else ""}</th>'
-            for r in runs
-        )
-
-        def result(r: PanelRun) -> list[str]:
-            fin = r.final.estimate if r.final is not None else None
-            return [
-                format_probability(fin.log_mu_hat) if fin else "-",
-                f"{fin.n_failures}/{fin.n}" if fin else "-",
-                fin.verdict if fin else "-",
-                r.status,
-            ]
-
-        rows = [("mu_hat", "failures", "verdict", "status")]
-        cells = [result(r) for r in runs]
-        body = "".join(
-            f'<tr><th style="text-align:left">{label}</th>'
-            + "".join(f"<td>{html.escape(c[i])}</td>" for c in cells)
-            + "</tr>"
-            for i, label in enumerate(rows[0])
-        )
+        head, body = result_table(runs, ("mu_hat", "failures", "verdict", "status"))
         defaults = [default_settings(r.config) for r in runs]
         for name, label, values in settings_of([r.config for r in runs]):
             away = (v != d.get(name, NOT_HELD) for v, d in zip(values, defaults, strict=True))

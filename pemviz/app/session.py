@@ -9,19 +9,16 @@ Run / Stop, the cost, the status line and the tabs *Experiment*, *Rollouts* and 
 from __future__ import annotations
 
 import threading
-from pathlib import Path
+from typing import Any, ClassVar
 
 import viser
 
-from pemviz.app.drawing import LaneExplanation
 from pemviz.app.experiment_tab import ExperimentTab
 from pemviz.app.explain_tab import ExplainTab
 from pemviz.app.host import PanelHost
-from pemviz.app.objects_view import ObjectsExplanation
 from pemviz.app.plots_panel import PlotsPanel
 from pemviz.app.rollouts_tab import RolloutsTab
 from pemviz.app.run_control import RunControl
-from pemviz.app.runs import PanelRun, Trajectory
 from pemviz.app.runs_tab import RunsTab
 from pemviz.app.scene_view import SceneView
 from pemviz.sinks import colours as C
@@ -121,56 +118,18 @@ class Session:
         self.scene.play_tick()
 
     # == the parts' state, read through the session ===================================================
-    @property
-    def running(self) -> bool:
-        return self.control.running
+    READ: ClassVar[dict[str, str]] = {
+        **dict.fromkeys(("running", "record", "last_stop_latency_s"), "control"),
+        **dict.fromkeys(("runs", "last_export"), "runs_tab"),
+        **dict.fromkeys(("listed", "_rollout_labels"), "rollouts_tab"),
+        **dict.fromkeys(("shown", "shown_record", "shown_step"), "scene"),
+        **dict.fromkeys(("explanation", "objects_ex"), "explain"),
+    }
+    """The parts' state the session reads through, by name: ``session.record`` is ``session.control.record`` (the run
+    the live plots show), ``session.shown`` ``session.scene.shown`` (the rollout shown), and so on."""
 
-    @property
-    def record(self) -> PanelRun | None:
-        """The run the live plots, status and rollouts show: the newest."""
-        return self.control.record
-
-    @property
-    def runs(self) -> list[PanelRun]:
-        """The kept runs, oldest first."""
-        return self.runs_tab.runs
-
-    @property
-    def listed(self) -> PanelRun | None:
-        """The run whose rollouts the Rollouts tab lists and Explain explains: the one chosen under Runs."""
-        return self.rollouts_tab.listed
-
-    @property
-    def shown(self) -> Trajectory | None:
-        """The rollout shown in the scene and explained."""
-        return self.scene.shown
-
-    @property
-    def shown_record(self) -> PanelRun | None:
-        return self.scene.shown_record
-
-    @property
-    def shown_step(self) -> int:
-        return self.scene.shown_step
-
-    @property
-    def explanation(self) -> LaneExplanation | None:
-        return self.explain.explanation
-
-    @property
-    def objects_ex(self) -> ObjectsExplanation | None:
-        """The shown rollout's explanation when its scene has several objects (then :attr:`explanation` is None)."""
-        return self.explain.objects_ex
-
-    @property
-    def last_stop_latency_s(self) -> float | None:
-        """Seconds from Stop to the worker's end, for the last stopped run."""
-        return self.control.last_stop_latency_s
-
-    @property
-    def last_export(self) -> Path | None:
-        return self.runs_tab.last_export
-
-    @property
-    def _rollout_labels(self) -> dict[str, Trajectory]:
-        return self.rollouts_tab._rollout_labels
+    def __getattr__(self, name: str) -> Any:
+        part = Session.READ.get(name)
+        if part is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return getattr(getattr(self, part), name)

@@ -92,10 +92,9 @@ def action_log_prob_into(
     """:func:`action_log_prob` into ``out``, bit for bit, reusing ``log_expit(logit)`` when given (``log_p_detect``).
 
     ``log_expit(+logit)`` where detected, ``log_expit(-logit) = -logaddexp(0, logit)`` elsewhere, evaluated only where
-    missed. A hot path, so written out: numpy's ``logaddexp(..., where=missed)`` simulated 20,000 rollouts
-    (e.g. the braking scenario's) in 0.66 s against 0.74 s for ``log_expit`` on every entry (one run each, loaded
-    2-core machine), and ``scipy.special.log_expit(..., where=...)`` corrupted the heap (scipy 1.17.1: a segfault a
-    few calls later).
+    missed. A hot path, so written out (numpy's ``logaddexp(..., where=missed)``, faster than ``log_expit`` on every
+    entry); ``scipy.special.log_expit(..., where=...)`` corrupted the heap (scipy 1.17.1: a segfault a few calls
+    later).
     """
     if log_p_detect is None:
         log_p_detect = log_expit(logit)

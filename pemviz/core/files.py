@@ -5,9 +5,10 @@ run are :mod:`pemviz.io.files`'s.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 
@@ -55,16 +56,28 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None], *, 
             raises.
         OutputExists: ``overwrite`` is False and ``path`` exists."""
     target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    try:
+    with temp_file(target) as tmp:
         write(tmp)
         os.chmod(tmp, default_file_mode())
         _commit(tmp, target, overwrite)
+    return target
+
+
+@contextlib.contextmanager
+def temp_file(path: str | os.PathLike[str]) -> Iterator[str]:
+    """A temporary file of a unique name beside ``path`` (created empty), removed on every exit path.
+
+    Write it, then commit it (:func:`atomic_write`, :func:`pemviz.io.files.commit_files`); whatever was not committed
+    is gone when the block ends (an exception, Ctrl-C, SIGTERM).
+    """
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    try:
+        yield tmp
     finally:
         if os.path.lexists(tmp):
             os.unlink(tmp)
-    return target
 
 
 def file_kind(path: Path) -> str:

@@ -160,9 +160,9 @@ def ranking_key(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
 RQMC_BLOCK = 8192
 """Rollouts per Array-RQMC block. A batch of n rollouts is cut into the fixed blocks ``[j B, min((j + 1) B, n))``,
 B = RQMC_BLOCK, whatever simulates it (one process, chunks streamed through it, Ray tasks of any size): the rollouts
-of a block are ranked and coupled among themselves (:func:`array_rqmc_blocks`), and detectors are asked about one
-block at a time (:func:`by_blocks`), so the same seed gives the same rollouts, bit for bit, on every executor. Equal
-to the batched simulators' chunk (:data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`): a batch of at most B
+of a block are ranked and coupled among themselves (:func:`pemviz.core.detectors.step_uniforms`), and detectors are
+asked about one block at a time (:func:`by_blocks`), so the same seed gives the same rollouts, bit for bit, on every
+executor. Equal to the batched simulators' chunk (:data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`): a batch of at most B
 rollouts is one block, coupled as a whole, as before blocks existed."""
 
 
@@ -175,33 +175,6 @@ def block_bounds(n: int, block: int = RQMC_BLOCK) -> list[tuple[int, int]]:
     if n < 1 or block < 1:
         raise ValueError(f"block_bounds: n and block must be >= 1, got {n}, {block}")
     return [(a, min(a + block, n)) for a in range(0, n, block)]
-
-
-def array_rqmc_blocks(u: np.ndarray, key: np.ndarray, block: int = RQMC_BLOCK) -> np.ndarray:
-    """:func:`array_rqmc_uniforms` block by block: the chains ``[j B, (j + 1) B)`` of one step are ranked among
-    themselves by ``key`` and shifted by their block's first uniform ``u[j B]``.
-
-    ``u`` and ``key`` must start at a block boundary of the batch (the whole batch, or a chunk of whole blocks).
-    Every chain's uniform stays exactly U(0, 1) given the past, as in one block.
-
-    Args:
-        u: float64 [n] i.i.d. U(0, 1) draws of this step.
-        key: float64 [n] or [n, k], the order of the chains.
-        block: B.
-    Returns:
-        float64 [n] in [0, 1), a new array.
-    Raises:
-        ValueError: as :func:`array_rqmc_uniforms`.
-    """
-    u, key = np.asarray(u, dtype=np.float64), np.asarray(key, dtype=np.float64)
-    if u.ndim != 1 or u.size <= block:
-        return array_rqmc_uniforms(u, key)
-    if key.shape[0] != u.size:
-        raise ValueError(f"array_rqmc_blocks: u is {u.shape} and key {key.shape}; they need the same first size")
-    out = np.empty(u.size)
-    for a, b in block_bounds(u.size, block):
-        out[a:b] = array_rqmc_uniforms(u[a:b], key[a:b])
-    return out
 
 
 def by_blocks(fn, rows: np.ndarray, block: int = RQMC_BLOCK) -> np.ndarray:

@@ -120,8 +120,7 @@ equal; this module imports no numpy)."""
 POOL_PAYS_S = 20.0
 """CPU seconds of simulation left in a batch from which the local executor starts its pool: the pool costs CPU, a
 worker's start (about 1 s: its imports and the problem's unpickling) and each block's hand-off (about 2 % of its
-simulation through shared memory; measured on 2 cores: 100,000 crossing rollouts took 17.1 s of CPU in one process
-and 18.0 s with 2 workers started for them). Once started, the pool takes every batch of two blocks or more."""
+simulation through shared memory). Once started, the pool takes every batch of two blocks or more."""
 
 
 def pool_workers(run: Execution, n: int, seconds: float) -> int:
@@ -324,13 +323,11 @@ def cap_jobs(jobs: int, say: Callable[[str], object] | None = None) -> int:
 def torch_threads(n: int = 1, blas: int | None = None) -> Iterator[None]:
     """Run the block with torch on ``n`` threads, and with ``blas`` given the BLAS libraries too (numpy's OpenBLAS,
     MKL, OpenMP: ``threadpoolctl``), then restore the process's settings (process-wide: for the command layer, around
-    a whole run). The proposal is tiny, and on 2 cores a second torch thread only adds synchronisation (measured
-    7.7 ms vs 74 ms per Adam epoch under load). The exact fits' products (:func:`pemviz.core.exact_fit.fit_exact`)
-    run in numpy's BLAS, whose idle threads spin: ``blas=1`` where runs go side by side (``pemviz validate --jobs 2``:
-    10-25 s a run otherwise) and for ``pemviz run``, whose recording process needs the second core (a default run
-    without a recording: 2.0 s wall and 1.9 s of CPU on one BLAS thread, 2.15 s wall and 3.7 s of CPU on two, on 2
-    cores). The thread count changes no number: a seed gives the same run either way. torch is
-    not imported for this: a run that never needs it never imports it (:mod:`pemviz.core.torch_use`)."""
+    a whole run). The proposal is tiny, and on 2 cores a second torch thread only adds synchronisation. The exact
+    fits' products (:func:`pemviz.core.exact_fit.fit_exact`) run in numpy's BLAS, whose idle threads spin: ``blas=1``
+    where runs go side by side (``pemviz validate --jobs 2``) and for ``pemviz run``, whose recording process needs
+    the second core. The thread count changes no number: a seed gives the same run either way. torch is not imported
+    for this: a run that never needs it never imports it (:mod:`pemviz.core.torch_use`)."""
     from threadpoolctl import threadpool_limits
 
     from pemviz.core import torch_use

@@ -34,23 +34,6 @@ safety-case report (``--report``, ``pemviz report``), its Markdown twin and the 
 without it (a user's page, notes, a build's XML) is never replaced, ``--overwrite`` or not."""
 
 
-@contextlib.contextmanager
-def temp_file(path: str | os.PathLike[str]) -> Iterator[str]:
-    """A temporary file of a unique name beside ``path`` (created empty), removed on every exit path.
-
-    Write it, then :func:`commit_files` it; whatever was not committed is gone when the block ends (an
-    exception, Ctrl-C, SIGTERM).
-    """
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    try:
-        yield tmp
-    finally:
-        if os.path.lexists(tmp):
-            os.unlink(tmp)
-
-
 def commit_files(pairs: list[tuple[str, Path]], *, overwrite: bool) -> None:
     """Move finished temporary files onto their targets, in order (the last one is the unit's commit point:
     a reader checks the others against it). Without ``overwrite``, targets already moved are removed again

@@ -20,10 +20,11 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
+from pemviz.core.files import temp_file
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.core.sampling import write_proposal_file
 from pemviz.io.data import sha256_file
-from pemviz.io.files import check_free_name, check_output_path, commit_files, temp_file
+from pemviz.io.files import check_free_name, check_output_path, commit_files
 from pemviz.io.rollout_format import (
     SALIENT_COLUMNS,
     RolloutFormatError,

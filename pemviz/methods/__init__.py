@@ -33,7 +33,7 @@ from typing import Any
 
 from pemviz.methods.rows import ROW as ROW
 from pemviz.methods.rows import setting as setting
-from pemviz.plugins import Plugins, Ref, resolve
+from pemviz.plugins import Plugins, Ref, check_record, resolve
 
 PLUGIN_VARIABLE = "PEMVIZ_METHODS"
 """The environment variable naming modules (comma-separated) that register methods when imported."""
@@ -147,10 +147,7 @@ class Method:
     settings: Ref = None
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
-            raise ValueError(f"Method: name must be a non-empty text without surrounding spaces, got {self.name!r}")
-        if not isinstance(self.description, str) or "\n" in self.description:
-            raise ValueError(f"Method {self.name}: description must be one line of text")
+        check_record("Method", self.name, self.description)
         if self.build is None:
             raise ValueError(f"Method {self.name}: a builder (config, problem, check) -> Estimator is needed")
         if not isinstance(self.settings, str):  # a text is checked when it is first read
@@ -306,10 +303,7 @@ def get_method(name: str) -> Method:
         KeyError: no method of that name (the message lists the registered ones); MethodPluginError: a plugin that
             cannot be loaded.
     """
-    load_method_plugins()
-    if name not in _REGISTRY:
-        raise KeyError(f"no method named {name!r}; registered: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name]
+    return _PLUGINS.get(name)  # type: ignore[no-any-return]
 
 
 CROSS_ENTROPY_METHOD = "adaptive"

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pemviz.methods import PLAIN_METHOD, TILT_METHOD
-from pemviz.plugins import Plugins, Ref, resolve
+from pemviz.plugins import Plugins, Ref, check_record, resolve
 from pemviz.scenarios.parameters import (
     KINDS,
     RANDOM_PARAMS,
@@ -100,10 +100,7 @@ class Scenario:
     beyond: str = ""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not self.name.strip() or self.name != self.name.strip():
-            raise ValueError(f"Scenario: name must be a non-empty text without surrounding spaces, got {self.name!r}")
-        if not isinstance(self.description, str) or "\n" in self.description:
-            raise ValueError(f"Scenario {self.name}: description must be one line of text")
+        check_record("Scenario", self.name, self.description)
         if not isinstance(self.beyond, str) or "\n" in self.beyond:
             raise ValueError(f"Scenario {self.name}: beyond must be one line of text (empty: a method answers)")
         if self.factory is None:
@@ -333,10 +330,7 @@ def get(name: str) -> Scenario:
         KeyError: no scenario of that name (the message lists the registered ones).
         ScenarioPluginError: a plugin that cannot be loaded.
     """
-    load_plugins()
-    if name not in _REGISTRY:
-        raise KeyError(f"no scenario named {name!r}; registered: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name]
+    return _PLUGINS.get(name)  # type: ignore[no-any-return]
 
 
 def known(name: str) -> Scenario | None:

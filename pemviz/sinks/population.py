@@ -281,8 +281,7 @@ class FailureGroups:
         drawing: the scenario's drawing object (``ProblemView.drawing``), or None.
         problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step elsewhere), or None.
         keys: group the failures (False: only their severity, without the drawing object's keys, whose cost may
-            grow with the failures: e.g. the braking scenario's replays take 2 s for the 70,000 of ``pemviz run --n
-            10000``).
+            grow with the failures).
     """
 
     def __init__(self, drawing: object = None, problem: object = None, keys: bool = True) -> None:

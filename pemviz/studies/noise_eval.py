@@ -22,7 +22,7 @@ from pemviz.pem import encode_salient, fit_norm_stats
 from pemviz.pem.encoding import NormStats
 from pemviz.pem.noise import NOISE_DIMS, NoiseModel, fit_homoscedastic, noise_training_data
 from pemviz.pem.recipes import NOISE_RECIPES
-from pemviz.studies.pem_eval import Evaluated, stratified_folds
+from pemviz.studies.pem_eval import CrossValidation, Evaluated, check_study, stratified_folds
 
 NOISE_MODEL_NAMES = ("homo-normal", "homo-t", "hetero-normal", "hetero-laplace", "hetero-t")
 """Every noise model :func:`evaluate_noise_pems` knows, in table order."""
@@ -43,7 +43,7 @@ RANGE_BANDS_M = (1.0, 10.0, 20.0, 40.0, np.inf)
 
 
 @dataclass(frozen=True)
-class NoiseEvalConfig:
+class NoiseEvalConfig(CrossValidation):
     """Settings of :func:`evaluate_noise_pems`: ``models``, ``n_splits``, ``folds`` (None = all), ``epochs`` of the
     heteroscedastic networks (default: the shipped recipe's), ``seed`` (networks and dequantisation).
 
@@ -58,19 +58,7 @@ class NoiseEvalConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        unknown = [m for m in self.models if m not in NOISE_MODEL_NAMES]
-        if unknown or not self.models or len(set(self.models)) != len(self.models):
-            raise ValueError(f"noise models {list(self.models)}: use distinct ones of {', '.join(NOISE_MODEL_NAMES)}")
-        if self.n_splits < 2:
-            raise ValueError(f"n_splits = {self.n_splits}: need at least 2 folds")
-        if self.folds is not None and (not self.folds or any(not 0 <= f < self.n_splits for f in self.folds)):
-            raise ValueError(f"folds {self.folds}: each must be in 0..{self.n_splits - 1}")
-        if self.epochs < 1:
-            raise ValueError(f"epochs = {self.epochs}: must be >= 1")
-
-    @property
-    def fold_ids(self) -> tuple[int, ...]:
-        return tuple(range(self.n_splits)) if self.folds is None else tuple(self.folds)
+        check_study(self, NOISE_MODEL_NAMES, ("epochs",))
 
 
 @dataclass(frozen=True)

@@ -55,8 +55,39 @@ class Predictor(Protocol):
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray: ...
 
 
+class CrossValidation:
+    """What the studies' settings share: the ``models`` (each known, none twice), ``n_splits`` stratified folds
+    (:func:`stratified_folds`) and the ``folds`` tested (None: all)."""
+
+    models: tuple[str, ...]
+    n_splits: int
+    folds: tuple[int, ...] | None
+
+    @property
+    def fold_ids(self) -> tuple[int, ...]:
+        return tuple(range(self.n_splits)) if self.folds is None else tuple(self.folds)
+
+
+def check_study(config: CrossValidation, known: tuple[str, ...], sizes: tuple[str, ...]) -> None:
+    """Check a study's settings: its models among ``known``, at least 2 folds, and each field of ``sizes`` >= 1.
+
+    Raises:
+        ValueError: an unknown or repeated model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1.
+    """
+    models = config.models
+    if not models or any(m not in known for m in models) or len(set(models)) != len(models):
+        raise ValueError(f"models {list(models)}: use distinct ones of {', '.join(known)}")
+    if config.n_splits < 2:
+        raise ValueError(f"n_splits = {config.n_splits}: need at least 2 folds")
+    if config.folds is not None and (not config.folds or any(not 0 <= f < config.n_splits for f in config.folds)):
+        raise ValueError(f"folds {config.folds}: each must be in 0..{config.n_splits - 1}")
+    for name in sizes:
+        if getattr(config, name) < 1:
+            raise ValueError(f"{name} = {getattr(config, name)}: must be >= 1")
+
+
 @dataclass(frozen=True)
-class EvalConfig:
+class EvalConfig(CrossValidation):
     """Settings of :func:`evaluate_pems`: ``folds`` (None = all; CI runs one), ``mlnn_epochs``, ``gbt_trees``,
     ``bnn_steps``, ``bnn_samples`` (smaller for a quick run; the defaults are the full protocol), ``seed`` for every
     model.
@@ -76,22 +107,7 @@ class EvalConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        unknown = [m for m in self.models if m not in MODEL_NAMES]
-        if unknown or not self.models:
-            raise ValueError(f"models {list(self.models)}: use one or more of {', '.join(MODEL_NAMES)}")
-        if len(set(self.models)) != len(self.models):
-            raise ValueError(f"models {list(self.models)}: a model is listed twice")
-        if self.n_splits < 2:
-            raise ValueError(f"n_splits = {self.n_splits}: need at least 2 folds")
-        if self.folds is not None and (not self.folds or any(not 0 <= f < self.n_splits for f in self.folds)):
-            raise ValueError(f"folds {self.folds}: each must be in 0..{self.n_splits - 1}")
-        for name in ("mlnn_epochs", "gbt_trees", "bnn_steps", "bnn_samples", "n_bins"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} = {getattr(self, name)}: must be >= 1")
-
-    @property
-    def fold_ids(self) -> tuple[int, ...]:
-        return tuple(range(self.n_splits)) if self.folds is None else tuple(self.folds)
+        check_study(self, MODEL_NAMES, ("mlnn_epochs", "gbt_trees", "bnn_steps", "bnn_samples", "n_bins"))
 
 
 @dataclass(frozen=True)

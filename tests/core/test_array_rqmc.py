@@ -90,17 +90,20 @@ def test_config_names_the_allowed_uniforms():
 
 
 def test_blocks_are_ranked_among_themselves_and_shifted_by_their_own_first_uniform():
-    from pemviz.core.rng import array_rqmc_blocks, block_bounds, by_blocks
+    from pemviz.core.rng import block_bounds, by_blocks
 
     rng = np.random.default_rng(4)
-    u, key = rng.random(10), rng.normal(size=(10, 2))
-    got = array_rqmc_blocks(u, key, block=4)  # blocks [0, 4), [4, 8), [8, 10)
+    u, logit, key = rng.random(10), rng.normal(size=10), rng.normal(size=(10, 2))  # key: by_blocks' rows
+    obs = rng.uniform(2.0, 9.0, size=(10, 1))
+    sampler = ArrayRQMC(ConstantDetector(0.5))
+    got = step_uniforms(u, sampler, logit, obs, block=4)  # blocks [0, 4), [4, 8), [8, 10)
     for a, b in block_bounds(10, 4):
-        np.testing.assert_array_equal(got[a:b], array_rqmc_uniforms(u[a:b], key[a:b]))
-    # block 0 by hand: ranks of key[:, 0] then the shift u[0]
-    ranks = np.argsort(np.argsort(key[:4, 0]))
+        np.testing.assert_array_equal(got[a:b], step_uniforms(u[a:b], sampler, logit[a:b], obs[a:b]))
+    # block 0 by hand: ranks of the logits then the shift u[0]
+    ranks = np.argsort(np.argsort(logit[:4]))
     np.testing.assert_allclose(got[:4], np.remainder(ranks * GOLDEN + u[0], 1.0), rtol=0, atol=1e-15)
-    np.testing.assert_array_equal(array_rqmc_blocks(u, key), array_rqmc_uniforms(u, key))  # 10 <= 8,192: one block
+    one_block = array_rqmc_uniforms(u, np.column_stack([logit, obs]))  # 10 <= 8,192: one block, every chain ranked
+    np.testing.assert_array_equal(step_uniforms(u, sampler, logit, obs), one_block)
     assert block_bounds(10, 4) == [(0, 4), (4, 8), (8, 10)]
     calls = []
     out = by_blocks(lambda x: calls.append(len(x)) or x[:, 0] * 2.0, key, block=4)

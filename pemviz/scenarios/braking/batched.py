@@ -203,11 +203,14 @@ def iter_batched(
     *,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> Iterator[RolloutBatch]:
-    """Stream ``n`` rollouts as :class:`RolloutBatch` chunks of at most ``chunk_size`` rollouts each.
+    """Stream ``n`` braking rollouts (``params`` None: :class:`BrakingParams`' defaults) as :class:`RolloutBatch` chunks
+    of at most ``chunk_size`` rollouts each, detections drawn from ``sampler`` and scored under ``target`` (may be
+    ``sampler`` itself), ``rng`` consumed as :func:`pemviz.scenarios.simulate` consumes it.
 
-    Memory: about twice one chunk's ``chunk_size * T * 41`` bytes (~70 MB at 8,192 x 100). The
-    chunks together are the rollouts :func:`simulate_batched` returns (module docstring: random numbers);
-    with a jumping generator ``rng`` is advanced past all ``n * T`` draws once the last chunk is out.
+    Memory: about twice one chunk's ``chunk_size * T * 41`` bytes (~70 MB at 8,192 x 100). The chunks together are the
+    rollouts :func:`simulate_batched` returns (module docstring: random numbers); with a jumping generator ``rng`` is
+    advanced past all ``n * T`` draws once the last chunk is out.
+
     Raises:
         ValueError: for ``n`` or ``chunk_size`` not an integer >= 1.
     """
@@ -224,19 +227,10 @@ def simulate_batched(
     *,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> RolloutBatch:
-    """Run ``n`` braking rollouts together, detections drawn from ``sampler``, scored under ``target``: the batched
-    twin of ``simulate(lambda: BrakingScenario(params), n, sampler, target, rng, T)``, ``n * T * 41`` bytes (use
-    :func:`iter_batched` for very large ``n``).
+    """The ``n`` rollouts of :func:`iter_batched` (same arguments; T = ``params.n_steps``) as one
+    :class:`RolloutBatch`, observations [n, T, 3], detected / log_p / log_q [n, T] (``n * T * 41`` bytes): the batched
+    twin of ``simulate(lambda: BrakingScenario(params), n, sampler, target, rng, T)``.
 
-    Args:
-        params: scenario constants (None: :class:`BrakingParams` defaults); T = ``params.n_steps``.
-        n: number of rollouts (>= 1).
-        sampler: the detector that draws the actions.
-        target: the PEM whose probabilities weight the rollouts (may be ``sampler`` itself).
-        rng: numpy Generator, consumed as :func:`pemviz.scenarios.simulate` consumes it.
-        chunk_size: rollouts simulated together (bounds the working memory).
-    Returns:
-        :class:`RolloutBatch` with observations [n, T, 3] and detected / log_p / log_q [n, T].
     Raises:
         ValueError: for ``n`` or ``chunk_size`` not an integer >= 1."""
     p = params or BrakingParams()
