@@ -152,8 +152,6 @@ def _enumerate(
     own, grp = np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     g = v = integ = log_path = np.empty(0)
     pend = np.empty(0, dtype=bool)
-    a_max = p.throttle_accel0_mps2
-    v_need = (p.contact_gap_m - level) / (2 * dt)
     for t in range(int(start.min(initial=n_steps)), n_steps):
         join = np.flatnonzero(start == t)
         if join.size:
@@ -166,18 +164,7 @@ def _enumerate(
             )
             pend = np.concatenate([pend, p0[join]])
             log_path = np.concatenate([log_path, np.zeros(join.size)])
-        failed = g < level  # observed at step t
-        # stopped in contact next step: the gap moves once more, then only as the lead does, unless that takes
-        # it out of contact (the ego would start again)
-        nxt = g + (vlead[t] - v) * dt
-        contact = ~failed & (g <= p.contact_gap_m) & (np.maximum(g, nxt) + lead_travel[t + 1] <= p.contact_gap_m)
-        fails_next = contact & (nxt < level) & (t + 1 < n_steps)
-        keep = ~(failed | contact)
-        if level < p.contact_gap_m and p.throttle_accel_slope_per_s >= 0:  # the throttle then accelerates <= a_max
-            # too slow to reach the speed a failure below the contact gap needs, before it enters contact
-            travel = np.maximum(g - p.contact_gap_m, 0.0) + lead_travel[t]
-            reach = np.sqrt(v**2 + 2 * a_max * travel + (n_steps - t) * (a_max * dt) ** 2) + a_max * dt
-            keep &= (g <= p.contact_gap_m) | (reach > v_need)
+        failed, fails_next, keep = _group_ends(p, t, g, v, level, float(vlead[t]), lead_travel)
         for ends in (failed, fails_next):
             if ends.any():
                 at = np.flatnonzero(ends[grp])
@@ -205,6 +192,33 @@ def _enumerate(
                 f"{p.contact_gap_m:g} m); run them with --method mc, or a stronger brake"
             )
     return total
+
+
+def _group_ends(
+    p: BrakingParams,
+    t: int,
+    g: np.ndarray,
+    v: np.ndarray,
+    level: float,
+    lead_speed_mps: float,
+    lead_travel: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(failed at step ``t``, fails at the next step, still open) bool [G] of states (gap ``g``, speed ``v``) at
+    step ``t``: in contact next step, the gap moves once more, then only as the lead does, unless that takes it out
+    of contact (the ego would start again); a state too slow to reach the speed a failure below the contact gap
+    needs before it enters contact is closed (the throttle then accelerates at most ``throttle_accel0_mps2``)."""
+    dt, n_steps = p.dt_s, p.n_steps
+    failed = g < level  # observed at step t
+    nxt = g + (lead_speed_mps - v) * dt
+    contact = ~failed & (g <= p.contact_gap_m) & (np.maximum(g, nxt) + lead_travel[t + 1] <= p.contact_gap_m)
+    fails_next = contact & (nxt < level) & (t + 1 < n_steps)
+    keep = ~(failed | contact)
+    if level < p.contact_gap_m and p.throttle_accel_slope_per_s >= 0:
+        a_max, v_need = p.throttle_accel0_mps2, (p.contact_gap_m - level) / (2 * dt)
+        travel = np.maximum(g - p.contact_gap_m, 0.0) + lead_travel[t]
+        reach = np.sqrt(v**2 + 2 * a_max * travel + (n_steps - t) * (a_max * dt) ** 2) + a_max * dt
+        keep &= (g <= p.contact_gap_m) | (reach > v_need)
+    return failed, fails_next, keep
 
 
 def _branch(
