@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import pytest
 from pemviz.config import ExperimentConfig
@@ -266,6 +267,10 @@ def test_pemviz_run_at_margin_0_draws_neither_retry_nor_plain_monte_carlo_and_sa
     assert "the stages not run once more" in stop[0] and "the scene caps every run of the stages at doubtful" in stop[0]
     assert "plain Monte Carlo not drawn" in stop[0] and "p = 8.058e-33 (the exact answer) expects" in stop[0]
     assert "0 failures in" not in out and "once more at N" not in out
+    # what it drew: its three planned stages (pretraining's 100 rollouts, one CE stage of 10, a final batch of 10)
+    rows = [ln.split()[1] for ln in out.splitlines() if re.match(r"\s+\d+\s+(pretrain|ce|final)\s", ln)]
+    assert rows == ["pretrain", "ce", "final"], out
+    assert "from 120 simulations in" in out
 
 
 def test_plain_monte_carlo_s_decision_stands_where_the_answer_is_the_stages():

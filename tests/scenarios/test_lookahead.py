@@ -31,12 +31,12 @@ def brute_force(p: BrakingParams, logit_at_gap, prefix: np.ndarray, level: float
     return float(logsumexp(log_prob[fails])) if fails.any() else -np.inf
 
 
-@pytest.mark.parametrize("level", [0.0, 0.5, 1.0, 2.0])
-def test_the_enumeration_equals_every_detection_sequence_of_a_short_scene(level):
-    # 64 steps: the ego reaches the lead at about step 61 when it never detects it; from step 50 (gap 4.6 m) every
-    # one of the 2^14 sequences is replayed. Prefixes with detections shift the phase that contact needs.
+def short_scene_against_brute_force(level: float, **changes) -> tuple[np.ndarray, np.ndarray]:
+    """The enumeration's and the brute force's log P [6] on a 64-step scene (``changes`` to its parameters): the ego
+    reaches the lead at about step 61 when it never detects it; from step 50 (gap 4.6 m) every one of the 2^14
+    sequences is replayed. Prefixes with detections shift the phase that contact needs."""
     base = BrakingParams()
-    p = dataclasses.replace(base, n_steps=64, lead_speed_profile_mps=base.lead_speed_profile_mps[:64])
+    p = dataclasses.replace(base, n_steps=64, lead_speed_profile_mps=base.lead_speed_profile_mps[:64], **changes)
     logit = load_pem().logit_at_gap
     rng = np.random.default_rng(7)
     prefixes = [np.zeros(50, bool)] + [np.concatenate([np.zeros(36, bool), rng.random(14) < 0.3]) for _ in range(5)]
@@ -47,8 +47,33 @@ def test_the_enumeration_equals_every_detection_sequence_of_a_short_scene(level)
     got = log_exceedance_after(p, logit, detected, start, level)
     want = np.array([brute_force(p, logit, pre, level) for pre in prefixes])
     assert np.array_equal(np.isinf(got), np.isinf(want)), (got, want)
+    return got, want
+
+
+@pytest.mark.parametrize("level", [0.0, 0.5, 1.0, 2.0])
+def test_the_enumeration_equals_every_detection_sequence_of_a_short_scene(level):
+    got, want = short_scene_against_brute_force(level)
     finite = np.isfinite(want)
     assert finite.sum() >= 2  # the check compares real probabilities
+    np.testing.assert_allclose(got[finite], want[finite], rtol=0, atol=1e-9)  # nats
+
+
+@pytest.mark.parametrize(
+    "level, changes, n_finite",
+    [
+        (0.0, {"actuation_lag_steps": 0}, 5),  # each detection's brake at once: the two children part at once
+        (1.0, {"actuation_lag_steps": 0}, 6),
+        (0.5, {"latched_brake": True}, 1),  # once braking, always: only the prefix without detections can fail
+        (0.5, {"actuation_lag_steps": 0, "latched_brake": True}, 1),
+        (0.5, {"braking_distance_m": 4.0}, 6),  # above 4 m a detection changes nothing: one child, not two
+    ],
+)
+def test_the_enumeration_of_other_controllers_equals_every_detection_sequence(level, changes, n_finite):
+    # the enumeration shares the controller's commands between the branches of one detection only where the
+    # one-step actuation lag makes them share the next state; these controllers take the other paths
+    got, want = short_scene_against_brute_force(level, **changes)
+    finite = np.isfinite(want)
+    assert finite.sum() == n_finite
     np.testing.assert_allclose(got[finite], want[finite], rtol=0, atol=1e-9)  # nats
 
 

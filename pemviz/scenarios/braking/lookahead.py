@@ -16,17 +16,27 @@ from collections.abc import Callable
 import numpy as np
 from scipy.special import log_expit
 
-from pemviz.scenarios.braking.simulator import OBSERVATION_NAMES, BrakingParams, braking_step, lead_speeds
+from pemviz.scenarios.braking.simulator import (
+    OBSERVATION_NAMES,
+    BrakingParams,
+    braking_step,
+    ego_commands,
+    ego_limited,
+    ego_step,
+    lead_speeds,
+)
 
 LOOK_AHEAD_GAP_M = 6.0
 """The gap (metres) below which the detections are enumerated. ``pemviz run --margin 0``, seeds 0-39: from 6 m, median
 relative error 0.074, 37 of 40 intervals hold the exact answer, about 7 s a run (the enumeration: some 30,000
-branch steps a rollout, each one step of the scene's dynamics); from 5 m, 0.149 and 32 of 40, 2 s;
-from 2 m the weights stay heavy (ESS 8 of 1,000), from 7 m a run takes about a minute."""
+branch steps a rollout, each one step of the scene's dynamics; half that time since its branches share their
+controller's commands, ``docs/validation.md``); from 5 m, 0.149 and 32 of 40, 2 s; from 2 m the weights stay heavy
+(ESS 8 of 1,000), from 7 m a run takes about a minute."""
 
-LOOK_AHEAD_ROLLOUT_S = 3.5e-3
+LOOK_AHEAD_ROLLOUT_S = 1.8e-3
 """Seconds per rollout of the look-ahead from :data:`LOOK_AHEAD_GAP_M` targeting 0 m, about (2-core developer
-machine: 3 s for a final batch of 1,000, 0.3-0.5 s for a CE stage of 100), for the run's time estimates."""
+machine: 1.6 s of CPU for the final batch of 1,000 of ``pemviz run --margin 0 --seed 0``, 0.17-0.23 s for a CE stage
+of 100), for the run's time estimates."""
 
 PRUNE_NATS = 40.0
 """A branch whose probability is this far (nats) below the failure probability found from its rollout is dropped."""
@@ -135,59 +145,119 @@ def _enumerate(
                 "parameters"
             )
     total = np.full(n, -np.inf)
-    owner = np.empty(0, dtype=np.int64)
+    # A group holds the branches that share (owner, gap, speed, PID integral): with a one-step actuation lag, the two
+    # branches of a detection differ only in the pending brake until the next step. Each branch has its group,
+    # pending brake and log-probability, in the order a branch-by-branch enumeration holds them.
+    shared = p.actuation_lag_steps == 1
+    own, grp = np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     g = v = integ = log_path = np.empty(0)
     pend = np.empty(0, dtype=bool)
-    a_max = p.throttle_accel0_mps2
-    v_need = (p.contact_gap_m - level) / (2 * dt)
     for t in range(int(start.min(initial=n_steps)), n_steps):
         join = np.flatnonzero(start == t)
         if join.size:
-            owner = np.concatenate([owner, join])
-            g, v = np.concatenate([g, g0[join]]), np.concatenate([v, v0[join]])
-            integ, pend = np.concatenate([integ, i0[join]]), np.concatenate([pend, p0[join]])
+            grp = np.concatenate([grp, np.arange(own.size, own.size + join.size)])
+            own = np.concatenate([own, join])
+            g, v, integ = (
+                np.concatenate([g, g0[join]]),
+                np.concatenate([v, v0[join]]),
+                np.concatenate([integ, i0[join]]),
+            )
+            pend = np.concatenate([pend, p0[join]])
             log_path = np.concatenate([log_path, np.zeros(join.size)])
-        failed = g < level  # observed at step t
-        keep = ~failed
-        np.logaddexp.at(total, owner[failed], log_path[failed])
-        # stopped in contact next step: the gap moves once more, then only as the lead does, unless that takes
-        # it out of contact (the ego would start again)
-        nxt = g + (vlead[t] - v) * dt
-        contact = keep & (g <= p.contact_gap_m) & (np.maximum(g, nxt) + lead_travel[t + 1] <= p.contact_gap_m)
-        fails_next = contact & (nxt < level) & (t + 1 < n_steps)
-        np.logaddexp.at(total, owner[fails_next], log_path[fails_next])
-        keep &= ~contact
-        if level < p.contact_gap_m and p.throttle_accel_slope_per_s >= 0:  # the throttle then accelerates <= a_max
-            # too slow to reach the speed a failure below the contact gap needs, before it enters contact
-            travel = np.maximum(g - p.contact_gap_m, 0.0) + lead_travel[t]
-            reach = np.sqrt(v**2 + 2 * a_max * travel + (n_steps - t) * (a_max * dt) ** 2) + a_max * dt
-            keep &= (g <= p.contact_gap_m) | (reach > v_need)
-        keep &= log_path >= total[owner] - prune_nats
-        owner, g, v, integ, pend, log_path = owner[keep], g[keep], v[keep], integ[keep], pend[keep], log_path[keep]
-        if owner.size == 0:
+        failed, fails_next, keep = _group_ends(p, t, g, v, level, float(vlead[t]), lead_travel)
+        for ends in (failed, fails_next):
+            if ends.any():
+                at = np.flatnonzero(ends[grp])
+                np.logaddexp.at(total, own[grp[at]], log_path[at])
+        kept = keep[grp] & (log_path >= (total[own] - prune_nats)[grp])
+        grp, pend, log_path = grp[kept], pend[kept], log_path[kept]
+        if grp.size == 0:
+            own, g, v, integ = grp, log_path, log_path, log_path
             if start.max(initial=-1) <= t:
                 break
             continue
-        # a detection changes the state only inside the braking distance; elsewhere one branch of probability 1
-        split = g < p.braking_distance_m
-        logit = logit_at_gap(g[split])
-        s = np.flatnonzero(split)
-        owner = np.concatenate([owner, owner[s]])
-        g, v, integ = np.concatenate([g, g[s]]), np.concatenate([v, v[s]]), np.concatenate([integ, integ[s]])
-        pend = np.concatenate([pend, pend[s]])
-        det = np.zeros(owner.size, dtype=bool)
-        det[s] = True
-        log_path = np.concatenate([log_path, log_path[s] + log_expit(-logit)])
-        log_path[s] = log_path[s] + log_expit(logit)
-        g, v, integ, pend = braking_step(p, float(vlead[t]), g, v, integ, pend, det)
-        if owner.size > MAX_BRANCHES:
+        live = np.zeros(own.size, dtype=bool)
+        live[grp] = True
+        if not live.all():
+            grp = (np.cumsum(live) - 1)[grp]
+            own, g, v, integ = own[live], g[live], v[live], integ[live]
+        (own, g, v, integ), grp, pend, log_path = _branch(
+            p, logit_at_gap, float(vlead[t]), shared, (own, g, v, integ), grp, pend, log_path
+        )
+        if grp.size > MAX_BRANCHES:
             raise ValueError(
-                f"the braking look-ahead holds {owner.size:,} branches at step {t} (at most "
+                f"the braking look-ahead holds {grp.size:,} branches at step {t} (at most "
                 f"{MAX_BRANCHES:,}): these braking parameters leave too many detection sequences open after "
                 f"the {LOOK_AHEAD_GAP_M:g} m start (a weak brake or a margin above the contact gap "
                 f"{p.contact_gap_m:g} m); run them with --method mc, or a stronger brake"
             )
     return total
+
+
+def _group_ends(
+    p: BrakingParams,
+    t: int,
+    g: np.ndarray,
+    v: np.ndarray,
+    level: float,
+    lead_speed_mps: float,
+    lead_travel: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(failed at step ``t``, fails at the next step, still open) bool [G] of states (gap ``g``, speed ``v``) at
+    step ``t``: in contact next step, the gap moves once more, then only as the lead does, unless that takes it out
+    of contact (the ego would start again); a state too slow to reach the speed a failure below the contact gap
+    needs before it enters contact is closed (the throttle then accelerates at most ``throttle_accel0_mps2``)."""
+    dt, n_steps = p.dt_s, p.n_steps
+    failed = g < level  # observed at step t
+    nxt = g + (lead_speed_mps - v) * dt
+    contact = ~failed & (g <= p.contact_gap_m) & (np.maximum(g, nxt) + lead_travel[t + 1] <= p.contact_gap_m)
+    fails_next = contact & (nxt < level) & (t + 1 < n_steps)
+    keep = ~(failed | contact)
+    if level < p.contact_gap_m and p.throttle_accel_slope_per_s >= 0:
+        a_max, v_need = p.throttle_accel0_mps2, (p.contact_gap_m - level) / (2 * dt)
+        travel = np.maximum(g - p.contact_gap_m, 0.0) + lead_travel[t]
+        reach = np.sqrt(v**2 + 2 * a_max * travel + (n_steps - t) * (a_max * dt) ** 2) + a_max * dt
+        keep &= (g <= p.contact_gap_m) | (reach > v_need)
+    return failed, fails_next, keep
+
+
+def _branch(
+    p: BrakingParams,
+    logit_at_gap: Callable[[np.ndarray], np.ndarray],
+    lead_speed_mps: float,
+    shared: bool,
+    groups: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    grp: np.ndarray,
+    pend: np.ndarray,
+    log_path: np.ndarray,
+) -> tuple[tuple[np.ndarray, ...], np.ndarray, np.ndarray, np.ndarray]:
+    """Every branch one step on (:func:`braking_step`), split by the detection at this step inside the braking
+    distance: the groups' (owner, gap, speed, integral) [G] and each branch's group, pending brake and log-probability
+    [B], the same after the step. A group's controller commands are computed once for its branches; with a one-step
+    lag (``shared``) a branch's two children share the next state but for the pending brake: one group."""
+    own, g, v, integ = groups
+    split_g = g < p.braking_distance_m  # a detection changes the state only inside the braking distance
+    log_det, log_miss = np.zeros(g.size), np.zeros(g.size)  # outside it one child, of probability 1
+    logit = logit_at_gap(g[split_g])
+    log_det[split_g], log_miss[split_g] = log_expit(logit), log_expit(-logit)
+    integ2, full_brake, accel_pid = ego_commands(p, v, integ)
+    g2 = g + (lead_speed_mps - v) * p.dt_s
+    v_brake = ego_step(p, v, ego_limited(p, g, v, -full_brake))
+    v_pid = ego_step(p, v, ego_limited(p, g, v, accel_pid))
+    split = split_g[grp]
+    s = slice(None) if split.all() else np.flatnonzero(split)  # the branches whose detection is enumerated
+    held = pend & p.latched_brake  # the latched brake, once started, stays on
+    pend2 = np.concatenate([split | held, held[s]])  # the detected child first
+    log_path2 = np.concatenate([log_path + log_det[grp], log_path[s] + log_miss[grp[s]]])
+    children = np.arange(grp.size)[s]
+    if shared:  # the brake applied is the pending one, the same for both children
+        rows, grp2 = grp, np.concatenate([np.arange(grp.size), children])
+        v2 = np.where(pend, v_brake[grp], v_pid[grp])
+    else:  # no lag: each child applies its own detection's brake
+        rows = np.concatenate([grp, grp[s]])
+        grp2 = np.arange(rows.size)
+        v2 = np.where(pend2, v_brake[rows], v_pid[rows])
+    return (own[rows], g2[rows], v2, integ2[rows]), grp2, pend2, log_path2
 
 
 def braking_look_ahead(

@@ -171,23 +171,54 @@ def ego_acceleration(
     K_I 0.05, K_D 0 on the km/h error, max throttle 0.75, PID brake at most 0.3).
     """
     p = params
-    v = ego_speed_mps
-    error = p.target_speed_kmh - 3.6 * v
-    integral = p.integral_leak * ctrl.integral_kmh_s + error * p.dt_s
-    command = p.kp * error + p.ki * integral
-    throttle = np.clip(command, 0.0, p.max_throttle)
-    pid_brake = np.clip(-command, 0.0, p.max_pid_brake)
+    integral, full_brake, accel_pid = ego_commands(p, ego_speed_mps, ctrl.integral_kmh_s)
     emergency = np.asarray(detected, dtype=bool) & (gap_m < p.braking_distance_m)
     if p.latched_brake:  # the latched variant: once started, braking never stops
         emergency = emergency | ctrl.pending_brake
     applied = ctrl.pending_brake if p.actuation_lag_steps == 1 else emergency
+    accel = ego_limited(p, gap_m, ego_speed_mps, np.where(applied, -full_brake, accel_pid))
+    return accel, ControllerState(integral, emergency)
+
+
+def ego_commands(
+    params: BrakingParams, ego_speed_mps: np.ndarray, integral_kmh_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The parts of :func:`ego_acceleration` that do not depend on the brake applied, vectorised over rollouts.
+
+    Args:
+        params: the scenario's constants.
+        ego_speed_mps: [N] ego speed (m/s).
+        integral_kmh_s: [N] the PID integral before this step (km/h s).
+
+    Returns:
+        (the PID integral after this step [N] (km/h s), the full brake's deceleration [N] (m/s^2, >= 0), the PID's
+        acceleration [N] (m/s^2): throttle minus its brake).
+    """
+    p = params
+    v = ego_speed_mps
+    error = p.target_speed_kmh - 3.6 * v
+    integral = p.integral_leak * integral_kmh_s + error * p.dt_s
+    command = p.kp * error + p.ki * integral
+    throttle = np.clip(command, 0.0, p.max_throttle)
+    pid_brake = np.clip(-command, 0.0, p.max_pid_brake)
     full_brake = np.interp(v, p.brake_knots_mps, p.brake_decel_mps2)
     accel_throttle = (p.throttle_accel0_mps2 - p.throttle_accel_slope_per_s * v) * throttle / p.max_throttle
-    accel_pid = accel_throttle - full_brake * pid_brake / p.emergency_brake
-    accel = np.where(applied, -full_brake, accel_pid)
-    accel = np.maximum(accel, -v / p.dt_s)
-    accel = np.where(gap_m <= p.contact_gap_m, -v / p.dt_s, accel)  # collision: the ego is stopped
-    return accel, ControllerState(integral, emergency)
+    return integral, full_brake, accel_throttle - full_brake * pid_brake / p.emergency_brake
+
+
+def ego_limited(params: BrakingParams, gap_m: np.ndarray, ego_speed_mps: np.ndarray, accel: np.ndarray) -> np.ndarray:
+    """The commanded acceleration [N] (m/s^2) as the ego takes it: never below -speed/dt (it never reverses), and
+    -speed/dt in contact with the lead (gap <= ``contact_gap_m``), as after a CARLA collision.
+
+    Args:
+        params: the scenario's constants.
+        gap_m: [N] gap (metres).
+        ego_speed_mps: [N] ego speed (m/s).
+        accel: [N] the commanded acceleration (m/s^2): the full brake's or the PID's (:func:`ego_commands`).
+    """
+    stop = -ego_speed_mps / params.dt_s
+    accel = np.maximum(accel, stop)
+    return np.where(gap_m <= params.contact_gap_m, stop, accel)
 
 
 def lead_speeds(params: BrakingParams) -> np.ndarray:
