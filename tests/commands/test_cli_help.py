@@ -202,3 +202,27 @@ def test_help_lists_every_registered_scenario_from_the_registry(monkeypatch) -> 
     finally:
         unregister("help-probe")
     assert "help-probe" not in " ".join(build_parser().format_help().split())
+
+
+def test_python_dash_m_pemviz_is_the_program(tmp_path) -> None:
+    import subprocess
+    import sys
+
+    import pemviz
+    from pemviz.scenarios.registry import registered
+
+    version = subprocess.run(
+        [sys.executable, "-m", "pemviz", "--version"], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
+    assert version.returncode == 0 and pemviz.__version__ in version.stdout, version.stderr
+    bad = subprocess.run(
+        [sys.executable, "-m", "pemviz", "run", "--scenario", "nosuch"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    assert bad.stderr.strip().splitlines() == [
+        "pemviz run: error: --scenario: scenario = 'nosuch' is invalid: use one of " + ", ".join(registered())
+    ]
