@@ -30,11 +30,13 @@ class ScoredTarget(ErrorModelOf):
         self._asked.append((p, *extras))
         return p
 
-    def take(self, n: int, n_steps: int, n_objects: int = 1) -> tuple[np.ndarray, np.ndarray] | None:
+    def take(
+        self, n: int, n_steps: int, n_objects: int = 1, skip: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray] | None:
         """(the extras' logits float64 [K, n, T, M], the target's [n, T, M]) of the next ``n`` rollouts of M objects, in
         the order simulated: groups of T asks of equal rows (one group per chunk of rollouts stepped together, each
         rollout's M object rows together), or None (all kept logits are dropped) when the asks kept do not start with
-        such groups covering ``n`` rollouts."""
+        such groups covering ``n`` rollouts. The extra of index ``skip`` (not None) is left unset: not read."""
         asked, groups, used, rows = self._asked, [], 0, 0
         while rows < n and used + n_steps <= len(asked):
             r = asked[used][0].shape[0]
@@ -48,6 +50,8 @@ class ScoredTarget(ErrorModelOf):
         out = np.empty((len(self.extras) + 1, n, n_steps, n_objects))
         for first, row, m in groups:  # each detector's T asks of a group stacked [T, m M], copied in once
             for k in range(out.shape[0]):
+                if skip is not None and k == skip + 1:
+                    continue
                 block = np.stack([asked[first + t][k] for t in range(n_steps)])
                 out[k, row : row + m] = block.reshape(n_steps, m, n_objects).transpose(1, 0, 2)
         del asked[:used]

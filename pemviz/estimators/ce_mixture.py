@@ -46,6 +46,9 @@ class MixtureWeights:
     _pool_start: int | None
     _stage_samplers: dict[int, tuple[tuple[int, Detector], ...]]
     _pool_log_q: dict[object, np.ndarray]
+    _stacked: tuple[np.ndarray, np.ndarray] | None = None
+    """The last batch's ``log_q_parts`` [N, K, T] (:meth:`_with_parts`) and the array it is a view of, [N, 1 + K, T]:
+    its log p in slot 0, so that :meth:`_mixture_log_weight` sums all K + 1 in one pass."""
 
     if TYPE_CHECKING:  # CrossEntropy's methods these call
 
@@ -62,11 +65,15 @@ class MixtureWeights:
         plan, pb, scored, log_q_parts = self._plan, self.problem, self._scored, batch.log_q_parts
         assert plan is not None and scored is not None, "a mixture stage is planned (_open)"
         assert log_q_parts is not None, "the batch has its components' log-probabilities (_with_parts)"
-        log_p = (batch.log_p * mask).sum(axis=1)
+        stacked = self._stacked
+        if stacked is not None and stacked[0] is log_q_parts:  # log p and the parts side by side: one product
+            sums = (stacked[1] * mask[:, None, :]).sum(axis=2)  # each [T] row summed as (x * mask).sum(axis=1) sums it
+            log_p, by_part = sums[:, 0], sums[:, 1:].T
+        else:
+            log_p = (batch.log_p * mask).sum(axis=1)
+            by_part = [(log_q_parts[:, k] * mask).sum(axis=1) for k in range(log_q_parts.shape[1])]
         extras = scored.extras
-        log_q = [
-            log_p if d is pb.target else (log_q_parts[:, extras.index(d)] * mask).sum(axis=1) for _, d in plan.mixture
-        ]
+        log_q = [log_p if d is pb.target else by_part[extras.index(d)] for _, d in plan.mixture]
         for k, (_, d) in enumerate(plan.mixture):  # over an ODD: its density of the parameters, relative to the ODD's
             ratio = None if d is pb.target else parameter_log_ratio(d, batch)
             if ratio is not None:
@@ -88,14 +95,20 @@ class MixtureWeights:
         assert scored is not None, "a mixture stage is planned (_open)"
         start, self._seen = self._seen, self._seen + batch.n
         m = batch.n_objects
-        taken = scored.take(batch.n, batch.n_steps, m)
+        own = self._drawn_by(start, batch.n) if m == 1 and batch.noise is None else None
+        taken = scored.take(batch.n, batch.n_steps, m, skip=own)
         logits, target_logit = (self._ask_again(batch, start), None) if taken is None else taken
         detected = batch.detected
-        parts = np.empty((batch.n, len(logits), batch.n_steps))
+        stacked = np.empty((batch.n, len(logits) + 1, batch.n_steps))
+        stacked[:, 0] = batch.log_p
+        parts = stacked[:, 1:]
         where: tuple[np.ndarray, np.ndarray] | None = None  # the last component's differing steps, their detections
         for k, lg in enumerate(logits):  # [N, T, M]
             if target_logit is None:
                 lq = action_log_prob(lg, detected)
+            elif k == own:  # the component that drew these rollouts: their densities as drawn, the same bits
+                parts[:, k] = batch.log_q
+                continue
             elif m == 1 and batch.noise is None:  # one object, no measurement error: the target's per-step log p is
                 # its detection's density, and where a component gives way to the target (outside its window) so is
                 # the component's; written in place, the rest computed (the components usually differ on the same
@@ -115,7 +128,21 @@ class MixtureWeights:
         if batch.noise is not None:  # each component's density of the detected objects' measurement errors
             for k, d in enumerate(scored.extras):
                 parts[:, k] += errors_log_density(batch, d, self.problem.target)
+        self._stacked = (parts, stacked)
         return dataclasses.replace(batch, log_q_parts=parts)
+
+    def _drawn_by(self, start: int, n: int) -> int | None:
+        """The index among :attr:`ScoredTarget.extras` of the component that drew rollouts ``start .. start + n - 1``
+        of the planned mixture stage (drawn component after component, :attr:`StagePlan.parts`), or None: the
+        target, or rollouts of more than one component."""
+        plan, scored = self._plan, self._scored
+        assert plan is not None and scored is not None, "a mixture stage is planned (_open)"
+        lo = 0
+        for k, d in plan.mixture:
+            if lo <= start and start + n <= lo + k:
+                return scored.extras.index(d) if d in scored.extras else None
+            lo += k
+        return None
 
     def _ask_again(self, batch: RolloutBatch, start: int) -> np.ndarray:
         """The extras' logits [K, N, T, M] of rollouts ``start .. start + N - 1`` of the stage, asked as a simulator
