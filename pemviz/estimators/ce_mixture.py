@@ -58,26 +58,28 @@ class MixtureWeights:
 
         def _smoothing(self, gamma: float) -> float: ...
 
-    def _mixture_log_weight(self, batch: RolloutBatch, mask: np.ndarray) -> np.ndarray:
-        """log p(x) - log sum_k c_k q_k(x) over the steps of ``mask`` (bool [N, T]) for rollouts of the planned
-        stage's mixture (:func:`~pemviz.estimators.base.mixture_log_weight`), float64 [N] (nats), from the
-        components' log-probabilities the batch carries (:meth:`_with_parts`)."""
+    def _mixture_log_weight(self, batch: RolloutBatch, mask: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """log p(x) - log sum_k c_k q_k(x) over the steps of ``mask`` (bool [N, T]; with ``rows``, int [R], of those
+        rollouts only: [R, T]) for rollouts of the planned stage's mixture
+        (:func:`~pemviz.estimators.base.mixture_log_weight`), float64 [N] or [R] (nats), from the components'
+        log-probabilities the batch carries (:meth:`_with_parts`)."""
         plan, pb, scored, log_q_parts = self._plan, self.problem, self._scored, batch.log_q_parts
         assert plan is not None and scored is not None, "a mixture stage is planned (_open)"
         assert log_q_parts is not None, "the batch has its components' log-probabilities (_with_parts)"
+        pick = slice(None) if rows is None else rows
         stacked = self._stacked
         if stacked is not None and stacked[0] is log_q_parts:  # log p and the parts side by side: one product
-            sums = (stacked[1] * mask[:, None, :]).sum(axis=2)  # each [T] row summed as (x * mask).sum(axis=1) sums it
+            sums = (stacked[1][pick] * mask[:, None, :]).sum(axis=2)  # each [T] row summed as (x * mask).sum(axis=1)
             log_p, by_part = sums[:, 0], sums[:, 1:].T
         else:
-            log_p = (batch.log_p * mask).sum(axis=1)
-            by_part = [(log_q_parts[:, k] * mask).sum(axis=1) for k in range(log_q_parts.shape[1])]
+            log_p = (batch.log_p[pick] * mask).sum(axis=1)
+            by_part = [(log_q_parts[pick, k] * mask).sum(axis=1) for k in range(log_q_parts.shape[1])]
         extras = scored.extras
         log_q = [log_p if d is pb.target else by_part[extras.index(d)] for _, d in plan.mixture]
         for k, (_, d) in enumerate(plan.mixture):  # over an ODD: its density of the parameters, relative to the ODD's
             ratio = None if d is pb.target else parameter_log_ratio(d, batch)
             if ratio is not None:
-                log_q[k] = log_q[k] + ratio
+                log_q[k] = log_q[k] + ratio[pick]
         return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
 
     def _whole_log_weight(self, batch: RolloutBatch) -> np.ndarray:
