@@ -22,7 +22,7 @@ from pemviz.core.detectors import (
 from pemviz.core.odd_proposal import parameter_log_ratio
 from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.core.scored_target import ScoredTarget
+from pemviz.core.scored_target import ScoredTarget, by_rollout
 from pemviz.estimators.base import StagePlan, masked_log_weight, mixture_log_weight, weighted_steps_mask
 
 if TYPE_CHECKING:
@@ -97,41 +97,48 @@ class MixtureWeights:
         assert scored is not None, "a mixture stage is planned (_open)"
         start, self._seen = self._seen, self._seen + batch.n
         m = batch.n_objects
-        own = self._drawn_by(start, batch.n) if m == 1 and batch.noise is None else None
-        taken = scored.take(batch.n, batch.n_steps, m, skip=own)
-        logits, target_logit = (self._ask_again(batch, start), None) if taken is None else taken
-        detected = batch.detected
-        stacked = np.empty((batch.n, len(logits) + 1, batch.n_steps))
+        simple = m == 1 and batch.noise is None  # one object, no measurement error
+        own = self._drawn_by(start, batch.n) if simple else None
+        groups = scored.take(batch.n, batch.n_steps, m, skip=own)
+        stacked = np.empty((batch.n, len(scored.extras) + 1, batch.n_steps))
         stacked[:, 0] = batch.log_p
         parts = stacked[:, 1:]
-        where: tuple[np.ndarray, np.ndarray] | None = None  # the last component's differing steps, their detections
-        for k, lg in enumerate(logits):  # [N, T, M]
-            if target_logit is None:
-                lq = action_log_prob(lg, detected)
-            elif k == own:  # the component that drew these rollouts: their densities as drawn, the same bits
-                parts[:, k] = batch.log_q
-                continue
-            elif m == 1 and batch.noise is None:  # one object, no measurement error: the target's per-step log p is
-                # its detection's density, and where a component gives way to the target (outside its window) so is
-                # the component's; written in place, the rest computed (the components usually differ on the same
-                # steps, the window's: their detections gathered once)
-                part = parts[:, k]
-                np.copyto(part, batch.log_p)
-                differ = lg[..., 0] != target_logit[..., 0]
-                if where is None or not np.array_equal(where[0], differ):
-                    where = (differ, detected[..., 0][differ])
-                part[differ] = action_log_prob(lg[..., 0][differ], where[1])
-                continue
-            else:  # each object's densities: the target's where the component gives way to it
-                differ = lg != target_logit
-                lq = action_log_prob(target_logit, detected)
-                lq[differ] = action_log_prob(lg[differ], detected[differ])
-            parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
+        if groups is not None and simple:
+            self._parts_as_asked(batch, groups, stacked, own)
+        else:
+            logits = (
+                self._ask_again(batch, start) if groups is None else by_rollout(groups, batch.n, m)[0] if groups else ()
+            )
+            for k, lg in enumerate(logits):  # [N, T, M]
+                lq = action_log_prob(lg, batch.detected)
+                parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
         if batch.noise is not None:  # each component's density of the detected objects' measurement errors
             for k, d in enumerate(scored.extras):
                 parts[:, k] += errors_log_density(batch, d, self.problem.target)
         self._stacked = (parts, stacked)
         return dataclasses.replace(batch, log_q_parts=parts)
+
+    @staticmethod
+    def _parts_as_asked(
+        batch: RolloutBatch, groups: list[tuple[int, np.ndarray]], stacked: np.ndarray, own: int | None
+    ) -> None:
+        """Fill ``stacked[:, 1:]`` [N, K, T] with the components' densities of one-object rollouts from the logits the
+        simulation asked (:meth:`ScoredTarget.take`, step-major): component ``own`` drew them, so its densities are
+        their log q as drawn (the same bits); the others' are the target's log p where they give way to the target
+        (outside their window), else computed there (the components usually differ on the same steps: found once)."""
+        for k in range(stacked.shape[1] - 1):
+            stacked[:, k + 1] = batch.log_q if k == own else batch.log_p
+        for row, block in groups:
+            where: tuple[np.ndarray, ...] | None = None
+            for k in range(block.shape[0] - 1):
+                if k == own:
+                    continue
+                differ = (block[k + 1] != block[0]).T  # [r, T]: rollout-major, as written
+                if where is None or not np.array_equal(where[0], differ):
+                    i, t = np.nonzero(differ)
+                    where = (differ, i + row, t, batch.detected[i + row, t, 0])
+                _, i, t, detected = where
+                stacked[i, k + 1, t] = action_log_prob(block[k + 1][t, i - row], detected)
 
     def _drawn_by(self, start: int, n: int) -> int | None:
         """The index among :attr:`ScoredTarget.extras` of the component that drew rollouts ``start .. start + n - 1``

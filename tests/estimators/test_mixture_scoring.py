@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, StageSamplers, WindowDetector
-from pemviz.core.scored_target import ScoredTarget
+from pemviz.core.scored_target import ScoredTarget, by_rollout
 from pemviz.engine.experiment import Experiment
 from pemviz.estimators.cross_entropy import DefensiveDetector
 from pemviz.scenarios import simulate
@@ -39,7 +39,9 @@ def test_scored_target_answers_as_the_target_and_hands_over_the_extras_logits_ch
     ]  # two chunks of rollouts, stepped one after the other
     for b in batches:  # the target's log-probabilities: log 0.3 where detected, log 0.7 where missed
         np.testing.assert_allclose(b.log_p, np.where(b.detected[..., 0], math.log(0.3), math.log(0.7)), rtol=1e-14)
-    kept, target_logit = scored.take(5, T)
+    groups = scored.take(5, T)
+    assert [(row, block.shape) for row, block in groups] == [(0, (2, T, 3)), (3, (2, T, 2))]  # [K + 1, T, r]
+    kept, target_logit = by_rollout(groups, 5)
     assert kept.shape == (1, 5, T, 1)  # [K, n, T, M]: one object per step
     obs = np.concatenate([b.observations for b in batches])
     np.testing.assert_array_equal(kept[0, ..., 0], obs[:, :, 0] / 10.0 - 2.0)  # rollout by rollout, step by step
@@ -104,7 +106,7 @@ def test_a_run_weighs_its_mixture_as_a_second_pass_over_the_rollouts_would(monke
     network gives the same bits, so the runs are the same run (the contract that serial and Ray runs agree)."""
     cfg = ExperimentConfig.of(n_stages=4, n_per_stage=80, n_final=200, ce_epochs=60, pretrain_epochs=60, seed=3)
     kept = Experiment(cfg, problem=build_problem("main")).run().final.estimate
-    monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps, n_objects=1: None)
+    monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps, n_objects=1, skip=None: None)
     again = Experiment(cfg, problem=build_problem("main")).run().final.estimate
     assert kept.n_failures == again.n_failures > 0
     assert kept.log_mu_hat == again.log_mu_hat and kept.ess == again.ess
