@@ -111,3 +111,29 @@ def test_a_run_weighs_its_mixture_as_a_second_pass_over_the_rollouts_would(monke
     assert kept.n_failures == again.n_failures > 0
     assert kept.log_mu_hat == again.log_mu_hat and kept.ess == again.ess
     assert math.exp(kept.log_mu_hat) == pytest.approx(1.984e-15, rel=0.5)  # and near the exact answer
+
+
+def test_streamed_chunks_take_their_own_components_densities_as_drawn(monkeypatch):
+    """Streamed in chunks of one component each, a chunk's own component's densities are its log q as drawn, not
+    computed again: the run equals the one that recomputes every component's densities from the rollouts."""
+    from pemviz.estimators.ce_mixture import MixtureWeights
+
+    cfg = ExperimentConfig.of(
+        n_stages=4,
+        n_per_stage=200,
+        n_final=300,
+        ce_epochs=60,
+        pretrain_epochs=60,
+        seed=3,
+        uniforms="iid",
+        chunk_rollouts=40,
+    )
+    drawn_by = MixtureWeights._drawn_by
+    owners: list[int | None] = []
+    monkeypatch.setattr(MixtureWeights, "_drawn_by", lambda self, *a: owners.append(drawn_by(self, *a)) or owners[-1])
+    kept = Experiment(cfg, problem=build_problem("main")).run().final.estimate
+    assert {0, 1, None} <= set(owners)  # the plain and the defensive proposal's chunks, and the target's
+    monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps, n_objects=1, skip=None: None)
+    again = Experiment(cfg, problem=build_problem("main")).run().final.estimate
+    assert kept.n_failures == again.n_failures > 0
+    assert kept.log_mu_hat == again.log_mu_hat and kept.ess == again.ess
