@@ -100,16 +100,24 @@ def test_stage_samplers_evaluate_each_detector_once_per_step_and_the_proposal_on
     assert no_eps.defensive is no_eps.plain and no_eps.describe(2) == "proposal"
 
 
-def test_a_run_weighs_its_mixture_as_a_second_pass_over_the_rollouts_would(monkeypatch):
-    """The default sampler's mixture weights from the logits kept while simulating, against the weights recomputed
-    from the rollouts (the path Ray tasks take): asked about the same rows, step by step and block by block, the
-    network gives the same bits, so the runs are the same run (the contract that serial and Ray runs agree)."""
-    cfg = ExperimentConfig.of(n_stages=4, n_per_stage=80, n_final=200, ce_epochs=60, pretrain_epochs=60, seed=3)
+def kept_and_asked_again(cfg: ExperimentConfig, monkeypatch) -> tuple:
+    """The final estimates of a braking run from the logits kept while simulating, then of the same run with every
+    component's densities recomputed from the rollouts (``ScoredTarget.take`` hands nothing over); both have failures
+    and the same estimate and ESS."""
     kept = Experiment(cfg, problem=build_problem("main")).run().final.estimate
     monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps, n_objects=1, skip=None: None)
     again = Experiment(cfg, problem=build_problem("main")).run().final.estimate
     assert kept.n_failures == again.n_failures > 0
     assert kept.log_mu_hat == again.log_mu_hat and kept.ess == again.ess
+    return kept, again
+
+
+def test_a_run_weighs_its_mixture_as_a_second_pass_over_the_rollouts_would(monkeypatch):
+    """The default sampler's mixture weights from the logits kept while simulating, against the weights recomputed
+    from the rollouts (the path Ray tasks take): asked about the same rows, step by step and block by block, the
+    network gives the same bits, so the runs are the same run (the contract that serial and Ray runs agree)."""
+    cfg = ExperimentConfig.of(n_stages=4, n_per_stage=80, n_final=200, ce_epochs=60, pretrain_epochs=60, seed=3)
+    kept, _ = kept_and_asked_again(cfg, monkeypatch)
     assert math.exp(kept.log_mu_hat) == pytest.approx(1.984e-15, rel=0.5)  # and near the exact answer
 
 
@@ -131,9 +139,5 @@ def test_streamed_chunks_take_their_own_components_densities_as_drawn(monkeypatc
     drawn_by = MixtureWeights._drawn_by
     owners: list[int | None] = []
     monkeypatch.setattr(MixtureWeights, "_drawn_by", lambda self, *a: owners.append(drawn_by(self, *a)) or owners[-1])
-    kept = Experiment(cfg, problem=build_problem("main")).run().final.estimate
+    kept_and_asked_again(cfg, monkeypatch)
     assert {0, 1, None} <= set(owners)  # the plain and the defensive proposal's chunks, and the target's
-    monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps, n_objects=1, skip=None: None)
-    again = Experiment(cfg, problem=build_problem("main")).run().final.estimate
-    assert kept.n_failures == again.n_failures > 0
-    assert kept.log_mu_hat == again.log_mu_hat and kept.ess == again.ess
