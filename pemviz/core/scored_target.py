@@ -30,25 +30,41 @@ class ScoredTarget(ErrorModelOf):
         self._asked.append((p, *extras))
         return p
 
-    def take(self, n: int, n_steps: int, n_objects: int = 1) -> tuple[np.ndarray, np.ndarray] | None:
-        """(the extras' logits float64 [K, n, T, M], the target's [n, T, M]) of the next ``n`` rollouts of M objects, in
-        the order simulated: groups of T asks of equal rows (one group per chunk of rollouts stepped together, each
-        rollout's M object rows together), or None (all kept logits are dropped) when the asks kept do not start with
-        such groups covering ``n`` rollouts."""
+    def take(
+        self, n: int, n_steps: int, n_objects: int = 1, skip: int | None = None
+    ) -> list[tuple[int, np.ndarray]] | None:
+        """The kept logits of the next ``n`` rollouts of M objects, in the order simulated, step-major as asked: per
+        group of T asks of equal rows (one group per chunk of rollouts stepped together), (its first rollout, float64
+        [K + 1, T, r M]: the target's logits, then the K extras', each rollout's M object rows together); or None (all
+        kept logits are dropped) when the asks kept do not start with such groups covering ``n`` rollouts. The extra
+        of index ``skip`` (not None) is left unset: not read. :func:`by_rollout` lays them out rollout by rollout."""
         asked, groups, used, rows = self._asked, [], 0, 0
         while rows < n and used + n_steps <= len(asked):
             r = asked[used][0].shape[0]
             if r % n_objects or any(a[0].shape[0] != r for a in asked[used : used + n_steps]):
                 break
-            groups.append((used, rows, r // n_objects))
+            groups.append((used, rows, r))
             used, rows = used + n_steps, rows + r // n_objects
         if rows != n:
             self._asked = []
             return None
-        out = np.empty((len(self.extras) + 1, n, n_steps, n_objects))
-        for first, row, m in groups:  # each detector's T asks of a group stacked [T, m M], copied in once
-            for k in range(out.shape[0]):
-                block = np.stack([asked[first + t][k] for t in range(n_steps)])
-                out[k, row : row + m] = block.reshape(n_steps, m, n_objects).transpose(1, 0, 2)
+        out = []
+        for first, row, r in groups:  # each detector's T asks of a group stacked [T, r], copied in once
+            block = np.empty((len(self.extras) + 1, n_steps, r))
+            for k in range(block.shape[0]):
+                if skip is None or k != skip + 1:
+                    np.stack([asked[first + t][k] for t in range(n_steps)], out=block[k])
+            out.append((row, block))
         del asked[:used]
-        return out[1:], out[0]
+        return out
+
+
+def by_rollout(groups: list[tuple[int, np.ndarray]], n: int, n_objects: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`ScoredTarget.take`'s groups rollout by rollout: (the extras' logits float64 [K, n, T, M], the target's
+    [n, T, M])."""
+    k, n_steps = groups[0][1].shape[:2]
+    out = np.empty((k, n, n_steps, n_objects))
+    for row, block in groups:
+        m = block.shape[2] // n_objects
+        out[:, row : row + m] = block.reshape(k, n_steps, m, n_objects).transpose(0, 2, 1, 3)
+    return out[1:], out[0]

@@ -290,9 +290,10 @@ def detect_rate(counts: np.ndarray, hits: np.ndarray) -> np.ndarray:
         return np.where(counts > 0, hits / np.maximum(counts, 1), np.nan)
 
 
-Weigh = Callable[[np.ndarray], np.ndarray]
-"""``weigh(mask)``: the importance log-weights [N] (nats) of a batch over the steps of ``mask`` (bool [N, T]), e.g. a
-mixture's (:func:`mixture_log_weight`); None where the weights are sum (log p - log q) over the masked steps."""
+Weigh = Callable[..., np.ndarray]
+"""``weigh(mask, rows=None)``: the importance log-weights [N] (nats) of a batch over the steps of ``mask`` (bool
+[N, T]; with ``rows``, int [R], of those rollouts only: [R] over a mask [R, T]), e.g. a mixture's
+(:func:`mixture_log_weight`); None where the weights are sum (log p - log q) over the masked steps."""
 
 
 def severity_arrays(
@@ -336,9 +337,7 @@ def severity_arrays(
             continue
         mask = steps < last[level, rows][:, None]  # [n_hit, T]
         if weigh is not None:
-            full = np.zeros((batch.n, n_steps), bool)
-            full[rows] = mask
-            out_w[level, rows] = weigh(full)[rows]
+            out_w[level, rows] = weigh(mask, rows)
         else:
             out_w[level, rows] = masked_log_weight(batch, mask, rows)
         out_p[level, rows] = np.where(mask, batch.log_p[rows], 0.0).sum(axis=1)

@@ -22,7 +22,7 @@ from pemviz.core.detectors import (
 from pemviz.core.odd_proposal import parameter_log_ratio
 from pemviz.core.rng import RQMC_BLOCK
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.core.scored_target import ScoredTarget
+from pemviz.core.scored_target import ScoredTarget, by_rollout
 from pemviz.estimators.base import StagePlan, masked_log_weight, mixture_log_weight, weighted_steps_mask
 
 if TYPE_CHECKING:
@@ -46,6 +46,9 @@ class MixtureWeights:
     _pool_start: int | None
     _stage_samplers: dict[int, tuple[tuple[int, Detector], ...]]
     _pool_log_q: dict[object, np.ndarray]
+    _stacked: tuple[np.ndarray, np.ndarray] | None = None
+    """The last batch's ``log_q_parts`` [N, K, T] (:meth:`_with_parts`) and the array it is a view of, [N, 1 + K, T]:
+    its log p in slot 0, so that :meth:`_mixture_log_weight` sums all K + 1 in one pass."""
 
     if TYPE_CHECKING:  # CrossEntropy's methods these call
 
@@ -55,22 +58,28 @@ class MixtureWeights:
 
         def _smoothing(self, gamma: float) -> float: ...
 
-    def _mixture_log_weight(self, batch: RolloutBatch, mask: np.ndarray) -> np.ndarray:
-        """log p(x) - log sum_k c_k q_k(x) over the steps of ``mask`` (bool [N, T]) for rollouts of the planned
-        stage's mixture (:func:`~pemviz.estimators.base.mixture_log_weight`), float64 [N] (nats), from the
-        components' log-probabilities the batch carries (:meth:`_with_parts`)."""
+    def _mixture_log_weight(self, batch: RolloutBatch, mask: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """log p(x) - log sum_k c_k q_k(x) over the steps of ``mask`` (bool [N, T]; with ``rows``, int [R], of those
+        rollouts only: [R, T]) for rollouts of the planned stage's mixture
+        (:func:`~pemviz.estimators.base.mixture_log_weight`), float64 [N] or [R] (nats), from the components'
+        log-probabilities the batch carries (:meth:`_with_parts`)."""
         plan, pb, scored, log_q_parts = self._plan, self.problem, self._scored, batch.log_q_parts
         assert plan is not None and scored is not None, "a mixture stage is planned (_open)"
         assert log_q_parts is not None, "the batch has its components' log-probabilities (_with_parts)"
-        log_p = (batch.log_p * mask).sum(axis=1)
+        pick = slice(None) if rows is None else rows
+        stacked = self._stacked
+        if stacked is not None and stacked[0] is log_q_parts:  # log p and the parts side by side: one product
+            sums = (stacked[1][pick] * mask[:, None, :]).sum(axis=2)  # each [T] row summed as (x * mask).sum(axis=1)
+            log_p, by_part = sums[:, 0], sums[:, 1:].T
+        else:
+            log_p = (batch.log_p[pick] * mask).sum(axis=1)
+            by_part = [(log_q_parts[pick, k] * mask).sum(axis=1) for k in range(log_q_parts.shape[1])]
         extras = scored.extras
-        log_q = [
-            log_p if d is pb.target else (log_q_parts[:, extras.index(d)] * mask).sum(axis=1) for _, d in plan.mixture
-        ]
+        log_q = [log_p if d is pb.target else by_part[extras.index(d)] for _, d in plan.mixture]
         for k, (_, d) in enumerate(plan.mixture):  # over an ODD: its density of the parameters, relative to the ODD's
             ratio = None if d is pb.target else parameter_log_ratio(d, batch)
             if ratio is not None:
-                log_q[k] = log_q[k] + ratio
+                log_q[k] = log_q[k] + ratio[pick]
         return mixture_log_weight(log_p, np.stack(log_q), np.array([k for k, _ in plan.mixture]) / plan.n)
 
     def _whole_log_weight(self, batch: RolloutBatch) -> np.ndarray:
@@ -88,34 +97,61 @@ class MixtureWeights:
         assert scored is not None, "a mixture stage is planned (_open)"
         start, self._seen = self._seen, self._seen + batch.n
         m = batch.n_objects
-        taken = scored.take(batch.n, batch.n_steps, m)
-        logits, target_logit = (self._ask_again(batch, start), None) if taken is None else taken
-        detected = batch.detected
-        parts = np.empty((batch.n, len(logits), batch.n_steps))
-        where: tuple[np.ndarray, np.ndarray] | None = None  # the last component's differing steps, their detections
-        for k, lg in enumerate(logits):  # [N, T, M]
-            if target_logit is None:
-                lq = action_log_prob(lg, detected)
-            elif m == 1 and batch.noise is None:  # one object, no measurement error: the target's per-step log p is
-                # its detection's density, and where a component gives way to the target (outside its window) so is
-                # the component's; written in place, the rest computed (the components usually differ on the same
-                # steps, the window's: their detections gathered once)
-                part = parts[:, k]
-                np.copyto(part, batch.log_p)
-                differ = lg[..., 0] != target_logit[..., 0]
-                if where is None or not np.array_equal(where[0], differ):
-                    where = (differ, detected[..., 0][differ])
-                part[differ] = action_log_prob(lg[..., 0][differ], where[1])
-                continue
-            else:  # each object's densities: the target's where the component gives way to it
-                differ = lg != target_logit
-                lq = action_log_prob(target_logit, detected)
-                lq[differ] = action_log_prob(lg[differ], detected[differ])
-            parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
+        simple = m == 1 and batch.noise is None  # one object, no measurement error
+        own = self._drawn_by(start, batch.n) if simple else None
+        groups = scored.take(batch.n, batch.n_steps, m, skip=own)
+        stacked = np.empty((batch.n, len(scored.extras) + 1, batch.n_steps))
+        stacked[:, 0] = batch.log_p
+        parts = stacked[:, 1:]
+        if groups is not None and simple:
+            self._parts_as_asked(batch, groups, stacked, own)
+        else:
+            logits = (
+                self._ask_again(batch, start) if groups is None else by_rollout(groups, batch.n, m)[0] if groups else ()
+            )
+            for k, lg in enumerate(logits):  # [N, T, M]
+                lq = action_log_prob(lg, batch.detected)
+                parts[:, k] = lq[..., 0] if m == 1 else lq.sum(axis=2)
         if batch.noise is not None:  # each component's density of the detected objects' measurement errors
             for k, d in enumerate(scored.extras):
                 parts[:, k] += errors_log_density(batch, d, self.problem.target)
+        self._stacked = (parts, stacked)
         return dataclasses.replace(batch, log_q_parts=parts)
+
+    @staticmethod
+    def _parts_as_asked(
+        batch: RolloutBatch, groups: list[tuple[int, np.ndarray]], stacked: np.ndarray, own: int | None
+    ) -> None:
+        """Fill ``stacked[:, 1:]`` [N, K, T] with the components' densities of one-object rollouts from the logits the
+        simulation asked (:meth:`ScoredTarget.take`, step-major): component ``own`` drew them, so its densities are
+        their log q as drawn (the same bits); the others' are the target's log p where they give way to the target
+        (outside their window), else computed there (the components usually differ on the same steps: found once)."""
+        for k in range(stacked.shape[1] - 1):
+            stacked[:, k + 1] = batch.log_q if k == own else batch.log_p
+        for row, block in groups:
+            where: tuple[np.ndarray, ...] | None = None
+            for k in range(block.shape[0] - 1):
+                if k == own:
+                    continue
+                differ = (block[k + 1] != block[0]).T  # [r, T]: rollout-major, as written
+                if where is None or not np.array_equal(where[0], differ):
+                    i, t = np.nonzero(differ)
+                    where = (differ, i + row, t, batch.detected[i + row, t, 0])
+                _, i, t, detected = where
+                stacked[i, k + 1, t] = action_log_prob(block[k + 1][t, i - row], detected)
+
+    def _drawn_by(self, start: int, n: int) -> int | None:
+        """The index among :attr:`ScoredTarget.extras` of the component that drew rollouts ``start .. start + n - 1``
+        of the planned mixture stage (drawn component after component, :attr:`StagePlan.parts`), or None: the
+        target, or rollouts of more than one component."""
+        plan, scored = self._plan, self._scored
+        assert plan is not None and scored is not None, "a mixture stage is planned (_open)"
+        lo = 0
+        for k, d in plan.mixture:
+            if lo <= start and start + n <= lo + k:
+                return scored.extras.index(d) if d in scored.extras else None
+            lo += k
+        return None
 
     def _ask_again(self, batch: RolloutBatch, start: int) -> np.ndarray:
         """The extras' logits [K, N, T, M] of rollouts ``start .. start + N - 1`` of the stage, asked as a simulator

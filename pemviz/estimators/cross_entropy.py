@@ -272,7 +272,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
                 if settled is not None:
                     self._add_steps(settled, index, self._elites.floor)
         until = self.config.weights_until_failure
-        weigh = (lambda mask: self._mixture_log_weight(batch, mask)) if plan.mixture else None
+        weigh = (lambda mask, rows=None: self._mixture_log_weight(batch, mask, rows)) if plan.mixture else None
         log_w = weigh(weighted_steps_mask(self.problem, batch, until)) if weigh is not None else None
         return self.stages[plan.stage].add(
             self.problem, batch, failed, until, count_failures=plan.kind == "final", log_w=log_w, weigh=weigh

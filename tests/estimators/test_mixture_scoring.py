@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import ConstantDetector, StageSamplers, WindowDetector
-from pemviz.core.scored_target import ScoredTarget
+from pemviz.core.scored_target import ScoredTarget, by_rollout
 from pemviz.engine.experiment import Experiment
 from pemviz.estimators.cross_entropy import DefensiveDetector
 from pemviz.scenarios import simulate
@@ -39,7 +39,9 @@ def test_scored_target_answers_as_the_target_and_hands_over_the_extras_logits_ch
     ]  # two chunks of rollouts, stepped one after the other
     for b in batches:  # the target's log-probabilities: log 0.3 where detected, log 0.7 where missed
         np.testing.assert_allclose(b.log_p, np.where(b.detected[..., 0], math.log(0.3), math.log(0.7)), rtol=1e-14)
-    kept, target_logit = scored.take(5, T)
+    groups = scored.take(5, T)
+    assert [(row, block.shape) for row, block in groups] == [(0, (2, T, 3)), (3, (2, T, 2))]  # [K + 1, T, r]
+    kept, target_logit = by_rollout(groups, 5)
     assert kept.shape == (1, 5, T, 1)  # [K, n, T, M]: one object per step
     obs = np.concatenate([b.observations for b in batches])
     np.testing.assert_array_equal(kept[0, ..., 0], obs[:, :, 0] / 10.0 - 2.0)  # rollout by rollout, step by step
@@ -98,14 +100,44 @@ def test_stage_samplers_evaluate_each_detector_once_per_step_and_the_proposal_on
     assert no_eps.defensive is no_eps.plain and no_eps.describe(2) == "proposal"
 
 
+def kept_and_asked_again(cfg: ExperimentConfig, monkeypatch) -> tuple:
+    """The final estimates of a braking run from the logits kept while simulating, then of the same run with every
+    component's densities recomputed from the rollouts (``ScoredTarget.take`` hands nothing over); both have failures
+    and the same estimate and ESS."""
+    kept = Experiment(cfg, problem=build_problem("main")).run().final.estimate
+    monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps, n_objects=1, skip=None: None)
+    again = Experiment(cfg, problem=build_problem("main")).run().final.estimate
+    assert kept.n_failures == again.n_failures > 0
+    assert kept.log_mu_hat == again.log_mu_hat and kept.ess == again.ess
+    return kept, again
+
+
 def test_a_run_weighs_its_mixture_as_a_second_pass_over_the_rollouts_would(monkeypatch):
     """The default sampler's mixture weights from the logits kept while simulating, against the weights recomputed
     from the rollouts (the path Ray tasks take): asked about the same rows, step by step and block by block, the
     network gives the same bits, so the runs are the same run (the contract that serial and Ray runs agree)."""
     cfg = ExperimentConfig.of(n_stages=4, n_per_stage=80, n_final=200, ce_epochs=60, pretrain_epochs=60, seed=3)
-    kept = Experiment(cfg, problem=build_problem("main")).run().final.estimate
-    monkeypatch.setattr(ScoredTarget, "take", lambda self, n, n_steps, n_objects=1: None)
-    again = Experiment(cfg, problem=build_problem("main")).run().final.estimate
-    assert kept.n_failures == again.n_failures > 0
-    assert kept.log_mu_hat == again.log_mu_hat and kept.ess == again.ess
+    kept, _ = kept_and_asked_again(cfg, monkeypatch)
     assert math.exp(kept.log_mu_hat) == pytest.approx(1.984e-15, rel=0.5)  # and near the exact answer
+
+
+def test_streamed_chunks_take_their_own_components_densities_as_drawn(monkeypatch):
+    """Streamed in chunks of one component each, a chunk's own component's densities are its log q as drawn, not
+    computed again: the run equals the one that recomputes every component's densities from the rollouts."""
+    from pemviz.estimators.ce_mixture import MixtureWeights
+
+    cfg = ExperimentConfig.of(
+        n_stages=4,
+        n_per_stage=200,
+        n_final=300,
+        ce_epochs=60,
+        pretrain_epochs=60,
+        seed=3,
+        uniforms="iid",
+        chunk_rollouts=40,
+    )
+    drawn_by = MixtureWeights._drawn_by
+    owners: list[int | None] = []
+    monkeypatch.setattr(MixtureWeights, "_drawn_by", lambda self, *a: owners.append(drawn_by(self, *a)) or owners[-1])
+    kept_and_asked_again(cfg, monkeypatch)
+    assert {0, 1, None} <= set(owners)  # the plain and the defensive proposal's chunks, and the target's
