@@ -64,3 +64,32 @@ def power(x: Any, y: float) -> np.ndarray:
         OverflowError: a result beyond float64's range, where numpy's gives inf."""
     a = np.asarray(x, dtype=np.float64)
     return np.fromiter(map(math.pow, a.ravel().tolist(), repeat(float(y))), np.float64, a.size).reshape(a.shape)
+
+
+def logsumexp(a: Any, axis: int | None = None) -> Any:
+    """``log(sum(exp(a)))`` over ``axis`` (None: all), nats, as scipy.special's ``logsumexp`` (scipy 1.17) computes it
+    on a CPU without AVX-512, with libm's exp, log and log1p: ``log1p(s / m) + log(m) + a_max``, ``m`` the count of
+    the maxima and ``s`` the sum of the other terms ``exp(a - a_max)``; where that is not finite,
+    ``log(sum(exp(a)))`` (all ``-inf`` gives ``-inf``, any ``+inf`` gives ``inf``). scipy's calls numpy's ``exp``,
+    ``log`` and ``log1p``, whose AVX-512 loops round otherwise (the module's docstring).
+
+    Args:
+        a: float64 array (real), any shape.
+        axis: the axis summed over, or None.
+    Returns:
+        float64 of ``a``'s shape without ``axis`` (a Python float for ``axis=None`` or a 1-d ``a``)."""
+    a = np.array(a, dtype=np.float64, copy=True)
+    if a.ndim == 0:
+        a = a.reshape(1)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        out_inf = log(np.sum(exp(a), axis=axis, keepdims=True))
+        a_max = np.max(a, axis=axis, keepdims=True)
+        is_max = a == a_max
+        m = np.sum(is_max.astype(np.float64), axis=axis, keepdims=True)
+        a[is_max] = -np.inf
+        s = np.sum(exp(a - a_max), axis=axis, keepdims=True)
+        s = np.where(s == 0, s, s / m)
+        out = log1p(s) + log(m) + a_max
+    out = np.where(np.isfinite(out), out, out_inf)
+    out = out.reshape(()) if axis is None else np.squeeze(out, axis=axis)
+    return out[()] if out.ndim == 0 else out
