@@ -1,19 +1,28 @@
-"""log, exp and log1p with the C library's bits on every x86 CPU, for the rollout path's likelihoods and draws.
+"""log, exp, log1p, atan2 and pow with the C library's bits on every x86 CPU, for the rollout path's likelihoods, draws
+and dynamics.
 
 numpy dispatches its float64 ``log`` and ``exp`` to its own AVX-512 loops, and ``log1p`` (with ``expm1``, ``power``,
 ``tanh`` ...) to SVML's, where the CPU has AVX-512 (``numpy.show_runtime()``: X86_V4); elsewhere it calls
 libm. The two round differently in the last bit (numpy 2.4 on an AMD EPYC: ``log`` differs from libm on 0.16 % of
-values, ``exp`` on 4.6 %, ``log1p`` on 4.4 %), so a seed's log-likelihoods, a draw ``log u <= log q`` and the proposal
-fitted to them would depend on the CPU. scipy.special's ufuncs have no runtime dispatch and call libm's double
+values, ``exp`` on 4.6 %, ``log1p`` on 4.4 %, ``arctan2`` on 1.6 %, ``power(x, 4.0)`` on 5.3 %), so a seed's
+log-likelihoods, a draw ``log u <= log q``, the proposal fitted to them and a simulator's state would depend on the
+CPU. scipy.special's ufuncs have no runtime dispatch and call libm's double
 functions: ``xlogy(1, x)`` is ``1 * log(x)``, ``inv_boxcox(x, 0)`` is ``exp(x)``, ``boxcox1p(x, 0)`` is ``log1p(x)``
 (scipy's ``_boxcox.pxd``), each bit for bit libm's (tested on 400,000 values), which numpy returns on CPUs without
 AVX-512, so the bits of runs recorded there stay valid. They cost about 10-20 ns a value (numpy's AVX-512 loops: 2 ns).
+No scipy ufunc is libm's ``atan2`` or ``pow``: :func:`atan2` takes the imaginary part of numpy's complex ``log``,
+whose loop has no SIMD version and calls the C library's ``clog`` (or numpy's own), the argument of which is
+``atan2(y, x)`` (C99 7.3.9.2, ``carg``; glibc, musl and FreeBSD's msun compute it so), about 40 ns a value;
+:func:`power` calls libm's ``pow`` through Python's :func:`math.pow`, about 80 ns a value.
 
 :mod:`pemviz.core.exact` has IEEE-754-only versions, the same under any libm, for code that needs no libm bits.
-Every function takes an array (or scalar) and returns float64 of the same shape; ``out`` is a ufunc's."""
+Every function takes an array (or scalar) and returns float64 of the same shape; ``out`` (log, exp, log1p) is a
+ufunc's."""
 
 from __future__ import annotations
 
+import math
+from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -33,3 +42,54 @@ def exp(x: Any, out: np.ndarray | None = None) -> Any:
 def log1p(x: Any, out: np.ndarray | None = None) -> Any:
     """log(1 + x) (nats), libm's ``log1p``: -1 gives -inf, below -1 nan."""
     return boxcox1p(x, 0.0, out=out)
+
+
+def atan2(y: Any, x: Any) -> np.ndarray:
+    """The angle of the point ``(x, y)`` from the x axis (radians, in [-pi, pi]), libm's ``atan2(y, x)``: the
+    imaginary part of the complex log of ``x + iy`` (C99 7.3.9.2). ``y`` and ``x`` broadcast; float64 of their
+    shape (0-d for scalars)."""
+    yx = np.broadcast_arrays(np.asarray(y, dtype=np.float64), np.asarray(x, dtype=np.float64))
+    z = np.empty(yx[0].shape, dtype=np.complex128)
+    z.real, z.imag = yx[1], yx[0]
+    with np.errstate(divide="ignore", invalid="ignore"):  # log(0) and nan in the real part: not returned
+        np.log(z, out=z)
+    return z.imag.copy()
+
+
+def power(x: Any, y: float) -> np.ndarray:
+    """``x ** y`` elementwise, libm's ``pow`` (through :func:`math.pow`): float64 of ``x``'s shape.
+
+    Raises:
+        ValueError: a negative ``x`` with a ``y`` that is not an integer, where numpy's ``power`` gives nan.
+        OverflowError: a result beyond float64's range, where numpy's gives inf."""
+    a = np.asarray(x, dtype=np.float64)
+    return np.fromiter(map(math.pow, a.ravel().tolist(), repeat(float(y))), np.float64, a.size).reshape(a.shape)
+
+
+def logsumexp(a: Any, axis: int | None = None) -> Any:
+    """``log(sum(exp(a)))`` over ``axis`` (None: all), nats, as scipy.special's ``logsumexp`` (scipy 1.17) computes it
+    on a CPU without AVX-512, with libm's exp, log and log1p: ``log1p(s / m) + log(m) + a_max``, ``m`` the count of
+    the maxima and ``s`` the sum of the other terms ``exp(a - a_max)``; where that is not finite,
+    ``log(sum(exp(a)))`` (all ``-inf`` gives ``-inf``, any ``+inf`` gives ``inf``). scipy's calls numpy's ``exp``,
+    ``log`` and ``log1p``, whose AVX-512 loops round otherwise (the module's docstring).
+
+    Args:
+        a: float64 array (real), any shape.
+        axis: the axis summed over, or None.
+    Returns:
+        float64 of ``a``'s shape without ``axis`` (a Python float for ``axis=None`` or a 1-d ``a``)."""
+    a = np.array(a, dtype=np.float64, copy=True)
+    if a.ndim == 0:
+        a = a.reshape(1)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        out_inf = log(np.sum(exp(a), axis=axis, keepdims=True))
+        a_max = np.max(a, axis=axis, keepdims=True)
+        is_max = a == a_max
+        m = np.sum(is_max.astype(np.float64), axis=axis, keepdims=True)
+        a[is_max] = -np.inf
+        s = np.sum(exp(a - a_max), axis=axis, keepdims=True)
+        s = np.where(s == 0, s, s / m)
+        out = log1p(s) + log(m) + a_max
+    out = np.where(np.isfinite(out), out, out_inf)
+    out = out.reshape(()) if axis is None else np.squeeze(out, axis=axis)
+    return out[()] if out.ndim == 0 else out

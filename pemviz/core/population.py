@@ -12,7 +12,8 @@ from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import logsumexp
+
+from pemviz.core import libm
 
 
 def pooling_shifts(stage_weights: np.ndarray, sizes: np.ndarray) -> np.ndarray:
@@ -54,7 +55,7 @@ class FailureShares:
 
     def share(self) -> np.ndarray:
         """float64 [F] each failure's share of mu_hat (fractions adding up to 1; empty without failures)."""
-        return np.exp(self.log_share)
+        return libm.exp(self.log_share)
 
     def position(self, stage: int, index: int) -> int | None:
         """The rank (0 = the largest share) of rollout ``index`` of ``stage``, or None when it is not a failure of
@@ -100,7 +101,7 @@ def failure_shares(
     s, i = s.astype(np.int64), i.astype(np.int64)
     order = np.lexsort((i, s, -w))  # the largest weight first; ties by stage, then index
     w = w[order]
-    total = float(logsumexp(w)) if w.size else 0.0
+    total = float(libm.logsumexp(w)) if w.size else 0.0
     return FailureShares(s[order], i[order], w - total, w, p[order])
 
 
@@ -146,7 +147,7 @@ def failure_groups(shares: FailureShares, keys: Sequence[Hashable], labels: dict
             key,
             (labels or {}).get(key, str(key)),
             int(ranks.size),
-            float(np.exp(logsumexp(shares.log_share[ranks]))),
+            float(libm.exp(libm.logsumexp(shares.log_share[ranks]))),
             int(ranks[0]),
         )
         for key, ranks in zip(code_of, by_code, strict=True)

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.special import logsumexp
 
+from pemviz.core import libm
 from pemviz.core.detectors import Detector, action_log_prob, errors_log_density, reads_state
 from pemviz.core.features import FeaturesFn, with_state
 from pemviz.core.odd_proposal import parameter_log_ratio
@@ -67,7 +67,7 @@ def mixture_step_log_q(
             f"mixture_step_log_q: log_q must be [K, N, T] and shares [K] > 0, got {log_q.shape}, " f"{c.shape}"
         )
     start = np.zeros(log_q.shape[:2]) if log_start is None else np.asarray(log_start, dtype=np.float64)
-    running = logsumexp(np.log(c)[:, None, None] + start[:, :, None] + np.cumsum(log_q, axis=2), axis=0)  # M_t
+    running = libm.logsumexp(libm.log(c)[:, None, None] + start[:, :, None] + np.cumsum(log_q, axis=2), axis=0)  # M_t
     first = np.zeros((running.shape[0], 1)) if log_start is None else stage_log_q_params(start, c)[:, None]
     before = np.concatenate([first, running[:, :-1]], axis=1)
     step = running - before
@@ -78,7 +78,7 @@ def stage_log_q_params(log_start: np.ndarray, shares: Sequence[float] | np.ndarr
     """log sum_k c_k q_k(theta) / p_ODD(theta), float64 [N] (nats): the parameters' term of a mixture's log density
     (:attr:`pemviz.core.rollouts.RolloutBatch.log_q_params`), from each component's ``log_start`` [K, N] (0 for one
     drawing them from the ODD) and shares c_k [K]."""
-    return logsumexp(np.log(np.asarray(shares, dtype=np.float64))[:, None] + log_start, axis=0)
+    return libm.logsumexp(libm.log(np.asarray(shares, dtype=np.float64))[:, None] + log_start, axis=0)
 
 
 def component_of(start: int, n: int, sizes: Sequence[int]) -> np.ndarray:
@@ -214,7 +214,7 @@ def mean_weight(log_w: np.ndarray, bound: np.ndarray | None = None) -> MeanWeigh
     log_w = np.asarray(log_w, dtype=np.float64)
     n = log_w.size
     top = float(np.max(log_w))
-    scaled = np.exp(log_w - top)
+    scaled = libm.exp(log_w - top)
     log_mean = top + math.log(float(scaled.mean()))
     sd = float(scaled.std(ddof=1)) if n > 1 else 0.0
     se = sd / math.sqrt(n) * math.exp(top) if top < 709.0 else math.inf
@@ -222,5 +222,5 @@ def mean_weight(log_w: np.ndarray, bound: np.ndarray | None = None) -> MeanWeigh
     if bound is not None and np.isfinite(bound).all():
         b = np.asarray(bound, dtype=np.float64)
         bound_se = math.sqrt(float(np.sum(b - 1.0))) / n
-        over = int(np.count_nonzero(log_w > np.log(b) + 1e-9))
+        over = int(np.count_nonzero(log_w > libm.log(b) + 1e-9))
     return MeanWeight(log_mean, se, n, bound_se, over)

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
-from scipy.special import logsumexp
 
 from pemviz import stl
 from pemviz.config import ExperimentConfig
+from pemviz.core import libm
 from pemviz.core.detectors import Detector
 from pemviz.core.estimate import Estimate, estimate
 from pemviz.core.plan import RunPlan
@@ -201,8 +201,8 @@ def mixture_log_weight(log_p: np.ndarray, log_q: np.ndarray, shares: np.ndarray)
         shares: c_k >= 0, [K], summing to 1.
     """
     with np.errstate(divide="ignore"):
-        log_c = np.log(np.asarray(shares, dtype=np.float64))[:, None]
-    return np.asarray(log_p, dtype=np.float64) - logsumexp(log_c + np.asarray(log_q, dtype=np.float64), axis=0)
+        log_c = libm.log(np.asarray(shares, dtype=np.float64))[:, None]
+    return np.asarray(log_p, dtype=np.float64) - libm.logsumexp(log_c + np.asarray(log_q, dtype=np.float64), axis=0)
 
 
 def log_p_before_failure(problem: Problem, batch: RolloutBatch) -> np.ndarray:
@@ -267,7 +267,7 @@ class SeenFailures:
         """log of the sum of p over the distinct failing prefixes seen (nats), or None: none seen, or no bound."""
         if not self.applies or not self._log_p:
             return None
-        return float(logsumexp(np.fromiter(self._log_p.values(), float)))
+        return float(libm.logsumexp(np.fromiter(self._log_p.values(), float)))
 
 
 def elite_counts(batch: RolloutBatch, elite: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

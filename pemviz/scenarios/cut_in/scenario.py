@@ -18,6 +18,7 @@ from typing import TypedDict
 
 import numpy as np
 
+from pemviz.core import libm
 from pemviz.pem.encoding import INPUT_COLUMNS
 from pemviz.stack.tracker import TrackerParams
 
@@ -354,10 +355,11 @@ def idm_acceleration(
     Returns:
         float64 ``[N]``, m/s^2."""
     a_max = idm.comfort_acc_max_mps2
-    acc = a_max * (1.0 - np.power(np.maximum(speed_mps, 0.0) / target_speed_mps, idm.delta))
+    acc = a_max * (1.0 - libm.power(np.maximum(speed_mps, 0.0) / target_speed_mps, idm.delta))
     ab = -a_max * idm.comfort_acc_min_mps2
     d_star = idm.distance_wanted_m + speed_mps * idm.time_wanted_s + speed_mps * closing_speed_mps / (2.0 * np.sqrt(ab))
-    acc = acc - a_max * np.power(d_star / np.maximum(distance_m, 0.01), 2)
+    ratio = d_star / np.maximum(distance_m, 0.01)
+    acc = acc - a_max * (ratio * ratio)
     return np.clip(acc, -idm.acc_max_mps2, idm.acc_max_mps2)
 
 

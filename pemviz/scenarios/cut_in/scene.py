@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pemviz.core import libm
 from pemviz.pem.camera import MIN_RANGE_M
 from pemviz.scenarios.cut_in.scenario import (
     LANE_WIDTH_M,
@@ -262,7 +263,7 @@ def object_rows(
     cols[1] = 0.0  # class: Car
     cols[2] = view.truncation
     cols[3] = camera.occlusion_level(view.occluded_fraction, params.occlusion_partly, params.occlusion_largely)
-    np.subtract(traffic.rot_y_rad[:, None], np.arctan2(loc_x, loc_z), out=cols[4])  # alpha: rot_y minus the ray angle
+    np.subtract(traffic.rot_y_rad[:, None], libm.atan2(loc_x, loc_z), out=cols[4])  # alpha: rot_y minus the ray angle
     _wrap(cols[4])
     cols[5] = params.vehicle_height_m
     cols[6] = params.vehicle_width_m
