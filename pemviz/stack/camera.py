@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pemviz.core import libm
 from pemviz.pem.camera import KITTI_FOCAL_PX, KITTI_PRINCIPAL_POINT_PX, MIN_RANGE_M
 from pemviz.pem.encoding import INPUT_COLUMNS
 
@@ -252,7 +253,7 @@ def view(
     salient[..., 0] = kind.class_index
     salient[..., 1] = truncation
     salient[..., 2] = occlusion
-    alpha = rot - np.arctan2(x, z)  # KITTI's observation angle: rotation_y minus the ray's angle, in [-pi, pi)
+    alpha = rot - libm.atan2(x, z)  # KITTI's observation angle: rotation_y minus the ray's angle, in [-pi, pi)
     salient[..., 3] = np.mod(alpha + np.pi, 2.0 * np.pi) - np.pi
     salient[..., 4] = kind.height_m
     salient[..., 5] = kind.width_m
