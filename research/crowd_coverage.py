@@ -136,9 +136,10 @@ def tail_table(ks: list[float], sizes: list[int], reps: int, share: float = 0.4,
     return table
 
 
-def interval_now(row: dict) -> tuple[float, float] | None:
+def interval_now(row: dict, tail: bool = True) -> tuple[float, float] | None:
     """The interval the current :func:`pemviz.core.estimate.estimate` prints from a row's recorded terms (natural
-    logs), or None: plain Monte Carlo (its Clopper-Pearson interval does not change) or no terms."""
+    logs), with ``tail`` False the symmetric log-scale t interval of before, or None: plain Monte Carlo (its
+    Clopper-Pearson interval does not change) or no terms."""
     from pemviz.core.confidence import log_mean_interval
     from pemviz.core.diagnostics import pareto_khat
 
@@ -148,7 +149,7 @@ def interval_now(row: dict) -> tuple[float, float] | None:
     log_y = np.full(n, -np.inf)
     terms = np.concatenate([np.asarray(p["log_terms"], dtype=np.float64) for p in row["parts"]])
     log_y[: terms.size] = terms
-    _, lo, hi = log_mean_interval(log_y, pareto_khat(log_y))
+    _, lo, hi = log_mean_interval(log_y, pareto_khat(log_y) if tail else math.nan)
     return min(lo, 0.0), min(hi, 0.0)
 
 
@@ -156,19 +157,22 @@ def summary(rows: list[dict]) -> None:
     """Coverage by step as recorded and with the current interval, the misses one by one."""
     print(f"runs {len(rows)}, intervals holding {sum(r['holds'] for r in rows)}/{sum(r['backed'] for r in rows)}")
     now: dict[int, bool] = {}
+    old: dict[int, bool] = {}
     for r in rows:
-        ci = interval_now(r)
-        now[r["seed"]] = r["holds"] if ci is None else bool(r["backed"] and ci[0] <= r["truth"] <= ci[1])
+        for held, tail in ((now, True), (old, False)):
+            ci = interval_now(r, tail)
+            held[r["seed"]] = r["holds"] if ci is None else bool(r["backed"] and ci[0] <= r["truth"] <= ci[1])
     for step in ("first", "retry", "plain", "plain-skipped"):
         sub = [r for r in rows if r["answered"] == step]
         if sub:
             print(
                 f"  {step}: {len(sub)} runs, {sum(r['backed'] for r in sub)} intervals, {sum(r['holds'] for r in sub)}"
-                f" holding as recorded, {sum(now[r['seed']] for r in sub)} with the current interval"
+                f" holding as recorded, {sum(old[r['seed']] for r in sub)} with the symmetric one, "
+                f"{sum(now[r['seed']] for r in sub)} with the current one"
             )
-    print("misses as recorded: seed answered side ratio ess khat failures n rel.half-width held-now")
+    print("misses: seed answered side ratio ess khat failures n rel.half-width(recorded) held-now")
     for r in rows:
-        if r["backed"] and not r["holds"]:
+        if r["backed"] and not (old[r["seed"]] and now[r["seed"]]):
             print(
                 f"{r['seed']} {r['answered']} {r['side']} {math.exp(r['log_mu'] - r['truth']):.3f} {r['ess']:.1f} "
                 f"{r['khat']:.2f} {r['nf']} {r['n']} {r['rel_half_width']:.3f} {now[r['seed']]}"
@@ -178,9 +182,15 @@ def summary(rows: list[dict]) -> None:
         for r in rows
         if (ci := interval_now(r)) is not None
     ]
-    before = [r["rel_half_width"] for r in rows if interval_now(r) is not None]
+    before = [
+        (math.exp(ci[1] - r["log_mu"]) - math.exp(ci[0] - r["log_mu"])) / 2.0
+        for r in rows
+        if (ci := interval_now(r, tail=False)) is not None
+    ]
     if widths:
-        print(f"median relative half-width: recorded {np.median(before):.3f}, current {np.median(widths):.3f}")
+        print(f"median relative half-width: symmetric {np.median(before):.3f}, current {np.median(widths):.3f}")
+    ratios = [math.exp(r["log_mu"] - r["truth"]) for r in rows]
+    print(f"median relative error {np.median(np.abs(np.array(ratios) - 1.0)):.4f}")
 
 
 def main(argv: list[str] | None = None) -> int:
