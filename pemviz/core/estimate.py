@@ -323,7 +323,8 @@ def estimate(
 
     The interval: with all weights 1 (plain Monte Carlo) the Clopper-Pearson interval of the failure count
     (:func:`pemviz.core.confidence.clopper_pearson`; 0 failures: p < 3 / N); under importance sampling the log-scale
-    t interval of the mean of 1[fail_i] w_i (:func:`pemviz.core.confidence.log_mean_interval`) cut at 1, and [0, 1]
+    interval of the mean of 1[fail_i] w_i, its upper end widened by the weights' k-hat
+    (:func:`pemviz.core.confidence.log_mean_interval`), cut at 1, and [0, 1]
     with 0 failures. The verdict (:data:`VERDICTS`) is ``unreliable`` with no failure, a nan weight, k-hat above
     :data:`KHAT_UNRELIABLE` with an ESS below :data:`MIN_ESS_RELIABLE`, or a mean importance weight above
     :data:`MAX_MEAN_WEIGHT`; ``doubtful`` with fewer than :data:`MIN_FAILURES` failures or distinct failing rollouts
@@ -403,9 +404,9 @@ def _estimate(
         log_ci = (math.log(lo) if lo > 0 else -math.inf, math.log(hi))
         khat = math.nan
     else:
-        _, lo, hi = log_mean_interval(log_y)
-        log_ci = (min(lo, 0.0), min(hi, 0.0))  # p <= 1: the interval intersected with [0, 1] covers as often
         khat = pareto_khat(log_y)
+        _, lo, hi = log_mean_interval(log_y, khat)
+        log_ci = (min(lo, 0.0), min(hi, 0.0))  # p <= 1: the interval intersected with [0, 1] covers as often
     distinct = nf if plain_mc else distinct_failures(lw, lp)
     verdict, reason = _verdict(n, nf, ess, khat, log_weight, plain_mc, distinct)
     numbers = (log_sum, ess, log_ci[1], log_mean_w)

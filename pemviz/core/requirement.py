@@ -91,8 +91,10 @@ def alpha_at_look(look: int, alpha: float = ALPHA) -> float:
 
 def interval_at_level(est: Estimate, level: float, plain_mc: bool) -> tuple[float, float]:
     """The interval of ``est`` at confidence ``level`` instead of its own :data:`CI_LEVEL`, as natural logs (lo,
-    hi): Clopper-Pearson for plain Monte Carlo; under importance sampling the log-scale t interval widened by
-    ``t_{N-1}((1 + level) / 2) / t_{N-1}((1 + CI_LEVEL) / 2)``; with no failure, (-inf, 0).
+    hi): Clopper-Pearson for plain Monte Carlo; under importance sampling the log-scale interval
+    (:func:`pemviz.core.confidence.log_mean_interval`, its upper end widened by the weights' k-hat) with each side's
+    distance from log mu_hat scaled by ``t_{N-1}((1 + level) / 2) / t_{N-1}((1 + CI_LEVEL) / 2)``; with no failure,
+    (-inf, 0).
 
     Args:
         est: an estimate of :func:`pemviz.core.estimate.estimate`.
