@@ -146,15 +146,18 @@ RUNGS: tuple[Rung, ...] = (
     Rung(
         "crossing-1e-5",
         "crossing",
-        ("brake_mps2=9.5",),
+        ("brake_mps2=9.5", "brake_ttc_s=2.0"),
         -5,
-        None,
-        "the brake's deceleration is the crossing's knob (brake_mps2 8 -> 12: p 3e-4 -> about 4e-9); log p "
-        "interpolated between 9 m/s^2, 4.30e-5 [3.11e-5, 5.79e-5] (the default command's plain Monte Carlo, 43 "
-        "failures in 10^6, seed 0), and 10 m/s^2 (below)",
-        "plain Monte Carlo at 5 % needs 400 failures, about 4e7 rollouts: "
-        + CROSSING_MC.format("brake_mps2=9.5", "2000000")
-        + " for S = 1..20: about 0.45 core-hours at 25,000 rollouts/s (hours on this shared machine)",
+        Reference(
+            424,
+            42_000_000,
+            "plain Monte Carlo, shipped PEMs: 22, 19, 12, 15, 18, 18, 20, 14, 16, 25, 20, 26, 28, 22, 24, 13, 23, 27, "
+            "14, 21 and 27 failures at seeds 1-21",
+            CROSSING_MC.format("brake_mps2=9.5 --param brake_ttc_s=2.0", "2000000") + " --workers 1, S = 1..21",
+        ),
+        "the deceleration acts by whole steps of the stop: brake_mps2=9.5 and 9.75 gave the same 76 failures in "
+        "2,000,000 (seed 1), 3.80e-5 [2.99e-5, 4.76e-5], not the 1e-5 interpolated between 9 (4.30e-5) and 10 m/s^2 "
+        "(3.0e-6); an earlier trigger, brake_ttc_s=2.0, brought it to 1.10e-5 (22 in 2,000,000, seed 1)",
     ),
     Rung(
         "crossing-1e-6",
