@@ -82,7 +82,7 @@ def logsumexp(a: Any, axis: int | None = None) -> Any:
     if a.ndim == 0:
         a = a.reshape(1)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        out_inf = log(np.sum(exp(a), axis=axis, keepdims=True))
+        whole = log(np.sum(exp(a), axis=axis, keepdims=True)) if not np.isfinite(a).all() else None
         a_max = np.max(a, axis=axis, keepdims=True)
         is_max = a == a_max
         m = np.sum(is_max.astype(np.float64), axis=axis, keepdims=True)
@@ -90,6 +90,7 @@ def logsumexp(a: Any, axis: int | None = None) -> Any:
         s = np.sum(exp(a - a_max), axis=axis, keepdims=True)
         s = np.where(s == 0, s, s / m)
         out = log1p(s) + log(m) + a_max
-    out = np.where(np.isfinite(out), out, out_inf)
+    if whole is not None:  # a row of -inf or with +inf or nan: scipy's log(sum(exp(a))) there
+        out = np.where(np.isfinite(out), out, whole)
     out = out.reshape(()) if axis is None else np.squeeze(out, axis=axis)
     return out[()] if out.ndim == 0 else out
