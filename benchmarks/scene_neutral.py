@@ -113,7 +113,6 @@ def one_run(scene: str, variant: str, seed: int, scored_steps: int | None = None
     look-ahead scores about this many steps of a rollout (None:
     :data:`pemviz.estimators.lookahead_score.SCORED_STEPS`)."""
     import pemviz.estimators.lookahead_score as lookahead_score
-    from threadpoolctl import threadpool_limits
 
     if scored_steps is not None:
         lookahead_score.SCORED_STEPS = scored_steps
@@ -121,9 +120,10 @@ def one_run(scene: str, variant: str, seed: int, scored_steps: int | None = None
     from pemviz.cli import build_parser
     from pemviz.commands.run import config_from_args
     from pemviz.engine.experiment import Experiment
+    from pemviz.engine.resources import torch_threads
     from pemviz.scenarios.registry import problem_for
 
-    with threadpool_limits(1):
+    with torch_threads(1, blas=1):  # as ``pemviz run``: torch's threads too, not only BLAS's
         argv = ["run", *SCENES[scene], *SAMPLERS[variant], "--seed", str(seed)]
         cfg = config_from_args(build_parser("run").parse_args(argv))
         problem = problem_for(cfg)
