@@ -246,6 +246,54 @@ def test_a_plain_monte_carlo_run_is_told_how_many_rollouts_and_how_long():
     assert_valid_flags(advice)
 
 
+def test_the_plain_monte_carlo_after_the_stages_is_advised_as_plain_monte_carlo():
+    """The default sampler's answer is the plain rollouts after its stages (--plain-fallback): with no failure in
+    144,000 of them (a scene that cannot fail) the line named --n 400 (the retry the run had already drawn); with 2
+    failures it called the plain count "an upper estimate" of heavy-tailed weights. Now: more plain rollouts."""
+    config = ExperimentConfig.of(scenario="crossing")  # the default sampler: adaptive, N = 100
+    none = Estimate(
+        144_000,
+        0,
+        -math.inf,
+        math.nan,
+        math.nan,
+        0.0,
+        (-math.inf, math.log(3 / 144_000)),
+        math.nan,
+        0.0,
+        "unreliable",
+        "rule of three",
+        True,
+    )
+    advice = next_step(none, config, None, None, 151_200, 15.12)  # 0.1 ms a simulation
+    n = mc_count(3 / 144_000)
+    assert advice == (
+        f"more plain rollouts (--method mc --n 1440000, ~{duration_text(144.0)}) lower the bound ten-fold; "
+        f"p < 2.08e-05 here, so a 20 % interval needs at least {n:,} rollouts, ~{duration_text(n * 1e-4)}; the "
+        "stages before them saw no failure either"
+    )
+    assert_valid_flags(advice)
+    two = Estimate(
+        10_000,
+        2,
+        math.log(2e-4),
+        40.0,
+        40.0,
+        2.0,
+        (math.log(2.42e-5), math.log(7.22e-4)),
+        math.nan,
+        0.0,
+        "doubtful",
+        "only 2 failures",
+        True,
+    )
+    advice = next_step(two, config, None, None, 17_200, 1.72, plain_s=1e-4)
+    n = mc_count(2e-4)
+    assert advice.startswith(f"more rollouts: --method mc --rel-error 0.2 --max-sims {mc_cap(n)} samples until")
+    assert "upper estimate" not in advice and "--n 400" not in advice
+    assert_valid_flags(advice)
+
+
 def test_a_heavy_tailed_tiny_mu_hat_gets_plain_monte_carlo_capped_not_called_too_rare():
     """mu_hat 3.8e-11 from weights with k-hat 4.4 (the cut-in at a 19.5 m gap) is usually far too low: plain Monte
     Carlo capped at MC_AFFORDABLE rollouts decides p wherever p >= 1.96^2 / (0.04 cap + 1.96^2), stopping early."""
