@@ -395,14 +395,13 @@ def next_step(
     mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)
     rate = rate_source(method.plain, plain_s is not None)  # how mc_s was had, for the text
     max_time = config.stop.max_time_s
-    # plain Monte Carlo's answer: the method's, or the plain rollouts after an importance sampler's stages (weights 1)
-    plain = method.plain or (method.weighted and getattr(e, "plain_mc", False))
+    plain = method.plain or (method.weighted and getattr(e, "plain_mc", False))  # or the plain rollouts after it
     route = mc_route(e, plain, exact_log_p, reference, mc_s)
     budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
     if max_time is not None and mc_s is not None:
         budget = min(budget, max_time / mc_s)
     if plain:
-        return _after_mc(e, config, route, s_per, max_time, after_stages=not method.plain)
+        return _after_mc(e, config, route, s_per, max_time)
     heavy = f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it, and a precision "
     heavy += "target stops adding them after two such looks)"  # estimators.precision.HEAVY_LOOKS
     heavy = heavy if e.khat > KHAT_UNRELIABLE else ""
@@ -448,37 +447,31 @@ def next_step(
 
 
 def _after_mc(
-    e: Estimate,
-    config: ExperimentConfig,
-    route: McRoute | None,
-    s_per: float | None,
-    max_time: float | None,
-    after_stages: bool = False,
+    e: Estimate, config: ExperimentConfig, route: McRoute | None, s_per: float | None, max_time: float | None
 ) -> str:
     """:func:`next_step` after a plain Monte Carlo run: more rollouts sized for a 20 % interval, or where p is too
     rare for that or its time is past ``max_time`` (seconds), an importance-sampling method; with no failure and no
     known p, ten times the rollouts (and the rollouts a 20 % interval needs at least, from the rule-of-three bound).
-    ``after_stages``: the answer is the plain rollouts after an importance sampler's stages (``--plain-fallback``):
-    its commands name ``--method mc`` and, with no failure, ten times that answer's rollouts."""
-    n = config.n_per_stage
-    hi = e.log_ci[1]
-    floor = ""
-    if route is None and -math.inf < hi < 0.0:
-        least = mc_rollouts(hi)
-        floor = (
-            f"; p < {format_probability(hi, 2)} here, so a {PERCENT} interval needs at least "
-            f"{count_text(least)} rollouts{_time(least, s_per)}"
-        )
-    if route is None and after_stages:  # neither the stages nor the plain rollouts after them saw a failure
-        return (
-            f"more plain rollouts (--method mc --n {10 * e.n}{_time(10 * e.n, s_per)}) lower the bound ten-fold"
-            f"{floor}; the stages before them saw no failure either"
-        )
+    After an importance sampler's stages (the plain rollouts of ``--plain-fallback``) the commands name ``--method
+    mc`` and ten times those rollouts."""
+    after_stages = not config.method_record.plain
+    n = e.n if after_stages else config.n_per_stage
     if route is None:
-        return (
-            f"more rollouts (--n {10 * n}{_time(10 * n, s_per)}) lower the bound ten-fold{floor}; where p is rare, "
-            "an importance-sampling method (--method adaptive), with its verdict"
+        hi = e.log_ci[1]
+        floor = ""
+        if -math.inf < hi < 0.0:
+            least = mc_rollouts(hi)
+            floor = (
+                f"; p < {format_probability(hi, 2)} here, so a {PERCENT} interval needs at least "
+                f"{count_text(least)} rollouts{_time(least, s_per)}"
+            )
+        what, then = (
+            "rollouts (",
+            "where p is rare, an importance-sampling method (--method adaptive), with its verdict",
         )
+        if after_stages:  # neither the stages nor the plain rollouts after them saw a failure
+            what, then = ("plain rollouts (--method mc ", "the stages before them saw no failure either")
+        return f"more {what}--n {10 * n}{_time(10 * n, s_per)}) lower the bound ten-fold{floor}; {then}"
     if route.n > MC_AFFORDABLE:
         return (
             f"{route.text(s_per, 'plain')}: too rare for plain Monte Carlo; an importance-sampling method "
