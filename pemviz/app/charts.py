@@ -145,15 +145,15 @@ def marginal_note(record: PanelRun | None) -> str:
         why = "no run yet"
     elif _view_stages(record):
         return ""
-    elif record.view is not None and record.view.thresholds is None and record.view.objects_xy is None:
-        why = (
-            f"{html.escape(record.short_label)}: its problem reports neither a gap nor the rows of several objects, "
-            "so no detection probability can be binned"
-        )
     elif any(r.kind == "ce" for r in record.stages):
         why = (
             f"{html.escape(record.short_label)}: its stages drew from a proposal, but its scene gives no axis to "
             "bin q(detect) by (its drawing's proposal_axis, or a detection window on a scene of one object a step)"
+        )
+    elif record.view is not None and record.view.thresholds is None and record.view.objects_xy is None:
+        why = (
+            f"{html.escape(record.short_label)}: its scene gives no axis to bin q(detect) by (its drawing's "
+            "proposal_axis, or a detection window on a scene of one object a step)"
         )
     else:
         why = (

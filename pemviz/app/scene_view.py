@@ -113,15 +113,11 @@ class SceneView:
                 assert record.view is not None  # a rollout's run has started: it has its problem's view
                 if traj.several and record.view.objects_xy is not None:  # a scene of several objects
                     self._show_objects(record, traj)
-                else:  # a problem that draws no scene (a toy, a scenario of one's own)
+                else:  # a problem that draws no scene (a toy, a scenario of one's own): Explain says so too
                     self._scene_kind(None)
-                    self.scene_html.content = box(
-                        html.escape(
-                            f"the {record.view.name} scenario draws no scene: its rollouts are under Rollouts and "
-                            "Live"
-                        ),
-                        GREY,
-                    )
+                    why = f"the {record.view.name} scenario draws no scene: its rollouts are under Rollouts and Live"
+                    self.scene_html.content = box(html.escape(why), GREY)
+                    self.explain.clear(why)
                 return
             self.explain.explain_lane(traj, lane)
             self._use_lane(lane.panel_scene())

@@ -86,14 +86,21 @@ def interrupted(exc: KeyboardInterrupt, done: str) -> KeyboardInterrupt:
     return type(exc)(done)
 
 
-def split_choices(text: str, allowed: Iterable[str], flag: str) -> tuple[str, ...]:
-    """The comma-separated names of ``--FLAG text``, each one of ``allowed``, in the order given.
+def split_choices(
+    text: str, allowed: Iterable[str], flag: str, why_not: Callable[[str], str | None] | None = None
+) -> tuple[str, ...]:
+    """The comma-separated names of ``--FLAG text``, each one of ``allowed``, in the order given; ``why_not(name)``
+    may say why a name outside ``allowed`` is not one (None: the list of those allowed says it).
 
     Raises:
         UsageError: an empty list or a name outside ``allowed``.
     """
     items = tuple(x.strip() for x in text.split(",") if x.strip())
     allowed = tuple(allowed)
+    for x in items:
+        why = why_not(x) if why_not is not None and x not in allowed else None
+        if why is not None:
+            raise UsageError(f"--{flag} {x!r}: {why}")
     if not items or any(x not in allowed for x in items):
         raise UsageError(f"--{flag} {text!r}: use a comma-separated list of {', '.join(allowed)}")
     return items

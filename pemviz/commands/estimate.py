@@ -275,14 +275,15 @@ def summary_lines(
 
 
 def check_plausible(e: Any, q_src: str) -> None:
-    """Refuse an impossible estimate: mu_hat > 1, or a mean importance weight so large (> 1000: probability
-    <= 0.001 by Markov's inequality, since its expectation is 1) that log q cannot be the proposal that drew
-    the rollouts.
+    """Refuse an impossible estimate: a mean importance weight so large (> 1000: probability <= 0.001 by Markov's
+    inequality, since its expectation is 1) that log q cannot be the proposal that drew the rollouts. A mean a little
+    above 1 is not refused: a run whose rollouts nearly all fail draws one as often as one below (mu_hat is then cut
+    at 1, :func:`pemviz.core.estimate.estimate`).
 
     Raises:
         UsageError: one line naming the proposal and the numbers.
     """
-    if e.log_mu_hat > 0.0 or e.log_mean_weight > math.log(1000.0):
+    if e.log_mean_weight > math.log(1000.0):
         raise UsageError(
             f"mu_hat = {format_probability(e.log_mu_hat)} with mean importance weight "
             f"{format_probability(e.log_mean_weight)} (expected ~1): the proposal ({q_src}) does not match the one "

@@ -62,6 +62,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=main)
 
 
+def _without_exact(name: str) -> str | None:
+    """Why ``name`` is not a problem ``pemviz validate`` can run, where it is a registered scenario without an exact
+    answer (None otherwise)."""
+    from pemviz.scenarios import registry
+
+    if name not in registry.registered():
+        return None
+    return (
+        f"the {name} scenario has no exact answer to compare with (its Scenario record's exact=True and its problem's "
+        f"exact_log_p); check it against plain Monte Carlo instead: pemviz run --scenario {name} --method mc"
+    )
+
+
 def main(args: argparse.Namespace) -> int:
     """``pemviz validate``: every method's seeds on every problem with an exact answer, summarised against it.
 
@@ -72,7 +85,7 @@ def main(args: argparse.Namespace) -> int:
         UsageError: an unknown problem, preset or baseline, nothing to run, ``--seeds`` or ``--jobs`` < 1, or an output
             folder that cannot be used.
     """
-    problems = split_choices(args.problems, validation_problems(), "problems")
+    problems = split_choices(args.problems, validation_problems(), "problems", _without_exact)
     presets = presets_of(args.presets, "presets")
     from pemviz.methods import BUILTIN_METHODS, method_names
 

@@ -76,7 +76,9 @@ class Counterfactuals:
 
         n_miss = sum(i.kind == MISS for i in self.interventions)
         n_err = len(self.interventions) - n_miss
-        head = f"{n_miss} misses and {n_err} measurement errors before the failure at step {self.failure_step}"
+        misses = f"{n_miss} miss{'' if n_miss == 1 else 'es'}"
+        errors = f"{n_err} measurement error{'' if n_err == 1 else 's'}"
+        head = f"{misses} and {errors} before the failure at step {self.failure_step}"
         if not self.decisive:
             return f"{head}; none of them alone decides it"
         return f"{head}; decisive alone: " + "; ".join(who(i) for i in self.decisive)

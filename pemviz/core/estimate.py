@@ -64,7 +64,8 @@ class Estimate:
     Attributes:
         n: rollouts used.
         n_failures: rollouts that failed (crash: classic robustness < 0).
-        log_mu_hat: log of mu_hat = (1/N) sum_i 1[fail_i] w_i (nats; -inf with no failure).
+        log_mu_hat: log of mu_hat = min(1, (1/N) sum_i 1[fail_i] w_i) (nats, <= 0; -inf with no failure): a mean of
+            weights above 1 is a probability of 1, cut as its interval is.
         nll_mean: mean over failures of -sum_{t < t_fail} log p_PEM(a_t | s_t) (nats; nan with no failure).
         nll_lme: -log-mean-exp over failures of the same sums (nats; nan with no failure).
         ess: effective sample size of the failure weights, (sum w)^2 / sum w^2 (0 with no failure).
@@ -317,7 +318,7 @@ def relative_error(log_mu_hat: float, log_truth: float) -> float:
 def estimate(
     log_weight: np.ndarray, failed: np.ndarray, log_p_total: np.ndarray, own_log_weight: np.ndarray | None = None
 ) -> Estimate:
-    """mu_hat = logsumexp(log w over failures) - log N with its interval, diagnostics and verdict.
+    """mu_hat = logsumexp(log w over failures) - log N, at most 1, with its interval, diagnostics and verdict.
 
     Innes & Ramamoorthy (2022), eq. 6: mu_hat = (1/N) sum_i 1[fail_i] prod_t p(a_t | s_t) / q(a_t | s_t).
 
@@ -416,7 +417,7 @@ def _estimate(
     return Estimate(
         n,
         nf,
-        log_sum - math.log(n),
+        min(log_sum - math.log(n), 0.0),  # p <= 1: a mean of weights above 1 is cut there, as its interval
         float(-lp.mean()),
         nll_lme,
         ess,

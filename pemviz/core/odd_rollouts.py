@@ -147,3 +147,14 @@ def problem_over_odd(base: Problem, make: MakeWith, odd: ODD, n_steps: int, **ch
     )
     fields = {**cleared, **changes, "simulate": simulate, "stream": stream, "branch": branch, "odd": odd}
     return dataclasses.replace(base, **fields)
+
+
+def marked_over_odd(problem: Problem, odd: ODD) -> Problem:
+    """``problem``, whose rollouts already draw their parameters from ``odd`` (a scenario's own factory built them with
+    :func:`odd_rollout_functions` alone), marked as over it: ``odd`` set, so that a batch is simulated where its
+    parameters are drawn (before its events, so that no block can be drawn apart), mapped, and proposed over by the
+    default sampler, and the adaptive verdict capped (:data:`ODD_VERDICT_CAP`) unless it has a cap of its own; a
+    problem already over an ODD is returned as it is."""
+    if problem.odd is not None:
+        return problem
+    return dataclasses.replace(problem, odd=odd, verdict_cap=problem.verdict_cap or ODD_VERDICT_CAP)

@@ -322,8 +322,12 @@ class PlainFallback(_Speaks):
 
     @property
     def used_plain(self) -> bool:
-        """Whether the answer is plain Monte Carlo's (it ran and saw a failure)."""
-        return self.plain is not None and self.plain.result()[0].n_failures > 0
+        """Whether the answer is plain Monte Carlo's: it ran and saw a failure, or neither it nor the stages saw one
+        (its rule-of-three bound then says more than stages that bound nothing)."""
+        if self.plain is None:
+            return False
+        stages = self.retry if self.retry is not None else self.inner
+        return self.plain.result()[0].n_failures > 0 or stages.result()[0].n_failures == 0
 
     def plan(self) -> RunPlan:
         """The method's plan: the retry's and the fallback's batches, if any, follow it unplanned."""
@@ -417,8 +421,8 @@ class PlainFallback(_Speaks):
 
     @property
     def answering(self) -> Any:
-        """The estimator whose answer :meth:`result` gives: plain Monte Carlo once it saw a failure, else the retry
-        where it ran, else the method's first run."""
+        """The estimator whose answer :meth:`result` gives: plain Monte Carlo once it saw a failure or where no
+        failure was seen at all (:attr:`used_plain`), else the retry where it ran, else the method's first run."""
         if self.plain is not None and self.used_plain:
             return self.plain
         return self.retry if self.retry is not None else self.inner
@@ -497,7 +501,9 @@ class PlainFallback(_Speaks):
             )
             if est.n_failures == 0:
                 upper = 1.0 - 0.05 ** (1.0 / max(1, est.n))  # one-sided Clopper-Pearson with no failure
-                said += f", p < {upper:.2g} (its 95 % upper bound); the answer is the stages'"
+                said += f", p < {upper:.2g} (its 95 % upper bound)" + (
+                    "" if self.used_plain else "; the answer is the stages'"
+                )
             parts += [said, self.plain.stop]
         if self.not_drawn is not None and self.before is not None:
             bound = self.before.log_lower_bound

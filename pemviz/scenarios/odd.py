@@ -35,10 +35,14 @@ def odd_value(scenario: str, name: str, text: str, allowed: tuple[str, ...]) -> 
             unknown distribution, bad arguments, an empty support.
     """
     if name not in allowed:
-        which = ", ".join(allowed) if allowed else "none"
+        which = (
+            f"its parameters that can be drawn: {', '.join(allowed)}"
+            if allowed
+            else "it draws none: a scenario names those it can by random_params= and odd= in its Scenario record"
+        )
         raise ValueError(
-            f"{name}~...: the {scenario} scenario cannot draw {name} per rollout (its parameters "
-            f"that can be drawn: {which}); give it a value, {name}=VALUE"
+            f"{name}~...: the {scenario} scenario cannot draw {name} per rollout ({which}); give it a value, "
+            f"{name}=VALUE"
         )
     try:
         law = parse_distribution(text, where=f"{name}~{text.strip()}")

@@ -191,14 +191,17 @@ class Scenario:
         return resolve(self.factory)(cfg, built)
 
     def odd_problem(self, config: Any, params: Any, odd: Any) -> Any:
-        """The problem over the ODD ``odd`` (:attr:`odd`), the other parameters fixed at ``params``.
+        """The problem over the ODD ``odd`` (:attr:`odd`), the other parameters fixed at ``params``; one whose factory
+        did not mark it as over ``odd`` is marked (:func:`pemviz.core.odd_rollouts.marked_over_odd`).
 
         Raises:
             ValueError: the scenario draws no parameter per rollout, or not one of ``odd``'s."""
         others = [name for name in odd.names if name not in self.random_params]
         if self.odd is None or others:
             raise ValueError(f"the {self.name} scenario cannot draw {', '.join(others or odd.names)} per rollout")
-        return resolve(self.odd)(config, params, odd)
+        from pemviz.core.odd_rollouts import marked_over_odd  # torch-free, but only a run over an ODD needs it
+
+        return marked_over_odd(resolve(self.odd)(config, params, odd), odd)
 
     def single_simulator(self, params: Any = None) -> Any:
         """A new single black-box simulator of the scenario at ``params`` (None: its defaults), or None when it has

@@ -395,11 +395,12 @@ def next_step(
     mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)
     rate = rate_source(method.plain, plain_s is not None)  # how mc_s was had, for the text
     max_time = config.stop.max_time_s
-    route = mc_route(e, method.plain, exact_log_p, reference, mc_s)
+    plain = method.plain or (method.weighted and getattr(e, "plain_mc", False))  # or the plain rollouts after it
+    route = mc_route(e, plain, exact_log_p, reference, mc_s)
     budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
     if max_time is not None and mc_s is not None:
         budget = min(budget, max_time / mc_s)
-    if method.plain:
+    if plain:
         return _after_mc(e, config, route, s_per, max_time)
     heavy = f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it, and a precision "
     heavy += "target stops adding them after two such looks)"  # estimators.precision.HEAVY_LOOKS
@@ -450,8 +451,11 @@ def _after_mc(
 ) -> str:
     """:func:`next_step` after a plain Monte Carlo run: more rollouts sized for a 20 % interval, or where p is too
     rare for that or its time is past ``max_time`` (seconds), an importance-sampling method; with no failure and no
-    known p, ten times the rollouts (and the rollouts a 20 % interval needs at least, from the rule-of-three bound)."""
-    n = config.n_per_stage
+    known p, ten times the rollouts (and the rollouts a 20 % interval needs at least, from the rule-of-three bound).
+    After an importance sampler's stages (the plain rollouts of ``--plain-fallback``) the commands name ``--method
+    mc`` and ten times those rollouts."""
+    after_stages = not config.method_record.plain
+    n = e.n if after_stages else config.n_per_stage
     if route is None:
         hi = e.log_ci[1]
         floor = ""
@@ -461,16 +465,20 @@ def _after_mc(
                 f"; p < {format_probability(hi, 2)} here, so a {PERCENT} interval needs at least "
                 f"{count_text(least)} rollouts{_time(least, s_per)}"
             )
-        return (
-            f"more rollouts (--n {10 * n}{_time(10 * n, s_per)}) lower the bound ten-fold{floor}; where p is rare, "
-            "an importance-sampling method (--method adaptive), with its verdict"
+        what, then = (
+            "rollouts (",
+            "where p is rare, an importance-sampling method (--method adaptive), with its verdict",
         )
+        if after_stages:  # neither the stages nor the plain rollouts after them saw a failure
+            what, then = ("plain rollouts (--method mc ", "the stages before them saw no failure either")
+        return f"more {what}--n {10 * n}{_time(10 * n, s_per)}) lower the bound ten-fold{floor}; {then}"
     if route.n > MC_AFFORDABLE:
         return (
             f"{route.text(s_per, 'plain')}: too rare for plain Monte Carlo; an importance-sampling method "
             "(--method adaptive), with its verdict"
         )
-    command = route.command(route.cap(config)).replace("--method mc ", "")
+    command = route.command(route.cap(config))
+    command = command if after_stages else command.replace("--method mc ", "")
     if not route.fits(max_time):
         assert route.seconds is not None  # within MC_AFFORDABLE: it does not fit the time it measured
         return (

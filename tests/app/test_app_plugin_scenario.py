@@ -49,6 +49,8 @@ def test_the_panel_lists_and_runs_a_registered_scenario_of_ones_own(my_car, brow
             what="the 3D view saying the scenario draws no scene (no braking road for it)",
         )
         assert not scene.object_box.visible and not scene.ego_box.visible
+        # Explain says so too (it went on saying "run 1 is going: its rollouts appear in the Rollouts tab")
+        assert "the my-car scenario draws no scene" in scene.explain.explain_html.content
 
 
 def test_the_panel_lists_and_runs_a_registered_method_of_ones_own(defensive_mc, browser, app):  # noqa: F811

@@ -428,9 +428,9 @@ def test_the_live_note_says_why_no_q_detect_chart_is_drawn():
     from none."""
     from pemviz.app.charts import marginal_note
 
-    def note(**settings):
+    def note(change=None, **settings):
         cfg = TINY.replace(**settings)
-        problem = problem_for(cfg)
+        problem = problem_for(cfg) if change is None else dataclasses.replace(problem_for(cfg), **change)
         record = PanelRun(1, cfg)
         record.problem = problem
         Experiment(cfg, [record], problem=problem).run()
@@ -439,3 +439,10 @@ def test_the_live_note_says_why_no_q_detect_chart_is_drawn():
     assert note() == ""
     assert "its stages drew from a proposal, but its scene gives no axis to bin q(detect) by" in note(scenario="crowd")
     assert "no stage drawn by a proposal yet" in note(scenario="crowd", method="mc", n_per_stage=200)
+    # a scene of several objects without their positions (a user's scene on the stack): it said it "reports neither a
+    # gap nor the rows of several objects", of a scene that reports the rows of two
+    bare = {"objects_xy": None, "noise_xy": None, "thresholds": None}
+    assert "its stages drew from a proposal, but its scene gives no axis to bin q(detect) by" in note(
+        bare, scenario="crowd"
+    )
+    assert "its scene gives no axis to bin q(detect) by" in note(bare, scenario="crowd", method="mc", n_per_stage=200)

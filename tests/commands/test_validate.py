@@ -118,6 +118,13 @@ def test_validate_takes_a_shipped_pem_by_name_as_run_does(tmp_path):
     "args, message",
     [
         (("validate", "--problems", "nope"), "--problems 'nope'"),
+        # a registered scene without an exact answer (a user's own, or the crossing): say so, and what to do instead
+        (
+            ("validate", "--problems", "toy,crossing"),
+            "--problems 'crossing': the crossing scenario has no exact answer to compare with (its Scenario record's "
+            "exact=True and its problem's exact_log_p); check it against plain Monte Carlo instead: pemviz run "
+            "--scenario crossing --method mc",
+        ),
         (("validate", "--presets", "fast"), "--presets 'fast'"),
         (("tables", "--problem", "nope"), "--problem 'nope'"),
         (("tables", "--reps", "1"), "--reps must be >= 2"),

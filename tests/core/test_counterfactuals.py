@@ -97,3 +97,15 @@ def test_each_objects_p_and_q_of_detection_give_back_the_batchs_own_log_densitie
     braking = build_problem("main")  # one object a step: its batch's log-probabilities are per object already
     one = braking.simulate(2, braking.target, braking.target, np.random.default_rng(0))
     assert object_detect_probabilities(one, 0, braking.target, braking.target) is None
+
+
+def test_the_summary_counts_one_miss_and_one_error_in_the_singular():
+    """``1 misses and 1 measurement errors`` read on a user's scene; zero and several stay plural."""
+    from pemviz.core.counterfactuals import ERROR, MISS, Counterfactuals, Intervention
+
+    one = Counterfactuals(0, -0.5, 12, (Intervention(3, 0, MISS, (), 0.2), Intervention(5, 1, ERROR, (0.4, 0.0), -0.1)))
+    assert one.summary(("pedestrian", "van")) == (
+        "1 miss and 1 measurement error before the failure at step 12; decisive alone: pedestrian missed at step 3"
+    )
+    none = Counterfactuals(0, -0.5, 12, (Intervention(3, 0, ERROR, (0.4, 0.0), -0.1),) * 2)
+    assert none.summary().startswith("0 misses and 2 measurement errors before the failure at step 12; none of them")

@@ -30,6 +30,16 @@ def test_zero_failures_under_importance_sampling_bound_nothing():
     assert e.log_ci == (-math.inf, 0.0)
 
 
+def test_a_mean_weight_above_one_is_a_probability_of_one_inside_its_interval():
+    """Every rollout fails with weights of mean 1.05 (a scene that always fails, drawn from a proposal): the mean is
+    cut at 1, as its interval is; it printed ``mu_hat = 1.008e+00, 95% CI [9.49e-01, 1.00e+00]``."""
+    e = _is(np.log([1.2, 1.1, 0.9, 1.0] * 50), np.ones(200, bool))
+    assert e.log_mu_hat == 0.0 and e.mu_hat == 1.0 and e.log_ci[1] == 0.0
+    assert e.log_ci[0] == pytest.approx(math.log(0.99), abs=0.05) and e.covers(0.0)
+    below = _is(np.log([1.0, 0.8] * 50), np.ones(100, bool))  # a mean below 1 is kept as it is: 0.9
+    assert below.log_mu_hat == pytest.approx(math.log(0.9), rel=1e-12)
+
+
 def test_plain_monte_carlo_interval_is_clopper_pearson():
     # 5 failures in 100: the exact binomial interval [0.01643, 0.11284] (Clopper & Pearson 1934 tables)
     failed = np.zeros(100, bool)
@@ -129,7 +139,7 @@ def test_a_low_ess_is_doubtful_and_weights_far_above_one_on_average_are_unreliab
     assert e.verdict in ("doubtful", "unreliable") and e.verdict != "reliable"
     bad = _is(np.full(100, math.log(1e8)), np.arange(100) < 50)  # mean weight 1e8: not a proposal's weights
     assert bad.verdict == "unreliable" and "mean importance weight" in bad.reason
-    assert bad.log_mu_hat > 0.0  # a "probability" above 1
+    assert bad.log_mu_hat == 0.0  # a mean of 5e7 cut at 1: the reason names the mean weight
 
 
 def test_summary_line_names_the_exact_answer_and_whether_it_is_covered():

@@ -27,6 +27,12 @@ def made(log_mu: float, verdict: str = "unreliable", n: int = 2100, khat: float 
     return Estimate(n, 40, log_mu, 30.0, 30.0, 2.0, (log_mu - 0.5, log_mu + 0.5), khat, 0.0, verdict, "k-hat")
 
 
+def counted(n: int, failures: int, log_ci: tuple[float, float], verdict: str, reason: str) -> Estimate:
+    """A plain Monte Carlo estimate: ``failures`` in ``n`` rollouts, every weight 1, with its interval (nats)."""
+    log_mu = math.log(failures / n) if failures else -math.inf
+    return Estimate(n, failures, log_mu, 0.0, 0.0, float(failures), log_ci, math.nan, 0.0, verdict, reason, True)
+
+
 def mc_count(p: float) -> int:
     """The rollouts plain Monte Carlo needs for a 20 % relative half-width: ceil(1.96^2 (1 - p) / (0.04 p))."""
     return math.ceil(1.96**2 * (1 - p) / (0.04 * p))
@@ -223,19 +229,7 @@ def test_braking_s_p_is_too_rare_for_plain_monte_carlo_and_says_so():
 
 
 def test_a_plain_monte_carlo_run_is_told_how_many_rollouts_and_how_long():
-    e = Estimate(
-        20_000,
-        1,
-        math.log(5e-5),
-        0.0,
-        0.0,
-        1.0,
-        (math.log(1.27e-6), math.log(2.79e-4)),
-        math.nan,
-        0.0,
-        "doubtful",
-        "only 1 failure",
-    )
+    e = counted(20_000, 1, (math.log(1.27e-6), math.log(2.79e-4)), "doubtful", "only 1 failure")
     advice = next_step(e, ExperimentConfig.of(method="mc", n_per_stage=20_000), None, CUT_IN_REFERENCE, 20_000, 4.2)
     n = mc_count(866 / 10_000_000)  # timed at the run's own measured 4.2 s / 20,000 rollouts
     assert advice == (
@@ -243,6 +237,28 @@ def test_a_plain_monte_carlo_run_is_told_how_many_rollouts_and_how_long():
         f"20 % (p ~ 8.66e-05, the reference: {n:,} rollouts for a 20 % interval, "
         f"~{duration_text(n * 4.2 / 20_000)} at this run's 0.21 ms a rollout)"
     )
+    assert_valid_flags(advice)
+
+
+def test_the_plain_monte_carlo_after_the_stages_is_advised_as_plain_monte_carlo():
+    """The default sampler's answer is the plain rollouts after its stages (--plain-fallback): with no failure in
+    144,000 of them (a scene that cannot fail) the line named --n 400 (the retry the run had already drawn); with 2
+    failures it called the plain count "an upper estimate" of heavy-tailed weights. Now: more plain rollouts."""
+    config = ExperimentConfig.of(scenario="crossing")  # the default sampler: adaptive, N = 100
+    none = counted(144_000, 0, (-math.inf, math.log(3 / 144_000)), "unreliable", "rule of three")
+    advice = next_step(none, config, None, None, 151_200, 15.12)  # 0.1 ms a simulation
+    n = mc_count(3 / 144_000)
+    assert advice == (
+        f"more plain rollouts (--method mc --n 1440000, ~{duration_text(144.0)}) lower the bound ten-fold; "
+        f"p < 2.08e-05 here, so a 20 % interval needs at least {n:,} rollouts, ~{duration_text(n * 1e-4)}; the "
+        "stages before them saw no failure either"
+    )
+    assert_valid_flags(advice)
+    two = counted(10_000, 2, (math.log(2.42e-5), math.log(7.22e-4)), "doubtful", "only 2 failures")
+    advice = next_step(two, config, None, None, 17_200, 1.72, plain_s=1e-4)
+    n = mc_count(2e-4)
+    assert advice.startswith(f"more rollouts: --method mc --rel-error 0.2 --max-sims {mc_cap(n)} samples until")
+    assert "upper estimate" not in advice and "--n 400" not in advice
     assert_valid_flags(advice)
 
 

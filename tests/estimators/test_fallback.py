@@ -9,6 +9,7 @@ import math
 import re
 
 import pytest
+from pemviz import stl
 from pemviz.config import ExperimentConfig
 from pemviz.engine.experiment import Experiment
 from pemviz.estimators.fallback import PlainFallback, with_plain_fallback
@@ -76,6 +77,18 @@ def test_no_failure_in_the_plain_rollouts_leaves_the_method_answer_with_an_upper
     # one-sided Clopper-Pearson with no failure in 1,200: 1 - 0.05^(1/1200) = 0.002493...
     assert "0 failures in 1,200 rollouts (at most 1,200: --plain-fallback)" in done.final.stop
     assert "p < 0.0025 (its 95 % upper bound)" in done.final.stop
+
+
+def test_no_failure_in_the_stages_nor_the_plain_rollouts_is_answered_by_plain_monte_carlo_s_bound():
+    """A scene that cannot fail (the toy's gap kept above -1 m, which it always is): the stages bound nothing, the
+    1,200 plain rollouts bound p by the rule of three, and that is the answer (it was the stages' "bounds nothing")."""
+    config = ExperimentConfig.of(**{**TINY, "plain_fallback": 40, "seed": 0})
+    problem = dataclasses.replace(problem_for(config), exact_log_p=None, formula=stl.parse("G[0,19](d >= -1)"))
+    done = Experiment(config, problem=problem).run()
+    est = done.final.estimate
+    assert est.plain_mc and est.n == 1200 and est.n_failures == 0 and est.log_ci[1] == pytest.approx(math.log(3 / 1200))
+    assert "rule of three" in est.reason and "the answer is the stages'" not in done.final.stop
+    assert "0 failures in 1,200 rollouts (at most 1,200: --plain-fallback), p < 0.0025" in done.final.stop
 
 
 def test_a_backed_interval_or_a_zero_cap_or_an_odd_runs_no_plain_rollouts():
@@ -285,7 +298,8 @@ def test_plain_monte_carlo_s_decision_stands_where_the_answer_is_the_stages():
     met = Decision("met", 1, 0.9696, (-math.inf, math.log(4.19e-4)), "p < 0.5 holds on [0, 0.000419]")
     undecided = Decision("undecided", 16, 0.9999, (math.log(1.7e-15), math.inf), "decides nothing")
     run = object.__new__(PlainFallback)
-    run.inner, run.retry = SimpleNamespace(decision=undecided), None
+    stages_failed = (SimpleNamespace(n_failures=3), ())  # the stages saw failures: the answer stays theirs
+    run.inner, run.retry = SimpleNamespace(decision=undecided, result=lambda: stages_failed), None
     no_failure = (SimpleNamespace(n_failures=0), ())
     run.plain = SimpleNamespace(decision=met, result=lambda: no_failure)
     assert run.answering is run.inner and run.decision is met

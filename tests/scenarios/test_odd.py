@@ -189,6 +189,18 @@ def test_a_bad_odd_on_the_command_line_is_one_line_exit_2(param, message, tmp_pa
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_scenario_that_draws_nothing_says_how_one_declares_a_parameter_drawn():
+    """A user's scene without ``random_params`` said only "(its parameters that can be drawn: none)"."""
+    from pemviz.scenarios.odd import odd_value
+
+    with pytest.raises(ValueError) as err:
+        odd_value("crossing", "brake_mps2", "uniform(8, 9)", ())
+    assert str(err.value) == (
+        "brake_mps2~...: the crossing scenario cannot draw brake_mps2 per rollout (it draws none: a scenario names "
+        "those it can by random_params= and odd= in its Scenario record); give it a value, brake_mps2=VALUE"
+    )
+
+
 def test_an_odd_run_writes_its_map_and_re_estimates_to_its_p(tmp_path):
     import json
 
