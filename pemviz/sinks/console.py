@@ -7,7 +7,7 @@ import sys
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, TextIO
 
-from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_probability
+from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_probability, khat_threshold
 from pemviz.core.severity import FailureSeverity
 from pemviz.engine.cost import (
     LOAD_WORDS,
@@ -404,8 +404,12 @@ def next_step(
     heavy = f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it, and a precision "
     heavy += "target stops adding them after two such looks)"  # estimators.precision.HEAVY_LOOKS
     heavy = heavy if e.khat > KHAT_UNRELIABLE else ""
-    low = "heavy-tailed weights make this run's estimate usually too low"  # splitting: skewed, most runs below p
-    low = low if method.weighted else "splitting's estimate is skewed, most runs low"
+    if not method.weighted:  # splitting: skewed, most runs below p
+        low = "splitting's estimate is skewed, most runs low"
+    elif e.khat <= khat_threshold(e.n):  # a fitted tail that passed: the run is doubted on other grounds
+        low = f"this run's estimate may be too low ({e.verdict}; its weights' tail not heavy, k-hat {e.khat:.2f})"
+    else:
+        low = "heavy-tailed weights make this run's estimate usually too low"
     rest = _more_budget(config, n_simulations, s_per, wall_s, committor=committor)
     if route is None:  # no failure and no known p: nothing to size plain Monte Carlo on
         return f"{rest}; the verdict says whether to trust the result"

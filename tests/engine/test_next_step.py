@@ -429,3 +429,20 @@ def test_pemviz_run_cut_in_rare_ends_with_the_line_and_the_bound_its_run_has(cap
     assert "--method" not in said
     guide = " ".join((Path(__file__).resolve().parents[2] / "docs" / "cut-in.md").read_text().split())
     assert f"the bound this run has: p < {3 / 5_000:.2e}`" in guide  # the default's 5,000 rollouts
+
+
+def test_an_upper_estimate_blames_heavy_tails_only_where_the_weights_have_them():
+    """The count sized on a run's own mu_hat is an upper estimate; the line says why mu_hat may be low: heavy-tailed
+    weights where k-hat is above the verdict's threshold (or not fitted), and not where the fitted tail passed and the
+    run is doubted on other grounds (``--param "gap0_m~uniform(1,3)"``: k-hat 0.00, ESS 1,175, doubtful over an ODD)."""
+    cfg = ExperimentConfig.of()
+    light = next_step(made(math.log(0.496), "doubtful", khat=0.0), cfg, n_simulations=2100, wall_s=3.8)
+    assert "heavy-tailed" not in light, light
+    assert (
+        "an upper estimate: this run's estimate may be too low (doubtful; its weights' tail not heavy, k-hat 0.00)"
+        in (light)
+    )
+    heavy = next_step(made(math.log(3e-4), "doubtful", khat=0.9), cfg, n_simulations=2100, wall_s=6.3)
+    assert "an upper estimate: heavy-tailed weights make this run's estimate usually too low" in heavy
+    unknown = next_step(made(math.log(3e-4), "doubtful", khat=math.nan), cfg, n_simulations=2100, wall_s=6.3)
+    assert "heavy-tailed weights make this run's estimate usually too low" in unknown  # no tail fitted: not cleared
