@@ -144,7 +144,7 @@ def main() -> int:
                 page.wait_for_function("() => document.fonts.ready.then(() => true)")
                 write(page, args.out)
                 browser.close()
-                print(f"{args.out}: {session.record.label}, {session.shown.key} at step {step}", flush=True)
+                print(f"{args.out}: {session.record.label}, {session.shown.name} at step {step}", flush=True)
                 return 0
             wait_until(lambda: session.explanation is not None, 30, "the failure explanation")
             page.get_by_role("tab", name="Explain").click()
@@ -165,7 +165,7 @@ def main() -> int:
                 write(page, args.scene_out)
             browser.close()
         os.replace(tmp, args.out)
-        print(f"{args.out}: {session.record.label}, {shown.key} at step {step}", flush=True)
+        print(f"{args.out}: {session.record.label}, {shown.name} at step {step}", flush=True)
     finally:
         tmp.unlink(missing_ok=True)
         app.close()

@@ -7,7 +7,7 @@ import sys
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, TextIO
 
-from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_probability
+from pemviz.core.estimate import KHAT_UNRELIABLE, Estimate, Reference, format_probability, khat_threshold
 from pemviz.core.severity import FailureSeverity
 from pemviz.engine.cost import (
     LOAD_WORDS,
@@ -397,16 +397,16 @@ def next_step(
     max_time = config.stop.max_time_s
     plain = method.plain or (method.weighted and getattr(e, "plain_mc", False))  # or the plain rollouts after it
     route = mc_route(e, plain, exact_log_p, reference, mc_s)
-    budget = float(MC_AFFORDABLE)  # the most rollouts plain Monte Carlo may be given: affordable, and within the time
-    if max_time is not None and mc_s is not None:
-        budget = min(budget, max_time / mc_s)
+    # the most rollouts plain Monte Carlo may be given: affordable, and within the time
+    budget = min(float(MC_AFFORDABLE), max_time / mc_s) if max_time is not None and mc_s is not None else MC_AFFORDABLE
     if plain:
         return _after_mc(e, config, route, s_per, max_time)
     heavy = f" (k-hat {e.khat:.2f} > {KHAT_UNRELIABLE}: more weights of the same tail may not fix it, and a precision "
-    heavy += "target stops adding them after two such looks)"  # estimators.precision.HEAVY_LOOKS
-    heavy = heavy if e.khat > KHAT_UNRELIABLE else ""
-    low = "heavy-tailed weights make this run's estimate usually too low"  # splitting: skewed, most runs below p
-    low = low if method.weighted else "splitting's estimate is skewed, most runs low"
+    heavy = heavy + "target stops adding them after two such looks)" if e.khat > KHAT_UNRELIABLE else ""  # HEAVY_LOOKS
+    low = "heavy-tailed weights make this run's estimate usually too low"
+    if e.khat <= khat_threshold(e.n):  # a fitted tail that passed: the run is doubted on other grounds
+        low = f"this run's estimate may be too low ({e.verdict}; its weights' tail not heavy, k-hat {e.khat:.2f})"
+    low = low if method.weighted else "splitting's estimate is skewed, most runs low"  # splitting: most runs below p
     rest = _more_budget(config, n_simulations, s_per, wall_s, committor=committor)
     if route is None:  # no failure and no known p: nothing to size plain Monte Carlo on
         return f"{rest}; the verdict says whether to trust the result"

@@ -321,12 +321,17 @@ def _spread_text(spread: dict[str, Any] | None) -> str:
 
 def _checks(e: dict[str, Any]) -> list[tuple[str, str]]:
     """The verdict's checks one by one (:func:`pemviz.core.verdict_checks.verdict_checks`), each with what it found,
-    its rule and whether it passed, then the verdict and what the run backs."""
+    its rule and whether it passed; where each of them passed but the verdict is not ``reliable``, the check that
+    decided it (its reason: the failures' own probability, collapsed failures, an ODD, a scene's cap) as failed; then
+    the verdict and what the run backs."""
     from pemviz.core.verdict_checks import verdict_checks
 
     checks = verdict_checks(e["n"], e["n_failures"], e["ess"], e["k_hat"], e["sampling"])
+    rows = [(f"check: {c.name}", c.text()) for c in checks]
+    if e["verdict"] != "reliable" and not any(c.passed is False for c in checks):
+        rows.append(("check: the verdict's other checks", f"failed ({e['verdict']}): {e['reason']}"))
     return [
-        *((f"check: {c.name}", c.text()) for c in checks),
+        *rows,
         ("verdict", f"{e['verdict']}: {e['reason']}"),
         (
             "what is printed",

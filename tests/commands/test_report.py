@@ -332,6 +332,12 @@ def test_no_check_row_reads_as_failed_when_it_passed(meant):
             assert not re.search(r"fewer than|below|above|doubtful|unreliable|dominate", text), text
     assert rows["check: failures"].startswith(f"{e['n_failures']:,} failure")
     assert rows["verdict"] == f"{e['verdict']}: {e['reason']}"
+    # a verdict short of reliable has a check row that failed: the bound-only run's three pass, its verdict is the
+    # failures' own probability (unreliable), which the page names as the check that failed
+    failed = [v for k, v in rows.items() if k.startswith("check: ") and "failed" in v]
+    assert bool(failed) == (e["verdict"] != "reliable"), rows
+    if e["verdict"] != "reliable" and all(truth.values()):
+        assert rows["check: the verdict's other checks"] == f"failed ({e['verdict']}): {e['reason']}"
 
 
 def test_the_report_s_severity_rows_are_the_console_s(meant):

@@ -426,3 +426,39 @@ def test_the_rare_cut_in_s_default_says_no_method_shipped_answers_with_the_bound
     assert "no method shipped" not in (next_step(none, moved, None, None, 5_000, 15.0) or "")
     cut_in = ExperimentConfig.of(scenario="cut-in", method="mc", n_per_stage=5_000)
     assert "no method shipped" not in (next_step(none, cut_in, None, None, 5_000, 15.0) or "")
+
+
+def test_pemviz_run_cut_in_rare_ends_with_the_line_and_the_bound_its_run_has(capsys):
+    """``pemviz run --scenario cut-in-rare`` as a user runs it (here at 200 rollouts, not its 5,000): plain Monte Carlo,
+    then the line that no method shipped answers, with the bound the run printed (the rule of three, 3 / n: 1.50e-02
+    at 200; the scene's guide quotes 6.00e-04, its default's 5,000); no method advised that cannot answer there."""
+    from pathlib import Path
+
+    from pemviz.cli import main
+
+    assert main(["run", "--scenario", "cut-in-rare", "--n", "200", "--seed", "0", "--no-record"]) == 0
+    out = capsys.readouterr().out
+    assert "no failure seen in 200 rollouts: p < 1.50e-02 (95%, rule of three" in out
+    (said,) = [line for line in out.splitlines() if line.startswith("next: ")]
+    assert said.startswith("next: no method shipped today answers at this scene's rarity: p is about 1e-7"), said
+    assert said.endswith("the bound this run has: p < 1.50e-02 (95 %, 200 rollouts without a failure)"), said
+    assert "--method" not in said
+    guide = " ".join((Path(__file__).resolve().parents[2] / "docs" / "cut-in.md").read_text().split())
+    assert f"the bound this run has: p < {3 / 5_000:.2e}`" in guide  # the default's 5,000 rollouts
+
+
+def test_an_upper_estimate_blames_heavy_tails_only_where_the_weights_have_them():
+    """The count sized on a run's own mu_hat is an upper estimate; the line says why mu_hat may be low: heavy-tailed
+    weights where k-hat is above the verdict's threshold (or not fitted), and not where the fitted tail passed and the
+    run is doubted on other grounds (``--param "gap0_m~uniform(1,3)"``: k-hat 0.00, ESS 1,175, doubtful over an ODD)."""
+    cfg = ExperimentConfig.of()
+    light = next_step(made(math.log(0.496), "doubtful", khat=0.0), cfg, n_simulations=2100, wall_s=3.8)
+    assert "heavy-tailed" not in light, light
+    assert (
+        "an upper estimate: this run's estimate may be too low (doubtful; its weights' tail not heavy, k-hat 0.00)"
+        in (light)
+    )
+    heavy = next_step(made(math.log(3e-4), "doubtful", khat=0.9), cfg, n_simulations=2100, wall_s=6.3)
+    assert "an upper estimate: heavy-tailed weights make this run's estimate usually too low" in heavy
+    unknown = next_step(made(math.log(3e-4), "doubtful", khat=math.nan), cfg, n_simulations=2100, wall_s=6.3)
+    assert "heavy-tailed weights make this run's estimate usually too low" in unknown  # no tail fitted: not cleared
