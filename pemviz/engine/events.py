@@ -68,8 +68,6 @@ class StageStarted:
     kind: str
     """``pretrain`` | ``ce`` | ``final`` | ``ams``."""
     n_rollouts: int
-    streamed: bool = False
-    """Whether its rollouts come chunk by chunk (a :class:`RolloutChunk` each), else in one."""
 
 
 @dataclass(frozen=True)

@@ -241,16 +241,15 @@ class Experiment:
         """Draw the planned batch, show it to the estimator and the listeners, close the stage."""
         t0 = time.perf_counter()
         self._check_cancel()
+        self.emit(ev.StageStarted(plan.stage, plan.kind, plan.n))
         pb, cfg = self.problem, self.config
-        streamed = plan.draw is None and plan.n > stream_above(cfg, pb.n_objects) and pb.stream is not None
-        self.emit(ev.StageStarted(plan.stage, plan.kind, plan.n, streamed))
         target = pb.target if plan.target is None else plan.target
         parts = plan.parts  # (rollouts, detector) in the order drawn
         if cfg.uniforms == "array-rqmc" and cfg.method_record.array_rqmc:  # ExperimentConfig.uniforms
             # a mixture's target share is drawn i.i.d.: it bounds the weights, and its rollouts (the target's own)
             # almost never fail, so coupling them would reduce no estimate's variance
             parts = [(k, d if plan.mixture and d is pb.target else ArrayRQMC(d)) for k, d in parts]
-        if streamed:
+        if plan.draw is None and plan.n > stream_above(cfg, pb.n_objects) and pb.stream is not None:
             self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (worker processes, this process or Ray tasks)
             if plan.draw is not None:  # the estimator makes the batch itself (AMS: continuations from snapshots)

@@ -26,7 +26,6 @@ from pemviz.engine.cost import (
     start_reading,
     with_drift,
 )
-from pemviz.engine.resources import POOL_BLOCK
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
@@ -91,10 +90,9 @@ class StageClock(Sink):
     measured / predicted, separately: simulating over every stage, what follows per kind of stage. Before any stage
     the predictions are scaled by the machine's load (``slowdown()``, default
     :func:`pemviz.engine.cost.start_reading`: :func:`pemviz.engine.resources.load_slowdown` of :attr:`speed`, a pilot
-    of the scene's rollouts), or, for a run's first stage of plain rollouts in more than one block, by that stage's
-    first block (:meth:`prices_by_block`). What may follow
-    the planned stages (:func:`pemviz.engine.cost.follow_on`) gives the upper end, :meth:`run_most_s`; plain Monte
-    Carlo's remaining rollouts are those its precision target needs at the failure rate seen so far
+    of the scene's rollouts, read as the panel's cost line reads them). What may follow the planned stages
+    (:func:`pemviz.engine.cost.follow_on`) gives the upper end, :meth:`run_most_s`; plain Monte Carlo's remaining
+    rollouts are those its precision target needs at the failure rate seen so far
     (:func:`pemviz.engine.cost.mc_rollouts`), at most the cap.
 
     Attributes:
@@ -144,9 +142,6 @@ class StageClock(Sink):
         self._last = -1  # the planned stages' last number
         self._phases: dict[str, list[tuple[int, str]]] = {}  # "plan", "retry" -> (stage, kind) of each stage
         self._rollouts: dict[int, int] = {}  # stage -> its rollouts, as started
-        self.block_scale: float | None = None
-        """The wall seconds of the first block of a run's first stage of plain rollouts over the model's, where that
-        block prices the stage (:meth:`prices_by_block`); None: the load read at the start (:attr:`load`)."""
 
     def on_run_started(self, event: ev.RunStarted) -> None:
         self.t0 = self.stage_t0 = self.now()
@@ -160,7 +155,7 @@ class StageClock(Sink):
         self._look_ahead_s = float(event.problem.look_ahead_s)
         # an open-ended plan's added batches follow its last stage: no time is said for it (run_left_s)
         self.follow = None if event.plan.open_ended else follow_on(event.config, event.plan, event)
-        self._rollouts, self.block_scale = {}, None
+        self._rollouts = {}
         self._last = event.plan.stages[-1].stage if event.plan.stages else -1
         retry = self.follow.retry if self.follow is not None else None
         shift = self._last + 1
@@ -180,30 +175,6 @@ class StageClock(Sink):
     def on_stage_started(self, event: ev.StageStarted) -> None:
         self.stage_t0, self.sampled_t, self.current = self.now(), None, event
         self._rollouts[event.stage] = event.n_rollouts
-
-    def prices_by_block(self, event: ev.StageStarted) -> bool:
-        """Whether the stage ``event`` starts is priced by its first block's wall seconds (:meth:`on_rollout_chunk`):
-        the run's first stage, of plain rollouts, streamed in more than one block (e.g. ``--method mc``). A pilot of
-        small batches and a run's large ones do not slow alike as the load changes (the Validation page, "Time
-        estimates")."""
-        plain = self._config is not None and self._config.method_record.cost_model == "plain"
-        return plain and not self.done and event.streamed and event.n_rollouts > POOL_BLOCK
-
-    def on_rollout_chunk(self, event: ev.RolloutChunk) -> None:
-        current = self.current
-        if current is None or current.stage != event.stage or event.start != 0 or not self.prices_by_block(current):
-            return
-        if event.batch.n >= current.n_rollouts:
-            return
-        one = self._model(current.kind, current.n_rollouts, current.stage, one_process=True).simulate_s
-        block_s = one * event.batch.n / current.n_rollouts  # the model's seconds of this block, in this process
-        if block_s > 0.0:
-            self.block_scale = (self.now() - self.stage_t0) / block_s
-
-    @property
-    def start_scale(self) -> float:
-        """The scale of a prediction before the run has measured a stage: :attr:`block_scale`, else :attr:`load`."""
-        return self.load if self.block_scale is None else self.block_scale
 
     def phase(self, stage: int) -> str:
         """Where stage number ``stage`` is: ``plan`` (a planned stage), ``retry`` (the stages once more) or ``plain``
@@ -236,12 +207,12 @@ class StageClock(Sink):
         if predicted <= 0.0:
             return None
         prior = SCALE_PRIOR * self._planned.get(part.split(":")[0], 0.0)  # pseudo-seconds at the load's speed
-        return min(MAX_SCALE, max(1.0 / MAX_SCALE, (measured + prior * self.start_scale) / (predicted + prior)))
+        return min(MAX_SCALE, max(1.0 / MAX_SCALE, (measured + prior * self.load) / (predicted + prior)))
 
     @property
     def simulate_scale(self) -> float:
         scale = self._scale("simulate")
-        return self.start_scale if scale is None else scale
+        return self.load if scale is None else scale
 
     def _part(self, stage: int | None) -> str:
         """The measured part simulating stage ``stage`` counts in: the plain rollouts' own, or every other stage's."""
@@ -253,21 +224,18 @@ class StageClock(Sink):
         scale = self._scale("after:" + kind)
         return self.simulate_scale if scale is None else scale
 
-    def _model(self, kind: str, n_rollouts: int, stage: int | None = None, one_process: bool = False) -> StageCost:
+    def _model(self, kind: str, n_rollouts: int, stage: int | None = None) -> StageCost:
         """The model's prediction of a stage of this run (nan before the run starts): a retry's stage as the planned
-        stage of its number, a plain rollouts' stage as plain Monte Carlo's final batch; its batch in the worker
-        pool where it pays at the run's speed (the first block's, once it has priced the stage), or ``one_process``."""
+        stage of its number, a plain rollouts' stage as plain Monte Carlo's final batch."""
         if self._config is None:
             return StageCost(math.nan, math.nan)
-        speed = self.speed if self.block_scale is None else self.block_scale * self.speed / max(self.load, 1e-12)
-        speed = 0.0 if one_process else speed  # no pool pays at no seconds (pemviz.engine.resources.pool_workers)
         phase = "plan" if stage is None else self.phase(stage)
         if phase == "plain":
             c = self.constants
-            return stage_cost(self._config, "final", n_rollouts, self._n_steps, c, model="plain", speed=speed)
+            return stage_cost(self._config, "final", n_rollouts, self._n_steps, c, model="plain", speed=self.speed)
         if phase == "retry" and stage is not None:
             stage -= self._last + 1
-        cost = stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage, speed=speed)
+        cost = stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage, speed=self.speed)
         if self._look_ahead_s > 0.0:  # the problem's look-ahead: the estimator weighs the rollouts before they are out
             cost = StageCost(cost.simulate_s + n_rollouts * self._look_ahead_s, cost.after_s)
         return cost

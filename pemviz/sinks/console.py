@@ -23,7 +23,6 @@ from pemviz.engine.cost import (
 from pemviz.engine.events import (
     Event,
     FinalEstimate,
-    RolloutChunk,
     RunCancelled,
     RunStarted,
     StageFinished,
@@ -527,8 +526,7 @@ def final_lines(
 
 
 class ConsoleSink(Sink):
-    """Prints a line when each stage starts (progress, to ``progress``; after its first block where that block prices
-    it: :meth:`pemviz.sinks.StageClock.prices_by_block`) and the table rows (to ``out``)."""
+    """Prints a line when each stage starts (progress, to ``progress``) and the table rows (to ``out``)."""
 
     def __init__(self, out: TextIO | None = None, progress: TextIO | None = None) -> None:
         self.out = out or sys.stdout
@@ -539,7 +537,6 @@ class ConsoleSink(Sink):
         self.config: ExperimentConfig | None = None
         self.exact_log_p: float | None = None
         self.reference: Reference | None = None
-        self._awaited: StageStarted | None = None  # a stage whose progress line waits for its first block
         self.failures: SharedGroups | None = None
         """A listener that has grouped the final estimate's failures before this sink hears of it
         (:class:`pemviz.sinks.population.FailureGroups`, run before it): its grouping's severity is printed
@@ -569,17 +566,6 @@ class ConsoleSink(Sink):
         print(HEADER, file=self.out)
 
     def on_stage_started(self, event: StageStarted) -> None:
-        self._awaited = event if self.clock.prices_by_block(event) else None  # its line after its first block
-        if self._awaited is None:
-            self._progress(event)
-
-    def on_rollout_chunk(self, event: RolloutChunk) -> None:
-        if self._awaited is not None and event.stage == self._awaited.stage:
-            self._progress(self._awaited)
-            self._awaited = None
-
-    def _progress(self, event: StageStarted) -> None:
-        """The stage's progress line: its rollouts, the time elapsed, the stage's and the run's time left."""
         assert self.plan is not None  # the run has started
         label = self.plan.label(event.stage, event.kind)
         clock = self.clock

@@ -173,23 +173,6 @@ def test_the_pilot_leaves_the_run_s_streams_as_they_were():
     assert (a.n, a.n_failures, a.log_mu_hat, a.ess) == (b.n, b.n_failures, b.log_mu_hat, b.ess)
 
 
-def test_a_stage_says_whether_it_is_streamed_and_its_chunks_follow():
-    """300 plain rollouts in chunks of 100 come as 3 chunks after a start that says so (a stage's first block prices
-    it then: :meth:`pemviz.sinks.StageClock.prices_by_block`); in one batch, one chunk after a start that says not."""
-    from pemviz.config import ExperimentConfig
-    from pemviz.engine import events as ev
-    from pemviz.engine.experiment import Experiment
-    from pemviz.scenarios.problems import build_problem
-
-    for chunk, streamed, chunks in ((100, True, 3), (None, False, 1)):
-        heard: list = []
-        cfg = ExperimentConfig.of(method="mc", n_per_stage=300, chunk_rollouts=chunk, seed=3)
-        Experiment(cfg, [heard.append], problem=build_problem("main")).run()
-        (started,) = [e for e in heard if isinstance(e, ev.StageStarted)]
-        assert started.streamed is streamed and started.n_rollouts == 300
-        assert [e.start for e in heard if isinstance(e, ev.RolloutChunk)] == [0, 100, 200][:chunks]
-
-
 def test_the_panels_cost_line_scales_by_the_load():
     from pemviz.app.form import run_cost
     from pemviz.config import ExperimentConfig
