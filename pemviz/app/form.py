@@ -320,17 +320,18 @@ _LOAD: dict[tuple[Any, ...], tuple[float, float, float]] = {}
 
 
 def _recent_load(cfg: ExperimentConfig, problem: Any) -> tuple[float, float]:
-    """``(speed, slowdown)`` of a run of ``cfg`` on ``problem`` (:func:`pemviz.engine.cost.pilot_speed`, 1
-    without one; :func:`pemviz.engine.resources.load_slowdown`), reused for :data:`LOAD_FRESH_S` s per scene."""
+    """``(speed, slowdown)`` of a run of ``cfg`` on ``problem``, as the console's first line reads them
+    (:func:`pemviz.engine.cost.start_reading` of a pilot of its rollouts; none without a problem), reused for
+    :data:`LOAD_FRESH_S` s per scene."""
     from pemviz.engine.experiment import scene_pilot
-    from pemviz.engine.resources import load_slowdown, tasks_now
+    from pemviz.engine.resources import tasks_now
 
     now, key = time.monotonic(), _key(cfg)
     if key in _LOAD and now - _LOAD[key][0] <= LOAD_FRESH_S:
         return _LOAD[key][1:]
     opened = tasks_now()
-    speed = 1.0 if problem is None else cost.pilot_speed(cfg, scene_pilot(problem), problem.n_steps or N_STEPS)
-    factor = load_slowdown(since=opened, speed=speed)
+    pilot, steps = ([], N_STEPS) if problem is None else (scene_pilot(problem), problem.n_steps or N_STEPS)
+    speed, factor = cost.start_reading(cfg, pilot, steps, since=opened)
     _LOAD[key] = (now, speed, factor)
     return speed, factor
 

@@ -249,6 +249,21 @@ def pilot_speed(cfg: ExperimentConfig, pilot: list[tuple[int, float]], n_steps: 
     return statistics.median(seconds / max(pilot_seconds(cfg, n, n_steps), 1e-12) for n, seconds in pilot)
 
 
+def start_reading(
+    cfg: ExperimentConfig, pilot: list[tuple[int, float]], n_steps: int = N_STEPS, since: Any = None
+) -> tuple[float, float]:
+    """``(speed, slowdown)`` a run of ``cfg`` is priced at before it has measured anything of its own, read alike by
+    the console's first progress line (:class:`pemviz.sinks.StageClock`) and the panel's cost line
+    (:func:`pemviz.app.form.run_cost`): the speed of ``pilot``'s plain rollouts (:func:`pilot_speed`: how many times
+    the model's CPU seconds the run's work takes, 1 without a pilot) and the machine's load times it
+    (:func:`pemviz.engine.resources.load_slowdown`, its window opened at ``since``, a
+    :func:`pemviz.engine.resources.tasks_now` reading; None: now)."""
+    from pemviz.engine.resources import load_slowdown
+
+    speed = pilot_speed(cfg, pilot, n_steps)
+    return speed, load_slowdown(since=since, speed=speed)
+
+
 def plan_costs(
     cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, c: CostConstants = COST, speed: float = 1.0
 ) -> dict[int, StageCost]:

@@ -23,6 +23,7 @@ from pemviz.engine.cost import (
     mc_rollouts,
     pilot_speed,
     stage_cost,
+    start_reading,
     with_drift,
 )
 
@@ -88,9 +89,10 @@ class StageClock(Sink):
     (:func:`pemviz.engine.cost.plan_costs`). As stages end the clock measures both and scales what is left by
     measured / predicted, separately: simulating over every stage, what follows per kind of stage. Before any stage
     the predictions are scaled by the machine's load (``slowdown()``, default
-    :func:`pemviz.engine.resources.load_slowdown` of :attr:`speed`, a pilot of the scene's rollouts). What may follow
-    the planned stages (:func:`pemviz.engine.cost.follow_on`) gives the upper end, :meth:`run_most_s`; plain Monte
-    Carlo's remaining rollouts are those its precision target needs at the failure rate seen so far
+    :func:`pemviz.engine.cost.start_reading`: :func:`pemviz.engine.resources.load_slowdown` of :attr:`speed`, a pilot
+    of the scene's rollouts, read as the panel's cost line reads them). What may follow the planned stages
+    (:func:`pemviz.engine.cost.follow_on`) gives the upper end, :meth:`run_most_s`; plain Monte Carlo's remaining
+    rollouts are those its precision target needs at the failure rate seen so far
     (:func:`pemviz.engine.cost.mc_rollouts`), at most the cap.
 
     Attributes:
@@ -146,14 +148,10 @@ class StageClock(Sink):
         self.sampled_t, self.current, self.done = None, None, []
         self.plan = event.plan
         self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
-        if self.pilot:
-            self.speed = pilot_speed(event.config, self.pilot, self._n_steps)
-        if self._slowdown is None:
-            from pemviz.engine.resources import load_slowdown
-
-            self.load = load_slowdown(since=self.load_since, speed=self.speed)
+        if self._slowdown is None:  # as the panel's cost line reads them
+            self.speed, self.load = start_reading(event.config, self.pilot, self._n_steps, since=self.load_since)
         else:
-            self.load = float(self._slowdown())
+            self.speed, self.load = pilot_speed(event.config, self.pilot, self._n_steps), float(self._slowdown())
         self._look_ahead_s = float(event.problem.look_ahead_s)
         # an open-ended plan's added batches follow its last stage: no time is said for it (run_left_s)
         self.follow = None if event.plan.open_ended else follow_on(event.config, event.plan, event)
