@@ -162,15 +162,17 @@ RUNGS: tuple[Rung, ...] = (
     Rung(
         "crossing-1e-6",
         "crossing",
-        ("brake_mps2=10",),
+        ("brake_mps2=10", "brake_ttc_s=2.0"),
         -6,
         None,
-        "NOT located: splitting ranked by the look-ahead (--method ams --ams-score lookahead --n 400 --ams-killed 40, "
-        "seed 1) gave 7.2e-7, doubtful, ESS 1.2; the default command's plain Monte Carlo (seed 0) 3.00e-6 [6.19e-7, "
-        "8.77e-6], 3 failures in 10^6, the same 3 rollouts as at 11 m/s^2",
-        "plain Monte Carlo at 5 % needs 400 failures, about 1.3e8 rollouts at 3e-6: "
-        + CROSSING_MC.format("brake_mps2=10", "2000000")
-        + " for S = 1..70: about 1.5 core-hours",
+        "located, no reference: plain Monte Carlo of 10^7 rollouts (seeds 1-5 of 2,000,000, --workers 1) saw 11 "
+        "failures (1, 1, 4, 1, 4), 1.1e-6 [5.5e-7, 2.0e-6] (exact Poisson); brake_mps2=10 alone gave 3.00e-6 (seed 0's "
+        "10^6: 3 failures, the same 3 rollouts as at 11 m/s^2, crashes the brake never starts for); the earlier "
+        "trigger takes it to 1.1e-6; splitting ranked by the look-ahead (--method ams --ams-score lookahead --n 400 "
+        "--ams-killed 40, seed 1) gave 7.2e-7 at brake_mps2=10, doubtful, ESS 1.2",
+        "plain Monte Carlo at 5 % needs 400 failures, about 4e8 rollouts at 1e-6: "
+        + CROSSING_MC.format("brake_mps2=10 --param brake_ttc_s=2.0", "2000000")
+        + " --workers 1 for S = 1..200: about 10 core-hours",
     ),
     Rung(
         "crossing-1e-7",
