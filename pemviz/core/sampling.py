@@ -327,8 +327,9 @@ _MIX = np.uint64(0x9E3779B97F4A7C15)
 def _distinct_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(one row of each distinct row of ``x`` float64 [n, k] by its bits, int [m]; the distinct row of each row, int
     [n]) where at most 3/4 of the rows are distinct, else None; rows are keyed by a uint64 hash of their bits
-    (Fibonacci hashing, :data:`_MIX`) with the row number in its low bits, sorted once, and a hash shared by two
-    different rows also gives None."""
+    (Fibonacci hashing, :data:`_MIX`) and placed in a table of at least 8 n slots by successive fields of their keys'
+    bits (no sort: a row whose slot holds another key tries the next field), and a key shared by two different rows
+    (or a row left without a slot after four fields) also gives None."""
     bits = x.view(np.uint64)
     key = bits[:, 0].copy()
     for j in range(1, bits.shape[1]):
@@ -336,25 +337,31 @@ def _distinct_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         key ^= bits[:, j]
     key *= _MIX
     n = key.size
-    low = max(1, (n - 1).bit_length())  # the bits of a row's number
-    mask = np.uint64((1 << low) - 1)
-    key &= ~mask
-    key |= np.arange(n, dtype=np.uint64)
-    key.sort()
-    order = (key & mask).astype(np.intp)
-    key >>= np.uint64(low)  # the hash's high bits, sorted
-    new = np.empty(n, bool)
-    new[0] = True
-    np.not_equal(key[1:], key[:-1], out=new[1:])
-    group = np.cumsum(new) - 1
-    if 4 * (int(group[-1]) + 1) > 3 * n:
+    width = max(10, (n - 1).bit_length() + 3)  # the table's bits: at least 8 n slots
+    table = np.empty(1 << width, np.intp)
+    rep = np.empty(n, np.intp)  # each row's representative
+    todo, keys = np.arange(n), key
+    for field in range(64 // width):  # the highest bits first, then the next field of as many
+        slot = ((keys >> np.uint64(64 - width * (field + 1))) & np.uint64((1 << width) - 1)).astype(np.intp)
+        table[slot] = todo  # one row per slot: any of its rows
+        held = table[slot]
+        placed = key[held] == keys
+        rep[todo[placed]] = held[placed]
+        todo = todo[~placed]
+        if not todo.size:
+            break
+        keys = key[todo]
+    if todo.size:
         return None
-    inverse = np.empty(n, np.intp)
-    inverse[order] = group
-    first = order[new]
-    if not np.array_equal(bits[first[inverse]], bits):  # a key shared by different rows
+    distinct = np.zeros(n, bool)
+    distinct[rep] = True
+    first = np.flatnonzero(distinct)
+    if 4 * first.size > 3 * n:
         return None
-    return first, inverse
+    columns = np.ascontiguousarray(bits.T)  # [k, n]: a row's representative compared column by column
+    if not all(np.array_equal(c[rep], c) for c in columns):  # a key shared by different rows
+        return None
+    return first, (np.cumsum(distinct) - 1)[rep]
 
 
 NETWORK_BLOCK = 1024
