@@ -239,12 +239,15 @@ class StageSamplers:
         near = window & np.isfinite(p)  # where the target is certain (an unseen object) it decides
         plain = p.copy()
         defensive = plain
-        if near.any():
-            z = np.asarray(self.proposal.detect_logit(obs[near]), dtype=np.float64)
-            plain[near] = z
+        if near.any():  # the proposal's logit of each distinct row once, where it says which rows are one
+            distinct = getattr(self.proposal, "distinct_logit", None)
+            z, inverse = distinct(obs[near]) if distinct is not None else (self.proposal.detect_logit(obs[near]), None)
+            z = np.asarray(z, dtype=np.float64)
+            plain[near] = z if inverse is None else z[inverse]
             if self.eps > 0.0:
                 defensive = p.copy()
-                defensive[near] = defensive_logit(z, self.eps)
+                d = defensive_logit(z, self.eps)
+                defensive[near] = d if inverse is None else d[inverse]
         for a in (p, plain, defensive):
             a.flags.writeable = False
         # a read-only array is kept itself (no copy: it is recognised by identity only, its base may change later)

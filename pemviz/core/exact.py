@@ -135,7 +135,13 @@ def matmul_t(
 ) -> np.ndarray:
     """:func:`matmul` transposed: ``(a @ b).T`` float64 [n, m] of ``at = a.T`` [k, m], with the bits of ``matmul(a,
     None, b_grid, nonneg)`` in fewer passes (:func:`matmul` itself where a power of two leaves the normal range, or
-    ``bt`` is None).
+    ``bt`` is None), but for the sign of a zero: a result that is a sum of zero products only may be +0.0 where
+    :func:`matmul` gives -0.0 (adding a nonzero bias afterwards gives the same bits either way).
+
+    Each column of ``at`` is rounded to its grid of ``grid_bits(k)`` bits in place of its own scale: ``x + c - c``
+    with ``c = 1.5 * 2^(52 - shift)``, where a float64's step is ``2^-shift`` (rounding to nearest, ties to even, as
+    ``np.rint(x * 2^shift) * 2^-shift``); then every product with ``bt``'s values and every partial sum is an
+    integer multiple of ``2^(eb - shift)`` below ``2^53`` of them: exact, in any order, with no rescaling.
 
     Args:
         at: float64 [k, m].
@@ -147,7 +153,16 @@ def matmul_t(
         float64 [n, m]."""
     largest = (at if nonneg else np.abs(at)).max(axis=0) if at.shape[0] else np.zeros(at.shape[1])
     shift = grid_bits(at.shape[0]) - np.frexp(largest)[1]
-    if bt is None or not shift.size or not (-1022 <= int(shift.min()) and int(shift.max()) <= 1022):
+    if bt is None or not shift.size:
+        return matmul(at.T, None, b_grid, nonneg).T
+    lo, hi = int(shift.min()), int(shift.max())
+    eb = b_grid[1]
+    if -971 <= lo and hi <= 1022 and int(eb.min()) - hi >= -1074 and int(eb.max()) - lo <= 971:
+        c = np.ldexp(1.5, 52 - shift)
+        xs = np.add(at, c, out=at if own else None)  # rounded to the column's grid by the addition itself
+        xs -= c  # exact
+        return bt @ xs
+    if not (-1022 <= lo and hi <= 1022):
         return matmul(at.T, None, b_grid, nonneg).T
     xi = np.multiply(at, np.ldexp(1.0, shift), out=at if own else None)  # exact: the grid's integers, but rint
     np.rint(xi, out=xi)

@@ -65,10 +65,11 @@ def test_a_product_on_grids_is_the_rational_product_of_the_rounded_operands(m, k
 def test_the_transposed_product_gives_the_products_bits_from_the_normal_range_to_the_subnormals(
     a_exp, b_exp, fast, k, n, nonneg
 ):
-    # matmul_t computes (a @ b).T with b's integers times its column powers of two and one multiply per row: the same
-    # bits as matmul's integer product scaled by 2^(ea + eb), also where results round into the subnormals (b at
-    # 2^-560 and rows at 2^-900) or overflow, and by matmul itself where a row's or a column's power of two leaves
-    # the range the multiplies need
+    # matmul_t computes (a @ b).T with b's values (its integers times its column powers of two), each row of a
+    # rounded to its grid by an added constant (the normal range), or as integers and one multiply per row where
+    # results round into the subnormals (b at 2^-560 and rows at 2^-900) or overflow: the same bits as matmul's
+    # integer product scaled by 2^(ea + eb), and by matmul itself where a row's or a column's power of two leaves the
+    # range the multiplies need
     rng = np.random.default_rng(k + n)
     a = rng.normal(size=(300, k)) * 2.0 ** rng.integers(*a_exp, size=(300, 1))
     a[:40] = 0.0
@@ -83,6 +84,30 @@ def test_the_transposed_product_gives_the_products_bits_from_the_normal_range_to
     assert np.array_equal(got.T.view(np.int64), want.view(np.int64))
     if b_exp == -560:  # results below the normal range, rounded once
         assert ((want != 0) & (np.abs(want) < 2.0**-1022)).any()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([(4, 32, False), (32, 32, True), (32, 1, True)]), st.integers(-60, 9))
+def test_the_transposed_product_rounds_by_an_added_constant_with_the_products_bits_but_a_zeros_sign(seed, shape, e):
+    # the fast path rounds each column to its grid by x + 1.5 * 2^(52 - shift) - 1.5 * 2^(52 - shift) and multiplies
+    # by b's values: every nonzero result has matmul's bits; a result that is a sum of zero products may be +0.0
+    # where matmul's is -0.0 (its rounded -0.0 entries are +0.0 here), so adding a nonzero bias gives the same bits
+    k, n, nonneg = shape
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(200, k)) * 2.0 ** rng.integers(-30, 30, size=(200, 1))
+    a[rng.random(a.shape) < 0.2] = 0.0
+    a[:, 1:] *= np.where(rng.random((200, 1)) < 0.1, 2.0**-40, 1.0)  # entries that round to zero beside the largest
+    a = np.abs(a) if nonneg else a
+    b = rng.normal(size=(k, n)) * 2.0**e
+    b[rng.random(b.shape) < 0.2] = 0.0
+    grid = exact.on_grid(b, exact.grid_bits(k), 0)
+    want = exact.matmul(a, None, grid, nonneg)
+    got = exact.matmul_t(a.T.copy(), grid, exact.scaled_grid(grid), nonneg).T
+    nonzero = want != 0.0
+    assert np.array_equal(got != 0.0, nonzero)
+    assert np.array_equal(got[nonzero].view(np.int64), want[nonzero].view(np.int64))
+    bias = rng.normal(size=n)
+    assert np.array_equal((got + bias).view(np.int64), (want + bias).view(np.int64))
 
 
 def test_a_sum_on_a_grid_is_exact_in_any_order():

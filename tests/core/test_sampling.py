@@ -473,6 +473,37 @@ def test_a_proposal_gives_each_row_the_logit_it_has_alone_among_repeated_rows():
         assert len(np.unique(got)) <= gaps.size < DISTINCT_FROM  # the repeated rows took the distinct path
 
 
+def test_the_samplers_give_every_row_its_own_logit_and_defensive_mixture_from_distinct_rows():
+    # the network runs NETWORK_BLOCK rows at a time and once per distinct row, and StageSamplers takes the defensive
+    # mixture of each distinct row once: every row still gets the bits of the proposal asked about it alone, and the
+    # defensive logit of those bits; a subclass with a logit of its own is asked for it (no distinct rows)
+    from pemviz.core.detectors import StageSamplers
+    from pemviz.core.sampling import NETWORK_BLOCK
+
+    rng = np.random.default_rng(8)
+    q = StateProposal((0, 1, 2), (20.0, 5.0, 1.0), (50.0, 0.0, 0.0))
+    q.initialise(np.random.default_rng(2))
+    many = np.column_stack([rng.uniform(0.0, 12.0, 3 * NETWORK_BLOCK + 5), rng.normal(size=(3 * NETWORK_BLOCK + 5, 2))])
+    alone = np.array([q.detect_logit(row[None, :])[0] for row in many])
+    assert np.array_equal(q.detect_logit(many).view(np.int64), alone.view(np.int64))  # all distinct, block by block
+    pick = rng.integers(0, 400, 4 * DISTINCT_FROM)
+    obs = many[pick]
+    assert q.distinct_logit(obs)[1] is not None  # the repeated rows took the distinct path
+    _, plain, defensive = StageSamplers(q, ConstantDetector(0.3), 10.0, 1.0, 0.1).logits(obs)
+    near = (obs[:, 0] >= 1.0) & (obs[:, 0] < 10.0)
+    assert np.array_equal(plain[near].view(np.int64), alone[pick][near].view(np.int64))
+    assert np.array_equal(defensive[near].view(np.int64), defensive_logit(alone[pick][near], 0.1).view(np.int64))
+
+    class Shifted(StateProposal):
+        def detect_logit(self, obs):
+            return super().detect_logit(obs) + 1.0
+
+    s = Shifted((0, 1, 2), (20.0, 5.0, 1.0), (50.0, 0.0, 0.0))
+    s.initialise(np.random.default_rng(2))
+    logits, inverse = s.distinct_logit(obs)
+    assert inverse is None and np.array_equal(logits, q.detect_logit(obs) + 1.0)
+
+
 def test_two_different_rows_of_one_key_are_not_taken_for_one():
     from pemviz.core.sampling import _MIX, _distinct_rows
 
