@@ -52,8 +52,9 @@ def plain_loop(problem, params: CutInParams, n: int, seed: int) -> tuple[np.ndar
 @pytest.mark.parametrize(
     ("params", "n", "seed", "failures_at_least"),
     [
-        ((), 3_000, 7, 0),  # the default scene (about 8e-5: no failure expected) on 3,000 rollouts, every draw compared;
-        # with the 7,000 at 19.8 m: the failure indicator of 10,000 shared rollouts
+        # the default scene (about 8e-5: no failure expected) on 3,000 rollouts, every draw compared; with the 7,000
+        # at 19.8 m: the failure indicator of 10,000 shared rollouts
+        ((), 3_000, 7, 0),
         ((("cut_in_gap_m", 19.8),), 7_000, 3, 100),  # 19.8 m, where about 2 % fail: the failure event compared
     ],
 )
