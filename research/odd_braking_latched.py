@@ -125,24 +125,18 @@ def main() -> int:
 
     from research.odd_tally import Tally
 
-    tally, points_held, points = Tally(exact), 0, 0
+    tally = Tally(exact)
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         t1 = time.perf_counter()
         final = Experiment(dataclasses.replace(cfg0, seed=seed), problem=problem).run().final
         line = tally.add(final.estimate)
-        held = 0
-        for b in final.odd_map.bins:
-            blo, bhi = b.estimate.shown_log_ci
-            held += blo <= exact_bin(b.name, b.lo, b.hi) <= bhi
-        points_held, points = points_held + held, points + len(final.odd_map.bins)
+        held = sum(tally.add_point(b.estimate, exact_bin(b.name, b.lo, b.hi)) for b in final.odd_map.bins)
         print(
             f"  seed {seed}: {line}; map {held}/{len(final.odd_map.bins)} points hold ({final.n_simulations:,} "
             f"simulations, {time.perf_counter() - t1:.0f} s)",
             flush=True,
         )
-    print(
-        f"budget x{args.budget:g}: {tally.summary()}; the map's points holding their quadrature {points_held}/{points}"
-    )
+    print(f"budget x{args.budget:g}: {tally.summary()}; {tally.points_text()} (against their quadrature)")
     return 0
 
 

@@ -23,6 +23,8 @@ class Tally:
     any_ci_holds: int = 0
     reliable_off: int = 0
     nan: int = 0
+    points: list[int] = field(default_factory=lambda: [0, 0, 0, 0, 0])
+    """The map's points: [all, holding, printing an interval, those holding, reliable outside x2]."""
 
     def add(self, e: object) -> str:
         """Count the :class:`pemviz.core.estimate.Estimate` ``e`` and return its line."""
@@ -44,6 +46,28 @@ class Tally:
             f"x{r:.3f}, {e.n_failures:,} failures of {e.n:,}, ESS {e.ess:.1f}, k-hat {khat}: {e.verdict} ({e.reason}); "
             f"printed {e.interval_text()} {'holds' if held else 'MISSES'}; its interval "
             f"{'holds' if ci_held else 'misses'}"
+        )
+
+    def add_point(self, e: object, log_truth: float) -> bool:
+        """Count one point of the map, its :class:`pemviz.core.estimate.Estimate` ``e`` against ``log_truth`` (nats);
+        whether what it printed holds it."""
+        from pemviz.core.estimate import Estimate
+
+        assert isinstance(e, Estimate)
+        held = e.covers(log_truth)
+        r = math.exp(e.log_mu_hat - log_truth)
+        for i, counted in enumerate(
+            (True, held, e.interval_backed, e.interval_backed and held, e.verdict == "reliable" and not 0.5 < r < 2)
+        ):
+            self.points[i] += counted
+        return held
+
+    def points_text(self) -> str:
+        """The map's points together."""
+        n, held, intervals, intervals_held, off = self.points
+        return (
+            f"the map's points: {held}/{n} holding, {intervals} printing an interval, of which {intervals_held} "
+            f"holding, reliable outside x2 {off}"
         )
 
     def summary(self) -> str:

@@ -46,27 +46,18 @@ def main() -> int:
     )
     from research.odd_tally import Tally
 
-    tally, points, points_held = Tally(exact), 0, 0
+    tally = Tally(exact)
     for seed in range(args.seeds):
         done = Experiment(dataclasses.replace(cfg0, seed=seed), problem=problem).run()
         line = tally.add(done.final.estimate)
         m = done.final.odd_map
-        held = 0
-        for b in m.bins:
-            truth = exact_b[int(round((b.lo + b.hi) / 2))]
-            blo, bhi = b.estimate.shown_log_ci
-            held += blo <= truth <= bhi
-        points += len(m.bins)
-        points_held += held
+        held = sum(tally.add_point(b.estimate, exact_b[int(round((b.lo + b.hi) / 2))]) for b in m.bins)
         print(
             f"  seed {seed}: {line}; map {held}/{len(m.bins)} points hold p(b) ({done.final.n_simulations:,} "
             "simulations)",
             flush=True,
         )
-    print(
-        f"{tally.summary()}; the map's points holding their closed form {points_held}/{points} "
-        f"({100 * points_held / max(points, 1):.0f} %)"
-    )
+    print(f"{tally.summary()}; {tally.points_text()} (against their closed form)")
     return 0
 
 
