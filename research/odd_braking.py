@@ -76,25 +76,14 @@ def main() -> int:
     params = (("ego_speed0_mps", f"~uniform({args.lo:g}, {args.hi:g})"),)
     extra = {} if args.n is None else {"n_per_stage": args.n}
     problem = problem_for(ExperimentConfig.of(scenario_params=params))
-    ratios, holds, reliable_off = [], 0, 0
+    from research.odd_tally import Tally
+
+    tally = Tally(math.log(p_odd))
     for seed in range(args.seeds):
         done = Experiment(ExperimentConfig.of(scenario_params=params, seed=seed, **extra), problem=problem).run()
-        e = done.final.estimate
-        r = math.exp(e.log_mu_hat) / p_odd
-        lo, hi = e.shown_log_ci
-        holds += lo <= math.log(p_odd) <= hi
-        reliable_off += e.verdict == "reliable" and not 0.5 < r < 2
-        ratios.append(r)
-        print(
-            f"  seed {seed}: {math.exp(e.log_mu_hat):.3e} x{r:.3f} {e.verdict} {e.interval_text()} "
-            f"({done.final.n_simulations} simulations)",
-            flush=True,
-        )
-    x = np.array(ratios)
-    print(
-        f"median relative error {np.median(np.abs(x - 1)):.3f}, within x2 {np.sum((x > 0.5) & (x < 2))}/{x.size}, "
-        f"intervals or bounds holding {holds}/{x.size}, reliable outside x2 {reliable_off}"
-    )
+        line = tally.add(done.final.estimate)
+        print(f"  seed {seed}: {line} ({done.final.n_simulations} simulations)", flush=True)
+    print(tally.summary())
     return 0
 
 

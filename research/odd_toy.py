@@ -17,8 +17,6 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 VALUES = tuple(range(5, 15))
@@ -46,34 +44,20 @@ def main() -> int:
         f"{math.exp(min(exact_b.values())):.0e}; N = {cfg0.n_per_stage} a stage",
         flush=True,
     )
-    ratios, holds, reliable_off, points, points_held = [], 0, 0, 0, 0
+    from research.odd_tally import Tally
+
+    tally = Tally(exact)
     for seed in range(args.seeds):
         done = Experiment(dataclasses.replace(cfg0, seed=seed), problem=problem).run()
-        e = done.final.estimate
-        r = math.exp(e.log_mu_hat - exact)
-        lo, hi = e.shown_log_ci
-        holds += lo <= exact <= hi
-        reliable_off += e.verdict == "reliable" and not 0.5 < r < 2
-        ratios.append(r)
+        line = tally.add(done.final.estimate)
         m = done.final.odd_map
-        held = 0
-        for b in m.bins:
-            truth = exact_b[int(round((b.lo + b.hi) / 2))]
-            blo, bhi = b.estimate.shown_log_ci
-            held += blo <= truth <= bhi
-        points += len(m.bins)
-        points_held += held
+        held = sum(tally.add_point(b.estimate, exact_b[int(round((b.lo + b.hi) / 2))]) for b in m.bins)
         print(
-            f"  seed {seed}: x{r:.3f} {e.verdict} {e.interval_text()}; map {held}/{len(m.bins)} points hold p(b) "
-            f"({done.final.n_simulations:,} simulations)",
+            f"  seed {seed}: {line}; map {held}/{len(m.bins)} points hold p(b) ({done.final.n_simulations:,} "
+            "simulations)",
             flush=True,
         )
-    x = np.array(ratios)
-    print(
-        f"median relative error {np.median(np.abs(x - 1)):.3f}, within x2 {np.sum((x > 0.5) & (x < 2))}/{x.size}, "
-        f"intervals or bounds holding {holds}/{x.size}, reliable outside x2 {reliable_off}; the map's points holding "
-        f"their closed form {points_held}/{points} ({100 * points_held / max(points, 1):.0f} %)"
-    )
+    print(f"{tally.summary()}; {tally.points_text()} (against their closed form)")
     return 0
 
 

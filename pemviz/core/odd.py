@@ -380,6 +380,19 @@ class OddMap:
         best = max(self.bins, key=lambda b: b.share, default=None)
         return best if best is not None and best.share > 0 else None
 
+    def unfailed_cap(self) -> tuple[str, str] | None:
+        """("doubtful", why) where a bin of the map has no failure among the final rollouts of an importance-sampling
+        run, else None: the proposal may have left that region of the ODD unsampled while the weights look reliable
+        (e.g. the toy over ``braking~choice(5, 6, 7)``, seed 1: no failure at b = 5, 89 % of p_ODD, ESS 90, k-hat
+        0.06, x0.07; docs/odd.md). Plain Monte Carlo's map is not judged: its interval is binomial."""
+        empty = [b for b in self.bins if b.estimate.n_failures == 0 and not b.estimate.plain_mc]
+        if not empty:
+            return None
+        return "doubtful", (
+            f"no failure in {empty[0].label} (of {len(empty)} bin{'s' if len(empty) > 1 else ''} without one): "
+            "the proposal may have missed that region of the ODD, whatever its weights show"
+        )
+
     def lines(self) -> list[str]:
         """The map as the console prints it: a header, a line per bin, the region that carries most of p_ODD."""
         from pemviz.core.estimate import format_probability

@@ -121,20 +121,11 @@ def odd_rollout_functions(make: MakeWith, odd: ODD, n_steps: int) -> tuple[Calla
     return simulate, stream, branch
 
 
-ODD_VERDICT_CAP = (
-    "doubtful",
-    "over an ODD the fitted proposals (of the parameters, and of the detections given them) can sample a region of "
-    "the ODD too little while the weights look reliable (on the toy, before the proposal over the parameters, 2 of 20 "
-    "runs at x0.47 and x0.50)",
-)
-"""The best verdict the adaptive sampler may claim over an operating design domain, and why
-(:attr:`pemviz.core.problems.Problem.verdict_cap`); plain Monte Carlo's interval is not capped."""
-
-
 def problem_over_odd(base: Problem, make: MakeWith, odd: ODD, n_steps: int, **changes: Any) -> Problem:
     """``base`` over ``odd``: its rollouts from :func:`odd_rollout_functions` (``make``, ``n_steps``), without what
-    holds at one set of parameters only (exact answers, reference, look-ahead, tilt), the adaptive verdict capped
-    (:data:`ODD_VERDICT_CAP`); ``changes`` replace any field besides."""
+    holds at one set of parameters only (exact answers, reference, look-ahead, tilt); its verdict is its weights', as
+    at one set of parameters, but where a bin of the run's map holds no failure
+    (:meth:`pemviz.core.odd.OddMap.unfailed_cap`); ``changes`` replace any field besides."""
     simulate, stream, branch = odd_rollout_functions(make, odd, n_steps)
     cleared: dict[str, Any] = dict(
         exact_log_p=None,
@@ -143,7 +134,6 @@ def problem_over_odd(base: Problem, make: MakeWith, odd: ODD, n_steps: int, **ch
         look_ahead=None,
         look_ahead_s=0.0,
         tilt=None,
-        verdict_cap=ODD_VERDICT_CAP,
     )
     fields = {**cleared, **changes, "simulate": simulate, "stream": stream, "branch": branch, "odd": odd}
     return dataclasses.replace(base, **fields)

@@ -214,6 +214,11 @@ class Experiment:
         seen = self.seen_failures.log_p
         pooled, cap = said.pooling, said.verdict_cap
         est = est.below_seen(seen)
+        odd_map = self._odd_map.result(cap) if self._odd_map is not None else None
+        unfailed = odd_map.unfailed_cap() if odd_map is not None and cap is None else None
+        if unfailed is not None:  # a region of the ODD without a failure: the run's claim and the map's, capped
+            cap, est = unfailed, est.at_most(unfailed)
+            odd_map = self._odd_map.result(cap) if self._odd_map is not None else None
         final = ev.FinalEstimate(
             est,
             n_sim,
@@ -230,7 +235,7 @@ class Experiment:
             pb.look_ahead is not None,
             said.prepared,
             plain_probe(pb, cfg, est),
-            self._odd_map.result(cap) if self._odd_map is not None else None,
+            odd_map,
         )
         self.emit(final)
         done = ev.RunFinished(final, tuple(self.stages))

@@ -174,7 +174,7 @@ def retry_config(config: ExperimentConfig) -> ExperimentConfig | None:
 def with_plain_fallback(estimator: Estimator, config: ExperimentConfig, problem: Problem) -> Estimator:
     """``estimator`` followed by its retry and plain Monte Carlo where its verdict is not ``reliable``
     (:class:`PlainFallback`), or ``estimator`` itself with ``plain_fallback`` = 0 or over an operating design domain
-    (whose verdict is capped anyway, and whose map is the sampler's)."""
+    (whose map is the sampler's)."""
     ratio = int(config.fallback.plain_fallback)
     if ratio <= 0 or getattr(problem, "odd", None) is not None:
         return estimator

@@ -419,7 +419,8 @@ def _cut_in(name: str, rarity: str, defaults: str, **more: Any) -> Scenario:
 # whose Clopper-Pearson bound holds whatever p, and says that no method shipped answers. The crossing (a noisy
 # detector behind a Kalman tracker, p about 3e-4), where the cross-entropy sampler is 5 to 10 orders of magnitude low
 # and splitting on the scene-neutral look-ahead costs 1.3 times plain Monte Carlo for the same median error
-# (benchmarks/scene_neutral.py), runs plain Monte Carlo to a 20 % interval (at most 500,000 rollouts, about 15 s).
+# (benchmarks/scene_neutral.py), runs plain Monte Carlo to a 20 % interval (at most 500,000 rollouts, about 15 s);
+# over an ODD of its AEB's parameters, where no plain Monte Carlo follows the stages, plain Monte Carlo of 200,000.
 
 for _scenario in (
     Scenario(
@@ -480,6 +481,9 @@ for _scenario in (
         "pemviz.scenarios.crossing.problem:crossing",
         cost_factor=_CROSSING_COST_FACTOR,
         cost_parts=_CROSSING_COST_PARTS,
+        random_params=("brake_ttc_s", "brake_mps2"),
+        odd="pemviz.scenarios.crossing.odd:crossing_odd_problem",
+        odd_defaults={"method": PLAIN_METHOD, "n_per_stage": 200_000},
     ),
 ):
     register(_scenario)

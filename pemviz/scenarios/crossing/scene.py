@@ -130,13 +130,19 @@ class CrossingParams:
     """The ego's front at t = 0 (its centre at x = 0)."""
 
 
+PER_ROLLOUT: tuple[str, ...] = ("brake_ttc_s", "brake_mps2")
+"""The AEB's parameters a rollout may have of its own (over an operating design domain: ``--param
+brake_ttc_s~uniform(1.3, 1.5)``): they decide only when the AEB brakes and how hard, so the scene is the same."""
+
+
 class BatchedCrossing:
     """n rollouts of the crossing scene stepped together (a :class:`pemviz.core.rollouts.BatchedSimulator` of M
     pedestrians with measurement errors): ``objects()`` float64 ``[n, M, G]``, ``observation()`` float64 ``[n, F]``,
-    ``step(detected bool [n, M], noise float64 [n, M, 2] | None)``.
+    ``step(detected bool [n, M], noise float64 [n, M, 2] | None)``; ``per_rollout`` gives each rollout its own
+    :data:`PER_ROLLOUT` parameters (float64 [n]; absent: ``params``').
 
     Raises:
-        ValueError: ``n`` < 1.
+        ValueError: ``n`` < 1, or another parameter in ``per_rollout``.
     """
 
     observation_names = OBSERVATION_NAMES
@@ -144,10 +150,17 @@ class BatchedCrossing:
     feature_names = FEATURE_NAMES
     object_feature_names = tracker.FEATURE_NAMES
 
-    def __init__(self, params: CrossingParams, n: int) -> None:
+    def __init__(self, params: CrossingParams, n: int, per_rollout: dict[str, np.ndarray] | None = None) -> None:
         if n < 1:
             raise ValueError(f"BatchedCrossing: n must be >= 1, got {n}")
+        if set(per_rollout or {}) - set(PER_ROLLOUT):
+            raise ValueError(f"BatchedCrossing: per_rollout may set {PER_ROLLOUT}, got {sorted(per_rollout or {})}")
         self.p, self.n, self.n_objects = params, int(n), params.n_pedestrians
+        own = per_rollout or {}
+        self.brake_ttc_s, self.brake_mps2 = (
+            np.asarray(own[k], dtype=np.float64).reshape(self.n) if k in own else np.full(self.n, getattr(params, k))
+            for k in PER_ROLLOUT
+        )
         self.t = 0
         self.x, self.v = np.zeros(n), np.full(n, params.ego_speed_mps)
         self.braking = np.zeros(n, bool)
@@ -223,7 +236,7 @@ class BatchedCrossing:
         )
         tracks = tracker.update(self.tracks, measured, self.x + p.camera_offset_m + z_m, x_m, z_m, 0.0, p.tracker)
         self.braking = self.braking | self._threat(tracks).any(axis=0)
-        speed = np.where(self.braking, np.maximum(self.v - p.brake_mps2 * p.dt_s, 0.0), self.v)
+        speed = np.where(self.braking, np.maximum(self.v - self.brake_mps2 * p.dt_s, 0.0), self.v)
         self.x = self.x + 0.5 * (self.v + speed) * p.dt_s
         self.v = speed
         self.tracks = tracker.predict(tracks, p.dt_s, p.tracker)
@@ -235,7 +248,7 @@ class BatchedCrossing:
         gap = tracks.x - PEDESTRIAN.width_m / 2 - (self.x + EGO_LENGTH_M / 2)
         ttc = gap / np.maximum(self.v, 0.1)
         in_path = (np.abs(tracks.y + tracks.vy * ttc) <= p.corridor_m) | (np.abs(tracks.y) <= p.corridor_m)
-        return tracks.confirmed & (gap > -EGO_LENGTH_M) & (ttc <= p.brake_ttc_s) & in_path
+        return tracks.confirmed & (gap > -EGO_LENGTH_M) & (ttc <= self.brake_ttc_s) & in_path
 
 
 def pedestrian_ahead_rows(params: CrossingParams, grid: np.ndarray) -> np.ndarray:
