@@ -143,8 +143,9 @@ def marked_over_odd(problem: Problem, odd: ODD) -> Problem:
     """``problem``, whose rollouts already draw their parameters from ``odd`` (a scenario's own factory built them with
     :func:`odd_rollout_functions` alone), marked as over it: ``odd`` set, so that a batch is simulated where its
     parameters are drawn (before its events, so that no block can be drawn apart), mapped, and proposed over by the
-    default sampler, and the adaptive verdict capped (:data:`ODD_VERDICT_CAP`) unless it has a cap of its own; a
-    problem already over an ODD is returned as it is."""
+    default sampler, and its verdict capped where a bin of the run's map holds no failure
+    (:meth:`pemviz.core.odd.OddMap.unfailed_cap`), as :func:`problem_over_odd`'s; a problem already over an ODD is
+    returned as it is."""
     if problem.odd is not None:
         return problem
-    return dataclasses.replace(problem, odd=odd, verdict_cap=problem.verdict_cap or ODD_VERDICT_CAP)
+    return dataclasses.replace(problem, odd=odd)
