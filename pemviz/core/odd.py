@@ -383,8 +383,8 @@ class OddMap:
     def unfailed_cap(self) -> tuple[str, str] | None:
         """("doubtful", why) where a bin of the map has no failure among the final rollouts of an importance-sampling
         run, else None: the proposal may have left that region of the ODD unsampled while the weights look reliable
-        (e.g. the toy over ``braking~choice(5, 6, 7)``, seed 1: no failure at b = 5, 89 % of p_ODD, ESS 90, k-hat
-        0.06, x0.07; docs/odd.md). Plain Monte Carlo's map is not judged: its interval is binomial."""
+        (e.g. the toy with its braking drawn from 5, 6 and 7, seed 1: no failure at b = 5, 89 % of p_ODD, ESS 90,
+        k-hat 0.06, x0.07; docs/odd.md). Plain Monte Carlo's map is not judged: its interval is binomial."""
         empty = [b for b in self.bins if b.estimate.n_failures == 0 and not b.estimate.plain_mc]
         if not empty:
             return None
