@@ -222,7 +222,7 @@ def estimate_rollouts(
         assert weighed is not None  # the problem has a look-ahead
         log_w, failed, checked = weighed
     est, rows, pooled, rule = _pooled(data, log_w, failed, log_p_total)
-    if failure == "crash":  # the failures the run drew: the file's own and the sidecar's
+    if failure == "crash" and not data.meta.odd_parameters:  # the failures the run drew (no bound over an ODD)
         seen = SeenFailures()
         seen.add(problem, batch, failed)
         est = est.below_seen(max((b for b in (seen.log_p, log_p_seen) if b is not None), default=None))

@@ -653,3 +653,22 @@ def test_the_size_line_counts_what_may_follow_the_stages(tmp_path):
         "1,000,000 more follow (the retry and plain Monte Carlo), 0.62 kB a rollout"
     )
     assert sink.size_line(62_000, 10_000, 10_000) is None  # 6.2 B a rollout: 6.2 MB at most
+
+
+def test_a_run_over_an_odd_re_estimates_from_its_file_to_the_runs_verdict_and_interval(tmp_path, capsys):
+    """Over an ODD a failing prefix of detections is not one event (its probability also holds the parameters'
+    law), so the file's re-estimate must not apply the run-drew-these-failures bound the run does not apply: the
+    toy over 9 orders of magnitude (seed 0: `reliable`, 1.06e-4 to 1.18e-4, exact 1.111e-4) said `unreliable`
+    from its own file before."""
+    rollouts, doc = tmp_path / "odd.parquet", tmp_path / "odd.json"
+    odd = "braking~choice(" + ", ".join(str(b) for b in range(5, 15)) + ")"
+    flags = ["--scenario", "toy", "--param", "total=16", "--param", "safe=3", "--param", odd, "--seed", "0"]
+    assert cli.main(["run", *flags, "--no-record", "--save-rollouts", str(rollouts)]) == 0
+    said = capsys.readouterr().out.splitlines()
+    run_line = next(line for line in said if line.startswith("mu_hat = ") and "k-hat" in line)
+    assert "95% CI [1.06e-04, 1.18e-04]" in run_line and ": reliable (" in run_line, run_line
+    est = run_cli("estimate", str(rollouts), "--no-record", "--json", str(doc))
+    assert est.returncode == 0, est.stderr
+    est_line = next(line for line in est.stdout.splitlines() if line.startswith("mu_hat = ") and "k-hat" in line)
+    assert est_line == run_line
+    assert json.loads(doc.read_text())["estimate"]["verdict"] == "reliable"
