@@ -241,7 +241,6 @@ def noise_training_data(inputs: np.ndarray, label_table: np.ndarray, *, seed: in
         inputs: raw salient inputs ``[N, 11]`` (:data:`pemviz.pem.encoding.INPUT_COLUMNS`).
         label_table: the label file ``[N, 9]`` (:func:`pemviz.io.data.load_salient_label_table`).
         seed: seed of the dequantisation noise.
-
     Raises:
         ValueError: shapes other than ``[N, 11]`` and ``[N, 9]``, or no row left.
     """
@@ -297,7 +296,6 @@ def train_noise_pem(
         norm: z-score statistics of the encoding (default: fitted on ``inputs``).
         progress: print the training's progress.
         metadata: extra provenance stored with the model.
-
     Raises:
         ValueError: shapes other than ``[M, 11]`` / ``[M, 2]``, non-finite errors, an unknown family, fewer than 2
             rows, epochs < 1 or batch_size < 1."""

@@ -61,7 +61,6 @@ class ObjectKind:
     Attributes:
         kitti_class: a key of :data:`KITTI_CLASSES` (``pedestrian``, ``car``, ``cyclist`` ...).
         height_m, width_m, length_m: the box (KITTI's h, w, l; e.g. a pedestrian 1.75, 0.6, 0.8).
-
     Raises:
         ValueError: an unknown class, or a dimension not in (0, 30] m.
     """

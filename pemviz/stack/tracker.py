@@ -54,7 +54,6 @@ class TrackerParams:
             lateral innovation is not gated); ``inf``: no gate.
         restart_after_steps: a track whose last update is this many steps old restarts at a measurement outside its
             gate.
-
     Raises:
         ValueError: a negative or non-finite value, or a measurement std of 0."""
 

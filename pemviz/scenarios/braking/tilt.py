@@ -275,7 +275,6 @@ class BrakingTilt:
         target: the PEM as a detector (the rollouts' p).
         n_gap, n_speed: the committor's grid (:data:`TILT_GAPS`, :data:`TILT_SPEEDS`).
         eps: the PEM's share of each step's proposal, in (0, 1].
-
     Raises:
         ValueError: ``eps`` outside (0, 1].
     """
