@@ -8,8 +8,8 @@ A detected obstacle's measurement error ``e = (dZ, dX)`` (metres; measured minus
 ``g`` a standard normal, Laplace or Student-t density, ``x`` the 14-dim encoding
 (:func:`pemviz.pem.encode_salient`). :class:`NoisePEM` is heteroscedastic, ``(m(x), log s(x))`` from a small ReLU
 network trained by maximum likelihood and evaluated in float64 numpy; :class:`HomoscedasticNoise` is the baseline.
-``log_prob`` is in nats. :func:`noise_training_data` builds the training set from the KITTI files,
-:func:`train_noise_pem` and :func:`fit_homoscedastic` fit; the family is chosen in ``pemviz.studies.noise_eval``."""
+``log_prob`` is in nats; the family is chosen in ``pemviz.studies.noise_eval``."""
+
 
 from __future__ import annotations
 

@@ -10,9 +10,8 @@ result is a bracket [enumerated, enumerated + dropped bound], refined until narr
 (``benchmarks/truth_braking.py``).
 
 The dynamics are :func:`pemviz.scenarios.braking.simulator.braking_step`; probabilities are natural logs (nats) in
-float64. The toy's closed form is :func:`pemviz.scenarios.toy.simulator.toy_log_failure_probability`, the latched
-scenario's :mod:`pemviz.scenarios.braking.truth_latched`, the shipped PEMs' answers
-:mod:`pemviz.scenarios.braking.truth_known`."""
+float64."""
+
 
 from __future__ import annotations
 
