@@ -10,7 +10,6 @@ A detected obstacle's measurement error ``e = (dZ, dX)`` (metres; measured minus
 network trained by maximum likelihood and evaluated in float64 numpy; :class:`HomoscedasticNoise` is the baseline.
 ``log_prob`` is in nats; the family is chosen in ``pemviz.studies.noise_eval``."""
 
-
 from __future__ import annotations
 
 from collections.abc import Mapping

@@ -9,7 +9,6 @@ the detection PEM giving the logit of p(detected) (Innes & Ramamoorthy 2022, ICR
 (:class:`pemviz.pem.noise.NoisePEM`) the density of a detected object's range and lateral errors.
 :func:`camera_detector` returns that detector, every sampler's target."""
 
-
 from __future__ import annotations
 
 from collections.abc import Sequence

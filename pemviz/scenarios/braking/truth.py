@@ -12,7 +12,6 @@ result is a bracket [enumerated, enumerated + dropped bound], refined until narr
 The dynamics are :func:`pemviz.scenarios.braking.simulator.braking_step`; probabilities are natural logs (nats) in
 float64."""
 
-
 from __future__ import annotations
 
 import dataclasses
