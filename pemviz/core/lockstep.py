@@ -160,8 +160,7 @@ def replay_rows(make: Callable[[int], BatchedSimulator], detected: np.ndarray, n
 
 
 DEFAULT_CHUNK_SIZE = RQMC_BLOCK
-"""Rollouts a batched simulator steps together: one chunk's working set stays in cache-sized arrays (measured fastest
-of 2048..65536 on the 2-core CI machine, e.g. for the braking scenario's batched twin), one Array-RQMC block."""
+"""Rollouts a batched simulator steps together, one Array-RQMC block: one chunk's working set stays in cache."""
 
 
 def check_counts(who: str, **counts: object) -> None:
