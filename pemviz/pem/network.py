@@ -391,18 +391,6 @@ class PEM:
             ) from None
         return module.eval()
 
-    def with_temperature(self, temperature: float, *, name: str | None = None) -> PEM:
-        """The same network with logits divided by ``temperature`` (temperature scaling, Guo et al. 2017)."""
-        return PEM(
-            name=name or self.name,
-            norm=self.norm,
-            state_dict=self.state_dict,
-            hidden=self.hidden,
-            batch_norm=self.batch_norm,
-            temperature=float(temperature),
-            metadata=dict(self.metadata),
-        )
-
     # -- evaluation -----------------------------------------------------------------------------
     def _mlp(self, x: np.ndarray) -> np.ndarray:
         """Logits float64 ``[N]`` of encoded features ``[N, 14]`` (folded layers, ReLU between)."""
