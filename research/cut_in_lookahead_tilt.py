@@ -170,6 +170,21 @@ from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem  # noq
 from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE  # noqa: E402
 from pemviz.scenarios.cut_in.tilt import CutInTilt  # noqa: E402
 
+
+def level_dist(grid, r: np.ndarray) -> np.ndarray:
+    """Each class of ``grid``'s distribution of levels [k, 1 + NB^2, LMAX + 1] from the branches' robustness ``r`` [k,
+    NBRANCH] (metres): a bin, half each edge's; a joint class, the error whose mean level is lower."""
+    oh = np.eye(LMAX + 1)[level(r)]
+    dr, dl = (np.einsum("nb,kbl->knl", mp, oh) for mp in grid.maps)
+    el = np.arange(LMAX + 1)
+    use_r = (dr @ el)[:, :, None] <= (dl @ el)[:, None, :]
+    k = r.shape[0]
+    out = np.empty((k, 1 + grid.nb * grid.nb, LMAX + 1))
+    out[:, 0] = oh[:, 0]
+    out[:, 1:] = np.where(use_r[..., None], dr[:, :, None, :], dl[:, None, :, :]).reshape(k, -1, LMAX + 1)
+    return out
+
+
 REFERENCE = MONTE_CARLO_REFERENCE["moderate"][0] / MONTE_CARLO_REFERENCE["moderate"][1]
 
 
@@ -458,7 +473,7 @@ class LookAheadTilt(CutInTilt):
             step.cls, step.pc = cls, pc
             self._trace.append(step)
             if self.skip_doomed:
-                self.doomed[idx] = self.grid.level_dist(step.r)[np.arange(idx.size), cls, 0] > 0.99
+                self.doomed[idx] = level_dist(self.grid, step.r)[np.arange(idx.size), cls, 0] > 0.99
 
     def simulate(self, n: int, rng: np.random.Generator, given: np.ndarray | None = None):
         """One stage of n rollouts: (failed bool [n], log w [n], cost in rollout-equivalents, kinematic steps / T).
@@ -483,7 +498,7 @@ class LookAheadTilt(CutInTilt):
         for n, trace, failed in self.traces:
             after = np.full(n, -1)
             for s in trace:
-                dist = self.grid.level_dist(s.r)
+                dist = level_dist(self.grid, s.r)
                 ls = level(s.r[:, 1])
                 np.add.at(kern[s.t - w0], ls, np.einsum("kc,kcl->kl", s.pc, dist))
                 np.add.at(counts[s.t - w0], ls, 1)

@@ -1,11 +1,7 @@
-"""Confidence intervals and lower confidence bounds of a failure probability, as natural logs.
-
-:data:`CI_LEVEL` is the coverage of every interval pemviz reports. :func:`clopper_pearson` is the exact interval of
-plain Monte Carlo's failure count and :func:`log_mean_interval` the log-scale interval of an importance-sampling mean,
-its upper end widened by the weights' Pareto tail (:func:`tail_multiplier`); where a run's weights back no interval,
-:func:`betting_lower_bound` (testing by betting, on the run's terms, summed up in a :class:`BettingEvidence`) and
-:func:`markov_lower_bound` (on independent runs' unbiased estimates) give a lower bound that holds whatever the
-weights' tail. :class:`pemviz.core.estimate.Estimate` reports them.
+"""Confidence intervals and lower confidence bounds of a failure probability, as natural logs: the exact interval of
+plain Monte Carlo's failure count, the log-scale interval of an importance-sampling mean widened by the weights'
+Pareto tail, and lower bounds that hold whatever that tail (testing by betting; Markov's inequality on independent
+runs' estimates). :class:`pemviz.core.estimate.Estimate` reports them.
 """
 
 from __future__ import annotations

@@ -1,23 +1,15 @@
 """log, exp, log1p, atan2 and pow with the C library's bits on every x86 CPU, for the rollout path's likelihoods, draws
 and dynamics.
 
-numpy dispatches its float64 ``log`` and ``exp`` to its own AVX-512 loops, and ``log1p`` (with ``expm1``, ``power``,
-``tanh`` ...) to SVML's, where the CPU has AVX-512 (``numpy.show_runtime()``: X86_V4); elsewhere it calls
-libm. The two round differently in the last bit (numpy 2.4 on an AMD EPYC: ``log`` differs from libm on 0.16 % of
-values, ``exp`` on 4.6 %, ``log1p`` on 4.4 %, ``arctan2`` on 1.6 %, ``power(x, 4.0)`` on 5.3 %), so a seed's
-log-likelihoods, a draw ``log u <= log q``, the proposal fitted to them and a simulator's state would depend on the
-CPU. scipy.special's ufuncs have no runtime dispatch and call libm's double
-functions: ``xlogy(1, x)`` is ``1 * log(x)``, ``inv_boxcox(x, 0)`` is ``exp(x)``, ``boxcox1p(x, 0)`` is ``log1p(x)``
-(scipy's ``_boxcox.pxd``), each bit for bit libm's (tested on 400,000 values), which numpy returns on CPUs without
-AVX-512, so the bits of runs recorded there stay valid. They cost about 10-20 ns a value (numpy's AVX-512 loops: 2 ns).
-No scipy ufunc is libm's ``atan2`` or ``pow``: :func:`atan2` takes the imaginary part of numpy's complex ``log``,
-whose loop has no SIMD version and calls the C library's ``clog`` (or numpy's own), the argument of which is
-``atan2(y, x)`` (C99 7.3.9.2, ``carg``; glibc, musl and FreeBSD's msun compute it so), about 40 ns a value;
-:func:`power` calls libm's ``pow`` through Python's :func:`math.pow`, about 80 ns a value.
+numpy dispatches its float64 ``log``, ``exp``, ``log1p`` ... to its own or SVML's AVX-512 loops where the CPU has
+AVX-512, elsewhere to libm; the two round differently in the last bit, so a seed's log-likelihoods, draws and states
+would depend on the CPU. scipy.special's ufuncs call libm's double functions: ``xlogy(1, x)`` is ``log(x)``,
+``inv_boxcox(x, 0)`` is ``exp(x)``, ``boxcox1p(x, 0)`` is ``log1p(x)`` (scipy's ``_boxcox.pxd``), bit for bit libm's,
+which numpy returns on CPUs without AVX-512, so runs recorded there stay valid. :func:`atan2` takes the imaginary part
+of numpy's complex ``log`` (C99 7.3.9.2, ``carg``), :func:`power` libm's ``pow`` through :func:`math.pow`.
 
-:mod:`pemviz.core.exact` has IEEE-754-only versions, the same under any libm, for code that needs no libm bits.
-Every function takes an array (or scalar) and returns float64 of the same shape; ``out`` (log, exp, log1p) is a
-ufunc's."""
+:mod:`pemviz.core.exact` has IEEE-754-only versions, the same under any libm. Every function takes an array (or
+scalar) and returns float64 of the same shape; ``out`` (log, exp, log1p) is a ufunc's."""
 
 from __future__ import annotations
 

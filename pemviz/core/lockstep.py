@@ -1,9 +1,5 @@
-"""The one rollout runner: every simulator's rollouts drawn, scored and stepped through :func:`run_batched`, which
-asks the sampler and the target about every object row each step, draws the events
-(:func:`pemviz.core.detectors.draw_step`) and steps the simulator. :func:`simulate` runs N black-box simulators in
-lockstep (:class:`Lockstep`); :func:`iter_rollouts` / :func:`simulate_rollouts` stream or gather a batched
-simulator's rollouts, the same bits for any chunk size (:func:`uniform_chunks`); :func:`branch` /
-:func:`branch_rollouts` continue rollouts from given steps.
+"""The one rollout runner: every simulator's rollouts drawn, scored and stepped through :func:`run_batched`, the same
+bits for any chunk size (:func:`uniform_chunks`).
 """
 
 from __future__ import annotations
@@ -164,8 +160,7 @@ def replay_rows(make: Callable[[int], BatchedSimulator], detected: np.ndarray, n
 
 
 DEFAULT_CHUNK_SIZE = RQMC_BLOCK
-"""Rollouts a batched simulator steps together: one chunk's working set stays in cache-sized arrays (measured fastest
-of 2048..65536 on the 2-core CI machine, e.g. for the braking scenario's batched twin), one Array-RQMC block."""
+"""Rollouts a batched simulator steps together, one Array-RQMC block: one chunk's working set stays in cache."""
 
 
 def check_counts(who: str, **counts: object) -> None:

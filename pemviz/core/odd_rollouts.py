@@ -1,12 +1,6 @@
-"""Rollouts over an operating design domain: each rollout's scenario parameters drawn from the :class:`ODD` before its
-events, carried in its observations, and the same rollouts for any chunk size.
-
-:func:`odd_rollout_functions` is :func:`pemviz.core.problems.rollout_functions` for a batched simulator made as
-``make(n, values [n, D])``. A stage first draws its N x D parameter uniforms (before any event's), maps them through
-the ODD's inverse CDFs (:meth:`pemviz.core.odd.ODD.draw`) or a sampler's own parameter proposal
-(:func:`pemviz.core.odd_proposal.parameter_proposal_of`, its log q(theta) - log p_ODD(theta) in
-:attr:`pemviz.core.rollouts.RolloutBatch.log_q_params`), and runs the rollouts chunk by chunk, the parameters
-appended to each step's observation (:class:`WithParameters`). Every estimate is then one of p_ODD =
+"""Rollouts over an operating design domain: each rollout's scenario parameters drawn from the :class:`ODD` (or a
+sampler's own parameter proposal) before its events, from the stage's first N x D uniforms, carried in its
+observations (:class:`WithParameters`): the same rollouts for any chunk size, and every estimate one of p_ODD =
 E_theta[p(theta)]."""
 
 from __future__ import annotations

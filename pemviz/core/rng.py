@@ -162,8 +162,7 @@ RQMC_BLOCK = 8192
 B = RQMC_BLOCK, whatever simulates it (one process, chunks streamed through it, Ray tasks of any size): the rollouts
 of a block are ranked and coupled among themselves (:func:`pemviz.core.detectors.step_uniforms`), and detectors are
 asked about one block at a time (:func:`by_blocks`), so the same seed gives the same rollouts, bit for bit, on every
-executor. Equal to the batched simulators' chunk (:data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`): a batch of at most B
-rollouts is one block, coupled as a whole, as before blocks existed."""
+executor. Equal to the batched simulators' chunk (:data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`)."""
 
 
 def block_bounds(n: int, block: int = RQMC_BLOCK) -> list[tuple[int, int]]:

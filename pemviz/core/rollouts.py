@@ -1,11 +1,6 @@
-"""The black-box simulator protocols and the rollouts they give, scene-neutral.
-
-A :class:`Simulator` reports at each step its signals (``observation()``, float64 [F]) and its M objects' rows
-(``objects()``, float64 [M, G], the window's column first), and is stepped with each object's detection and
-measurement error (``step(detected [M], noise [M, D])``); a single-object simulator's row is its observation and
-``step(detected: bool)`` takes the detection. A :class:`BatchedSimulator` is the same for n rollouts at once.
-Optional: :class:`Snapshotting` (``snapshot()`` / ``restore(state)``). :class:`RolloutBatch` holds N rollouts with
-their log-probabilities; :mod:`pemviz.core.lockstep` simulates them."""
+"""The black-box simulator protocols (:class:`Simulator`, :class:`BatchedSimulator` for n rollouts at once, the
+optional :class:`Snapshotting`) and the rollouts they give (:class:`RolloutBatch`), scene-neutral;
+:mod:`pemviz.core.lockstep` simulates them."""
 
 from __future__ import annotations
 

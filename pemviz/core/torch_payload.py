@@ -168,11 +168,9 @@ def read_payload(path: str | os.PathLike[str]) -> Any:
 
     Args:
         path: the file.
-
     Returns:
         What ``torch.load(path, weights_only=True)`` returns, each tensor a numpy array of its dtype and shape (C
             order, native byte order, bit for bit).
-
     Raises:
         UnsupportedPayload: anything this reader does not understand (see the module docstring).
         OSError: the file cannot be opened or read."""

@@ -1,20 +1,16 @@
 """Executors: where a stage's rollouts are simulated: worker processes on this machine (``local``, the default:
 :mod:`pemviz.engine.pool`), this process (``serial``) or Ray tasks (``ray``).
 
-The engine asks its executor for every batch (``executor.simulate(problem, n, sampler, target, rng)``) and for
-streamed chunks (``executor.stream(...)``). All give the same rollouts, bit for bit, for the same seed, whatever the
-number of workers or tasks. ``local`` and ``ray`` cut the N rollouts into the fixed blocks of
-:data:`pemviz.core.rng.RQMC_BLOCK` rollouts (:func:`pemviz.core.rng.block_bounds`); since every simulator draws one
-``rng.random(n K)`` per step (:func:`pemviz.core.rollouts.draws_per_rollout`), the block ``a..b-1`` gets a stand-in
-for ``rng`` (:class:`ChunkUniforms`) that jumps a copy of the PCG64 stream (``bit_generator.advance``) to its slice.
-Only the generator's state travels with a block, and ``rng`` ends where the serial run leaves it. A batch of one
-block is simulated in this process (:func:`splittable`).
+All give the same rollouts, bit for bit, for the same seed, whatever the number of workers or tasks. ``local`` and
+``ray`` cut the N rollouts into the fixed blocks of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts; since every
+simulator draws one ``rng.random(n K)`` per step (:func:`pemviz.core.rollouts.draws_per_rollout`), a block gets a
+stand-in for ``rng`` (:class:`ChunkUniforms`) that jumps a copy of the PCG64 stream to its slice, and ``rng`` ends
+where the serial run leaves it.
 
 Requirements for ``ray``: Ray installed (``pip install ray``), pemviz importable on every worker, the problem
 picklable by cloudpickle, a PCG64 / PCG64DXSM generator (any other runs serially, with the same result), and a
 ``problem.simulate`` that draws one ``rng.random(n)`` per step (else a RuntimeError naming the problem).
-:func:`chunk_uniforms` gives the u's of rollouts ``a..b-1`` as a [T, b - a] array for
-:func:`pemviz.core.lockstep.simulate`, to run blocks on any other infrastructure."""
+:func:`chunk_uniforms` gives a block's u's to run blocks on any other infrastructure."""
 
 from __future__ import annotations
 

@@ -4,19 +4,9 @@ No printing, no rerun, no viser here: sinks (console table, rerun recording, the
 as listeners ``listener(event) -> None`` and never call back into the engine, except through the
 ``cancel`` token (a :class:`threading.Event`).
 
-The events and their order are :mod:`pemviz.engine.events`'s: :class:`~pemviz.engine.events.RunStarted` (with the
-estimator's :class:`~pemviz.core.plan.RunPlan` and the problem's :class:`~pemviz.core.problem_view.ProblemView`), then
-per stage :class:`~pemviz.engine.events.StageStarted`, :class:`~pemviz.engine.events.RolloutChunk` (one per chunk),
-:class:`~pemviz.engine.events.RolloutsSampled`, :class:`~pemviz.engine.events.StageFinished`, then
-:class:`~pemviz.engine.events.FinalEstimate` and :class:`~pemviz.engine.events.RunFinished` (or
-:class:`~pemviz.engine.events.RunCancelled`). Failure is the problem's (:meth:`pemviz.core.problems.Problem.failed`),
-for whole and streamed stages alike.
-
-A stage of more than :data:`STREAM_ABOVE` rollouts on a problem that can stream is simulated chunk by chunk and
-never held whole: the estimator keeps per-rollout numbers and the rollouts that can still matter (e.g. the
-elites), listeners get each chunk as it passes (:class:`~pemviz.engine.events.RolloutChunk`, e.g. to write them to a
-file) and a bounded sample of the stage (:class:`~pemviz.engine.events.RolloutsSampled`): memory stays that of a chunk
-and a few numbers per rollout.
+The events and their order are :mod:`pemviz.engine.events`'s. A stage of more than :data:`STREAM_ABOVE` rollouts on a
+problem that can stream is simulated chunk by chunk and never held whole: the estimator keeps per-rollout numbers and
+the rollouts that can still matter (e.g. the elites), listeners get each chunk and a bounded sample of the stage.
 """
 
 from __future__ import annotations
@@ -351,20 +341,17 @@ class Experiment:
 
 
 PLAIN_PROBE = 1000
-"""The plain rollouts :func:`plain_probe` times: one batch of 1,000 times a rollout within 5 % of plain Monte Carlo's
-own on the shipped scenes with objects (e.g. 0.063 vs 0.066 ms on the crossing, on a 2-core machine); 200
-over-estimate it 3 times (each step's fixed cost spread over fewer rollouts)."""
+"""The plain rollouts :func:`plain_probe` times: enough to spread each step's fixed cost as plain Monte Carlo does."""
 
 PROBE_PILOT, PROBE_BUDGET_S = 50, 1.0
 """:func:`plain_probe` and :func:`scene_pilot` first time this many rollouts (the first also warms the simulator up);
 where they say the probe would take more than this many seconds (a simulator whose cost is per rollout, not per
-batched step, e.g. highway-env's: 1,000 of its rollouts take 13-15 CPU seconds), their own seconds are the answer."""
+batched step, e.g. highway-env's), their own seconds are the answer."""
 
 
 PILOT_ROLLOUTS, PILOT_BATCHES = 50, 4
-""":func:`scene_pilot` times this many batches of this many plain rollouts (mostly each step's fixed cost, as a
-stage of 100 rollouts; on a loaded machine twelve batches of 100 rollouts of the reference scene in a row spread by
-3-12 % of their mean, of 645 by 22-28 %), whose median reading prices the run."""
+""":func:`scene_pilot` times this many batches of this many plain rollouts (mostly each step's fixed cost), whose
+median reading prices the run (a loaded machine's readings spread)."""
 
 
 def _timed_plain(problem: Problem, sizes: Iterable[int], clock: Any) -> list[tuple[int, float]]:
@@ -401,8 +388,7 @@ def plain_probe(problem: Problem, config: ExperimentConfig, estimate: Estimate) 
 def scene_pilot(problem: Problem) -> list[tuple[int, float]]:
     """The pilot that prices a run on ``problem`` (:func:`pemviz.engine.cost.pilot_speed`): ``(rollouts, seconds)``
     of :data:`PILOT_BATCHES` batches of :data:`PILOT_ROLLOUTS` plain rollouts after a warm-up of :data:`PROBE_PILOT`
-    (:func:`_timed_plain`: a stream of their own, seed 0, the run's streams untouched), in this thread's CPU seconds:
-    40-800 ms of CPU in all on the shipped scenes; the warm-up's alone where a batch would take more than
+    (:func:`_timed_plain`), in this thread's CPU seconds; the warm-up's alone where a batch would take more than
     :data:`PROBE_BUDGET_S` (e.g. highway-env's rollouts)."""
     timed = _timed_plain(problem, (PROBE_PILOT,) + (PILOT_ROLLOUTS,) * PILOT_BATCHES, time.thread_time)
     return timed[1:] or timed

@@ -1,28 +1,14 @@
 """Plain Monte Carlo after a weighted run whose weights back no interval: the cross-entropy sampler's answer on a scene
 its proposal family cannot follow.
 
-A proposal learned by cross-entropy can land on a failure region that is not the one that carries the probability:
-its failures then weigh little, a few dominate, the verdict is ``unreliable`` and mu_hat may be orders of magnitude
-low, by an amount no importance weight can tell. Plain Monte Carlo can, at its own cost: :class:`PlainFallback`
-draws it after the method's stages when its verdict is not ``reliable``, to the run's precision target
-(``rel_error``, else :data:`REL_ERROR`) or requirement, at most ``plain_fallback`` times the simulations the method
-spent, never more than :data:`~pemviz.settings.PLAIN_FALLBACK_MOST` nor than the run's ``max_sims`` leaves
-(:class:`pemviz.estimators.precision.PrecisionTarget` on :func:`pemviz.estimators.fixed.monte_carlo`), from a stream
-of its own. Its answer is plain Monte Carlo's (Clopper-Pearson interval) where it saw a failure; else the method's,
-with plain Monte Carlo's 95 % upper bound in the stop line.
-
-Plain Monte Carlo is skipped only where its cap provably cannot decide anything (:func:`plain_cannot_decide`): the
-scene's exact answer or the upper end of its reference expects less than one failure in the cap, or a requirement
-would need more rollouts than the cap to bound. Where no answer states p the fallback is drawn.
-
-Before it, the method's stages run once more (``retry_factor``, :class:`Shifted`) at an N that many times as large,
-from a stream of their own, numbered after the first run's: an unlucky small first run is then ``reliable`` at a few
-thousand rollouts, not a million. No retry where the scene caps every run's verdict below ``reliable``
-(:attr:`pemviz.core.problems.Problem.verdict_cap`).
-
-Choosing the answer by the first estimate's verdict, with the second drawn independently of the first, keeps the
-second one's coverage (Hesterberg, "Weighted average importance sampling and defensive mixture distributions",
-Technometrics 37(2), 1995)."""
+A proposal learned by cross-entropy can land on a failure region that does not carry the probability: mu_hat may then
+be orders of magnitude low by an amount no importance weight can tell; plain Monte Carlo can, at its own cost.
+:class:`PlainFallback` first runs the method's stages once more at a larger N (``retry_factor``, :class:`Shifted`), then
+draws plain Monte Carlo to the run's precision target or requirement, capped by ``plain_fallback`` times the method's
+simulations, :data:`~pemviz.settings.PLAIN_FALLBACK_MOST` and ``max_sims``; skipped only where the cap provably
+cannot decide anything (:func:`plain_cannot_decide`). Choosing the answer by the first estimate's verdict, with the
+second drawn independently of the first, keeps the second one's coverage (Hesterberg, "Weighted average importance
+sampling and defensive mixture distributions", Technometrics 37(2), 1995)."""
 
 from __future__ import annotations
 

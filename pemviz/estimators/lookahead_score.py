@@ -45,7 +45,6 @@ class LookAheadScore:
     Args:
         problem: a problem with ``branch`` and a ``G[a,b](state predicate)`` formula.
         stride: score every ``stride``-th step (None: ceil(T / :data:`SCORED_STEPS`)).
-
     Raises:
         ValueError: a problem without ``branch``, or a stride < 1.
     """

@@ -1,13 +1,9 @@
 """A precision target for any estimator with a final batch: sample until the interval is as narrow as asked.
 
-The target is the relative half-width of a backed 95 % interval
-(:attr:`pemviz.core.estimate.Estimate.rel_half_width`, :attr:`pemviz.core.estimate.Estimate.interval_backed`). After
-the planned stages :class:`PrecisionTarget` asks for more final batches from the same sampler
-(:meth:`Extensible.extend`), pooled with the first, until the target holds or a cap (simulations, seconds) is hit;
-batches that cannot reach it (:func:`cannot_back`) are not drawn, leaving the budget to the plain fallback
-(:mod:`pemviz.estimators.fallback`). The final proposal is fixed before any added batch, so each added rollout is an
-unbiased term of the same mean; the coverage kept under this optional stopping is measured by
-``benchmarks/honest_numbers.py``."""
+After the planned stages :class:`PrecisionTarget` asks for more final batches from the same sampler
+(:meth:`Extensible.extend`), pooled with the first, until the relative half-width of a backed 95 % interval is the
+target or a cap is hit. The final proposal is fixed before any added batch, so each added rollout is an unbiased term
+of the same mean; the coverage kept under this optional stopping is measured by ``benchmarks/honest_numbers.py``."""
 
 from __future__ import annotations
 

@@ -1,19 +1,12 @@
 """The state-dependent proposal (``method = "state"``): the cross-entropy sampler of Innes & Ramamoorthy (2022) whose
 proposal reads, besides each object's row, the state the stack acts on (:mod:`pemviz.core.features`: the tracker's
-state of the object, the ego's), for every perception event of a step.
+state of the object, the ego's), for every perception event of a step; the models are
+:class:`pemviz.methods.state.StateSettings`'s.
 
-The paper's proposal is q_phi(detect | salient variables), a network fitted by cross-entropy; here q(detect) sees each
-object row with its object's and its ego's state features appended: by default the PEM's own logit plus a linear
-function of them (:class:`pemviz.estimators.state_glm.StateGLM`), or the paper's network over them
-(:class:`pemviz.core.sampling.FeatureProposal`, a :class:`~pemviz.core.sampling.StateProposal` with more input
-columns); with ``state_fit_errors`` a measurement-error head reads them too (:class:`pemviz.core.torch_fits.NoiseShift`:
-the location and log-scale shifts of the error), else the errors are the PEM's. All are fitted by the same CE stages,
-weights and mixtures as :class:`~pemviz.estimators.cross_entropy.CrossEntropy`. The rollouts are drawn with the
-features (:func:`pemviz.core.lockstep.run_batched` asks a detector that ``reads_state`` about the rows with them);
-each batch the estimator observes gets them back by replay (:attr:`pemviz.core.problems.Problem.features`), appended to
-its object rows, and the target reads the rows' own columns only (:class:`FirstColumns`), so every log p is the PEM's
-own. The PEM draws a share ``state_share`` of the rollouts of every stage after the failure level and of the final
-batch (:class:`pemviz.methods.state.StateSettings`), so those weights stay below 1 / ``state_share``.
+The rollouts are drawn with the features (:func:`pemviz.core.lockstep.run_batched` asks a detector that
+``reads_state`` about the rows with them); each batch the estimator observes gets them back by replay
+(:attr:`pemviz.core.problems.Problem.features`), and the target reads the rows' own columns only
+(:class:`FirstColumns`), so every log p is the PEM's own.
 """
 
 from __future__ import annotations

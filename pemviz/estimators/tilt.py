@@ -47,7 +47,6 @@ class CommittorTilt(FixedSampler):
         n: rollouts.
         weights_until_failure: importance weights stop at the failure step.
         seed: the rollouts' stream, ``numpy.random.default_rng(seed)``.
-
     Raises:
         ValueError: a problem without a tilted proposal.
     """

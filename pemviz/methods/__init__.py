@@ -1,28 +1,14 @@
 """The method registry: every estimation method a run can name, the built-in ones and a user's own, registered alike
 (as :mod:`pemviz.scenarios.registry` registers scenarios, and as Gymnasium's ``register`` names environments).
 
-A :class:`Method` is a small record: its name, a one-line description, a builder ``(config, problem, check) ->``
-:class:`pemviz.estimators.base.Estimator`, optionally the plan it states before it is built (for the run's memory
-and time checks) and what it can do (:attr:`Method.weighted`: it keeps importance weights, so its rollouts can be
-saved and re-estimated; :attr:`Method.extensible`: final batches can be added to it by a precision target).
-:func:`register_method` adds one, :func:`method_names` lists the names, :func:`get_method` returns the record.
-
-A user's method joins from a module named by the environment variable :data:`PLUGIN_VARIABLE` (``PEMVIZ_METHODS=
-my_package.my_method``, comma-separated, each module registering at import) or an entry point of the group
-:data:`ENTRY_POINTS`; the commands load them before they read a config (:func:`load_method_plugins`). Then
-``pemviz run --method NAME``, the panel's method menu, ``pemviz validate --methods NAME`` and
-``pemviz.testing.check_estimator(NAME)`` take it as they take the built-in ones.
+A user's method joins from a module named by the environment variable :data:`PLUGIN_VARIABLE` (comma-separated, each
+module registering at import) or an entry point of the group :data:`ENTRY_POINTS` (:func:`load_method_plugins`); then
+the command line, the panel, ``pemviz validate`` and ``pemviz.testing.check_estimator`` take it as a built-in one.
 
 This module imports no estimator: a builder (and every hook) may be given as the text ``"package.module:name"``
-(imported when first used), so listing the methods loads no torch. It sits below the config, which asks a method's
-record to check its settings (:attr:`Method.validate`), and below the estimators, which it names only by such texts.
-Each built-in method's settings are a frozen dataclass in a module of this package, light to import: the
-cross-entropy sampler's, :class:`pemviz.methods.adaptive.CrossEntropySettings`, and the state method's,
-:class:`pemviz.methods.state.StateSettings` (the sampler's and its own), are their records' :attr:`Method.settings`,
-as a plugin's are (each field made by :func:`pemviz.methods.rows.setting`); splitting's,
-:class:`pemviz.methods.ams.AmsSettings`, are the config's group ``ams``. A method's estimator, fits and hooks live in
-:mod:`pemviz.estimators`, which imports this package: the registry names them by text only, so that nothing here
-imports them when loaded (``scripts/import_cycles.py`` checks the layers).
+(imported when first used), so listing the methods loads no torch and the registry sits below the config and the
+estimators (``scripts/import_cycles.py`` checks the layers). Each built-in method's settings are a light frozen
+dataclass in a module of this package.
 """
 
 from __future__ import annotations
@@ -68,21 +54,15 @@ class Method:
             is a plain rollout's and whose failures are binomial (the console's advice, the requirement's decision).
         array_rqmc: its batches may be drawn by Array-RQMC (``ExperimentConfig.uniforms``); False for i.i.d.
             particles (splitting).
-        then: optional, ``then(estimator, config, problem) -> Estimator``: what runs after the method's stages (and
-            a stop rule's added batches), wrapping the built estimator: e.g. the cross-entropy sampler's plain Monte
-            Carlo where its weights back no interval (:mod:`pemviz.estimators.fallback`). A :data:`Ref`.
+        then: optional, ``then(estimator, config, problem) -> Estimator``: what runs after the method's stages,
+            wrapping the built estimator (e.g. :mod:`pemviz.estimators.fallback`). A :data:`Ref`.
         then_most: optional, ``then_most(config, simulations) -> (n, words)``: the most simulations :attr:`then` may
-            add after the ``simulations`` the method plans, and the cost line's words for them (e.g. ``plain rollouts
-            more where the stages' weights back no interval``); None: nothing. A :data:`Ref`.
+            add after the planned ``simulations``, and the cost line's words for them; None: nothing. A :data:`Ref`.
         then_plan: optional, ``then_plan(config) -> RunPlan | None``: the stages :attr:`then` runs once more before
-            any plain rollouts (numbered from 0; the engine numbers them after the planned ones), for the time
-            estimates (:func:`pemviz.engine.cost.follow_on`); None: none. A :data:`Ref`.
-        then_drawn: optional, ``then_drawn(config, simulations, problem) -> (plan | None, n, words)``: what
-            :attr:`then` may draw on ``problem`` (a :class:`~pemviz.core.problems.Problem` or the run's
-            :class:`~pemviz.engine.events.RunStarted`), by the rules it draws by: the stages it runs once more (as
-            :attr:`then_plan`), the most simulations it may add (as :attr:`then_most`, 0 where it would draw nothing
-            there) and their words; the time estimates use it where the problem is known. None: :attr:`then_most`
-            and :attr:`then_plan` whatever the problem. A :data:`Ref`.
+            any plain rollouts, for the time estimates (:func:`pemviz.engine.cost.follow_on`). A :data:`Ref`.
+        then_drawn: optional, ``then_drawn(config, simulations, problem) -> (plan | None, n, words)``:
+            :attr:`then_plan` and :attr:`then_most` on a known ``problem`` (a :class:`~pemviz.core.problems.Problem`
+            or the run's :class:`~pemviz.engine.events.RunStarted`); None: those whatever the problem. A :data:`Ref`.
         validate: optional, ``validate(config, n_objects) -> (setting, what is allowed) | None``: the first of the
             method's own settings that conflicts with another in ``config`` (its scene perceiving ``n_objects``
             objects a step), checked when the config is made; None: none. A :data:`Ref`.
@@ -99,9 +79,8 @@ class Method:
             ``plus the branches' continuations``); empty: nothing.
         proposal_curves: each stage ends with a fitted proposal whose q(detect | d) curve is worth keeping (a
             validation study's curves).
-        feature_view: its stages' proposals read the state the stack acts on (:mod:`pemviz.core.features`): the
-            recording and the panel show, per stage, q(detect) against the PEM over the feature that moved it most
-            (:mod:`pemviz.core.feature_view`).
+        feature_view: its stages' proposals read the state the stack acts on (:mod:`pemviz.core.feature_view`).
+
         describe: optional, ``describe(config, plan, window) -> str``: one Markdown sentence on a run of ``config``
             and its :class:`~pemviz.core.plan.RunPlan` (``window``: the sampler window's words), the recording's
             description of the method; None: its plan's stages. A :data:`Ref`.
@@ -110,14 +89,9 @@ class Method:
         baseline: a validation study may compare it with the cross-entropy sampler at an equal budget
             (:data:`pemviz.studies.validation.BASELINES`).
         settings: optional, the method's own settings: a frozen dataclass (best a subclass of
-            :class:`pemviz.settings.MethodSettings`, which checks its values when made) whose fields, each made by
-            :func:`pemviz.settings.setting`, are its rows of the settings table (symbol, range, unit, help, flag). A
-            run of the method holds them as :attr:`pemviz.config.ExperimentConfig.method_settings`, takes them by
-            their names (``ExperimentConfig.of(coin_share=0.2)``), records them with the run's other settings and
-            ``pemviz run`` takes each as a flag (the cross-entropy sampler's fields, which a subclass of
-            :class:`pemviz.methods.adaptive.CrossEntropySettings` inherits, are rows of the table itself); None: it has
-            none (splitting's settings are the config's group ``ams``). A :data:`Ref`: read it with
-            :meth:`settings_class`.
+            :class:`pemviz.settings.MethodSettings`) whose fields, each made by :func:`pemviz.settings.setting`, are its
+            rows of the settings table: the config holds, records and checks them, ``pemviz run`` takes each as a
+            flag (:attr:`pemviz.config.ExperimentConfig.method_settings`). A :data:`Ref` (:meth:`settings_class`).
     Raises:
         ValueError: an empty name, a name with spaces around it, or a description of several lines.
     """

@@ -27,16 +27,11 @@ POOL_WEIGHTS = ("quadratic", "linear", "rollouts")
 """How ``final_estimate = "pooled"`` weighs its stages (:attr:`CrossEntropySettings.pool_weights`)."""
 ELITE_TIES = ("all", "random")
 FITS = ("adam", "lbfgs")
-"""How the proposal is fitted each stage (:func:`pemviz.estimators.ce_fit.ce_update`): ``adam``, a fixed number of
-full-batch Adam epochs (paper: 500 per stage); ``lbfgs``, L-BFGS with a strong-Wolfe line search from the previous
-stage's proposal (a warm start) until the loss stops changing (Nocedal & Wright, "Numerical Optimization", 2006,
-Alg. 7.5)."""
+"""How the proposal is fitted each stage (:func:`pemviz.estimators.ce_fit.ce_update`; choices' help in the field)."""
 FIT_PRECISIONS = ("exact", "float32", "float64")
-"""The arithmetic of the proposal's Adam fits (:func:`pemviz.core.sampling.fit_proposal`): ``exact`` (the default,
-:func:`pemviz.core.exact_fit.fit_exact`) gives the same proposal on every CPU; ``float32`` and ``float64`` run torch's
-kernels, whose last bits depend on the CPU's vector unit and BLAS kernel (the paper's fits are float64). The network
-samples in exact arithmetic whatever this is (:meth:`pemviz.core.sampling.Proposal.detect_logit`); the parameters and
-every importance weight stay float64."""
+"""The arithmetic of the proposal's Adam fits (:func:`pemviz.core.sampling.fit_proposal`): ``exact``
+(:func:`pemviz.core.exact_fit.fit_exact`) gives the same proposal on every CPU; torch's kernels' last bits depend on the
+CPU's vector unit and BLAS kernel."""
 MAX_STAGES = 1_000
 """Largest K: the paper uses 10; past a few dozen stages the proposal has long converged."""
 MAX_SMOOTHING_AT_FAILURE = 2.0
@@ -51,90 +46,42 @@ class CrossEntropySettings:
     """Algorithm 1 of Innes & Ramamoorthy (2022) as pemviz runs it; the defaults are the recommended sampler
     (:data:`PRESETS["paper"] <pemviz.presets.PRESETS>` gives the paper's own). N, the rollouts of a stage, is the run's
     :attr:`pemviz.config.ExperimentConfig.n_per_stage`; whether the weights stop at the failure step is the run's
-    :attr:`~pemviz.config.ExperimentConfig.weights_until_failure` (every method's).
+    :attr:`~pemviz.config.ExperimentConfig.weights_until_failure` (every method's). Each field's help is its row of the
+    settings table; what it does not say:
 
     Attributes:
-    n_stages: K, cross-entropy stages (adaptive only).
-    n_final: N_e, fresh rollouts from the final proposal for the estimate (paper 100; the default 1000: once the
-        proposal is fitted a rollout costs microseconds of simulation, a CE stage ~0.5 s of fitting, and these
-        rollouts are the ones drawn from the best proposal).
+    n_final: N_e (paper 100; the default 1000: a fitted proposal's rollout costs microseconds, a CE stage's fit ~0.5 s).
     quantile_level: sigma in [0.5, 1): the stage threshold is the (1 - sigma) quantile of robustness.
     smoothing: alpha in (0, 1]: the power on the importance weights in the CE loss.
-    ce_epochs: the most Adam epochs per stage (paper 500; authors' code 1000; the default 150: each fit starts
-        from the last stage's proposal and, with ``fit_tolerance``, stops once its loss stops falling).
-    pretrain_rollouts, pretrain_epochs: PEM-driven rollouts and epochs to pretrain the proposal (paper: 1000;
-        the default sampler 500, which measured as accurate, e.g. on the braking job, and saves a second).
-    learning_rate: Adam step size for the proposal (paper 1e-3; the default 1e-2, with fewer epochs).
-    weights: ``frozen`` (paper eq. 10-11) or ``recomputed`` with gradient (authors' code).
-    final_estimate: ``pooled``: the N_e fresh rollouts together with every CE stage whose proposal was fitted to
-        failures (the stage before it had reached gamma = 0), each rollout weighted by the proposal that drew
-        it; ``fresh``: the N_e rollouts alone (paper); ``last-stage``: the last stage's batch (authors' code).
-    pool_weights: how ``pooled`` combines its stages, one of :data:`POOL_WEIGHTS`: ``rollouts``, every rollout
-        alike (stage kappa's estimate counts n_kappa / N); ``linear``, the j-th pooled stage's estimate counts in
-        proportion to j n_kappa, so later proposals, fitted to more failures, count more; ``quadratic`` (the
-        default), in proportion to j^2 n_kappa. All are fixed before any pooled stage is drawn, so all are
-        unbiased.
-    proposal_inputs: h(s), one of :data:`PROPOSAL_INPUTS`.
-    proposal_window: the proposal replaces the PEM only where the detector can matter (the problem's
-        ``window``: gap < 10 m); elsewhere q = p_PEM, so those steps weigh exactly 1 and are not fitted.
-    skip_decided: with ``proposal_window``, the proposal also gives way to the PEM at steps where the outcome is
-        already decided (the problem's ``decided_below``: a gap below the 2 m crash gap), so that the proposal
-        network runs only where a detection can matter; those steps weigh exactly 1 and are not fitted.
-    smoothing_at_failure: alpha in (0, 2] once gamma_kappa has reached the failure threshold 0 (None:
-        ``smoothing``). 1.0 fits the failures with their full weights, the textbook CE target (the proposal
-        nearest the zero-variance density in Kullback-Leibler divergence). Above 1 (the default, 1.2) a failure
-        counts w^alpha = w x w^(alpha - 1): more where the samplers drew it too rarely. That is the gradient of
-        the Renyi divergence of order alpha with the weights frozen at the samplers (Li & Turner, "Renyi
-        divergence variational inference", NeurIPS 2016; alpha = 2 is the variance-minimisation program of de
-        Boer, Kroese, Mannor & Rubinstein, "A tutorial on the cross-entropy method", Ann. Oper. Res. 2005):
-        the proposal covers the failures it under-samples, which lightens the tail of the weights of the
-        pooled stages.
-    final_smoothing: alpha of the last stage's fit, whose proposal draws the N_e final rollouts (None: as the
-        stages before it); needs ``fit_weights = "mixture"``, which weighs the whole failure pool again at every
-        fit. The default 1.0 gives that proposal the plain CE fit: e.g. at 2,100 simulations on the braking job,
-        median relative error 0.021 over seeds 0-99 with alpha 1.2 before it (0.022 with 1.0 throughout); at
-        1,200 simulations 0.039 against 0.054.
-    elite_ties: ``all`` (paper: every rollout with r <= gamma_kappa is an elite) or ``random``: the rollouts
-        with r < gamma_kappa, plus ties at gamma_kappa drawn at random up to ceil((1 - sigma) N) elites (with a
-        discrete robustness, e.g. the toy's integer distances, ties can make every rollout an elite and stall
-        the adaptation, or make non-failing r = 0 rollouts elites at the last level).
-    pretrain_cap: None (paper: pretrain on PEM-driven rollouts) or c in (0, 1): inside the problem's
-        window the pretraining rollouts detect with min(p_PEM, c), so that the first proposal misses often
-        enough for stage 1 to rank rollouts (with p = 0.999 all 100 rollouts of stage 1 look alike).
-    defensive: eps in [0, 1): the CE stages' rollouts are drawn from the defensive mixture (1 - eps) q + eps x 50 %
-        at every step, so that both outcomes keep probability >= eps / 2 at every step (0: the proposal itself,
-        paper). It caps q(miss) at 1 - eps / 2: a failure that needs m misses in a row then has proposal
-        probability <= (1 - eps / 2)^m, whence the two shares below.
-    target_share, plain_share: once a stage has reached the failure level, a mixture over whole rollouts: these
-        shares of each stage's rollouts come from the target p and from the proposal q without the per-step
-        mixture, the rest from the per-step mixture; every rollout weighs p / (sum of share x sampler) (the
-        balance heuristic), at most 1 / ``target_share`` (Hesterberg 1995; Owen & Zhou, "Safe and effective
-        importance sampling", JASA 2000). 0 and 0: no mixture over rollouts.
-    fit_all_failures: once a stage's threshold reached the failure level, each CE fit uses the failures of every
-        stage since then, each weighted by the proposal that drew it (all are weighted samples of the same
-        zero-variance density 1[fail] p / mu), instead of the stage's alone.
-    fit_weights: how those fits weigh the failures (``fit_all_failures``), one of :data:`FIT_WEIGHTS`:
-        ``sampler``, by the sampler that drew each; ``mixture``, by the mixture of the samplers of every stage
-        since the failure level, each at its share of their rollouts (the balance heuristic: the
-        deterministic-mixture weights of adaptive multiple importance sampling, Cornuet, Marin, Mira &
-        Robert, Scand. J. Stat. 2012), which bounds the weight of a failure an early, poor proposal drew by
-        what the later ones give it. Only the fits change: the estimate weighs every rollout by its own
-        stage's samplers. Once the fitted steps are thinned (more than 20 x ``fit_rows`` of them) the steps
-        keep the weights they have.
-    fit: one of :data:`FITS`; ``adam`` runs ``ce_epochs`` / ``pretrain_epochs`` epochs at ``learning_rate``,
-        ``lbfgs`` at most ``fit_max_steps`` iterations per fit, stopping once converged.
-    fit_precision: one of :data:`FIT_PRECISIONS`: the arithmetic of the ``adam`` fits of a weighted
-        log-likelihood; the parameters stay float64, and every weight is computed in float64 from the density
-        sampled from (the logit the sampler drew with), so the precision moves the proposal only, never the
-        estimate's unbiasedness.
-    fit_max_steps: the most L-BFGS iterations of one fit (``fit = "lbfgs"``).
-    fit_rows: None (every fitted step) or the most steps one fit sees: beyond that, a weighted systematic
-        subsample with the same expected CE objective, so a stage's fit costs the same at any N (the default
-        5,000: at N = 100 the pretraining and the failure pool of the later stages are subsampled; it fits twice as
-        fast as 10,000 at large N, and the default run's 100-seed accuracy is the same).
-    fit_tolerance: early stopping of the CE stages' ``adam`` fits: a fit stops once its loss (nats per step)
-        fell by less than this over the last 50 epochs; None: every epoch. The pretraining fit of at most
-        ``fit_rows`` steps runs every epoch; ``lbfgs`` stops at its own tolerance.
+    ce_epochs, pretrain_epochs, learning_rate: paper 500, 1000 and 1e-3 (the authors' code 1000 epochs a stage); the
+        defaults fit fewer epochs at a larger step, from the last stage's proposal, until ``fit_tolerance``.
+    weights: ``frozen`` is the paper's eq. 10-11; ``recomputed`` (with gradient) the authors' code.
+    final_estimate: ``pooled`` pools the stages whose proposal was fitted to failures (the stage before reached
+        gamma = 0); ``fresh`` is the paper's, ``last-stage`` the authors' code's.
+    pool_weights: fixed before any pooled stage is drawn, so every choice is unbiased.
+    proposal_window, skip_decided: outside the problem's ``window`` (gap < 10 m), or below its ``decided_below``,
+        q = p_PEM: those steps weigh exactly 1 and are not fitted.
+    smoothing_at_failure: alpha in (0, 2]. Above 1 a failure counts w^alpha = w x w^(alpha - 1), more where the
+        samplers drew it too rarely: the gradient of the Renyi divergence of order alpha with the weights frozen at
+        the samplers (Li & Turner, "Renyi divergence variational inference", NeurIPS 2016; alpha = 2 is the
+        variance-minimisation program of de Boer, Kroese, Mannor & Rubinstein, "A tutorial on the cross-entropy
+        method", Ann. Oper. Res. 2005), which lightens the tail of the pooled stages' weights.
+    elite_ties: with a discrete robustness (the toy's integer distances) ties can make every rollout an elite and
+        stall the adaptation; ``random`` draws the ties up to ceil((1 - sigma) N) elites.
+    pretrain_cap: c in (0, 1), so that the first proposal misses often enough for stage 1 to rank rollouts.
+    defensive: eps in [0, 1): both outcomes keep probability >= eps / 2 at every step, so a failure of m misses in a
+        row has proposal probability <= (1 - eps / 2)^m.
+    target_share, plain_share: a mixture over whole rollouts once a stage reached the failure level; every rollout
+        weighs p / (sum of share x sampler) (the balance heuristic), at most 1 / ``target_share`` (Hesterberg 1995;
+        Owen & Zhou, "Safe and effective importance sampling", JASA 2000).
+    fit_all_failures, fit_weights: the failures of every stage since the failure level are weighted samples of the
+        same zero-variance density 1[fail] p / mu; ``mixture`` weighs them by the deterministic mixture of the
+        stages' samplers (adaptive multiple importance sampling, Cornuet, Marin, Mira & Robert, Scand. J. Stat.
+        2012). Only the fits change: the estimate weighs every rollout by its own stage's samplers.
+    fit: ``lbfgs`` is L-BFGS with a strong-Wolfe line search (Nocedal & Wright, "Numerical Optimization", 2006,
+        Alg. 7.5).
+    fit_precision: the parameters and every weight stay float64, so it moves the proposal, never the unbiasedness.
+    fit_rows: a weighted systematic subsample keeps the expected CE objective, so a fit costs the same at any N.
     """
 
     n_stages: int = setting(

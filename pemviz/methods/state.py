@@ -23,18 +23,12 @@ class StateSettings(CrossEntropySettings):
     rows of the settings table) and these of its own.
 
     Attributes:
-    state_share: the PEM's own share of the rollouts of every stage drawn after a stage reached the failure level
-        and of the final batch (the adaptive sampler's ``target_share``, for this method): each of those rollouts'
-        weights is at most 1 / ``state_share`` (a defensive mixture over whole rollouts: Hesterberg 1995; Owen &
-        Zhou 2000), in (0, 1).
-    state_model: q(detect)'s model, one of :data:`STATE_MODELS`: ``network``, the paper's network
-        (:class:`pemviz.core.sampling.FeatureProposal`) over the row and its features; ``glm``, the PEM's own logit
-        plus a linear function of them (:class:`pemviz.estimators.state_glm.StateGLM`). The measurement error's
-        location and log-scale shifts, where fitted (``state_fit_errors``), are linear in them either way.
-    state_fit_errors: the proposal fits the measurement errors' location and log-scale shifts too
-        (:class:`pemviz.core.torch_fits.NoiseShift`, linear in the row and its features); False: the errors are drawn
-        from the PEM's own error model and only the detections are proposed. The defaults (``glm``, the PEM's errors)
-        are the variant measured closest to the answer on the crossing (the Validation page).
+    state_share: the defensive mixture over whole rollouts (Hesterberg 1995; Owen & Zhou 2000): each weight at most
+        1 / ``state_share``.
+    state_model: ``network`` is :class:`pemviz.core.sampling.FeatureProposal`, ``glm``
+        :class:`pemviz.estimators.state_glm.StateGLM`; the error shifts, where fitted, are linear either way.
+    state_fit_errors: the shifts are :class:`pemviz.core.torch_fits.NoiseShift`. The defaults (``glm``, the PEM's
+        errors) are the variant measured closest to the answer on the crossing (the Validation page).
     """
 
     state_share: float = setting(

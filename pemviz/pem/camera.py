@@ -43,10 +43,8 @@ def box_errors_to_metric(
         err_cx_px: centre-x error ``e_cx`` (detected minus true), pixels, ``[R]``.
         err_h_px: height error ``e_h`` (detected minus true), pixels, ``[R]``.
         focal_px: focal length ``f``, pixels (default KITTI's camera 2).
-
     Returns:
         float64 ``[R, 2]``: the range error ``dZ`` and the lateral error ``dX`` (metres; measured minus true).
-
     Raises:
         ValueError: arrays of different lengths, a box height (``h_d``, ``h_d - e_h``) <= 0, a range below
             :data:`MIN_RANGE_M` or a focal length <= 0."""

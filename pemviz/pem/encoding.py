@@ -199,10 +199,8 @@ def encode_salient(raw_inputs: np.ndarray, norm: NormStats) -> np.ndarray:
         raw_inputs: float ``[N, 11]`` in the KITTI column layout (class, truncation, occlusion, alpha,
             dim_w, dim_l, dim_h, loc_x, loc_y, loc_z, rot_y); metres, radians.
         norm: z-score statistics (:func:`fit_norm_stats` of the training file).
-
     Returns:
         float64 ``[N, 14]`` (the order of the authors' ``SalientObstacleDataset``).
-
     Raises:
         ValueError: wrong shape, non-finite values, a class not an integer in 0..6 or an occlusion not an
             integer in 0..2 (the message names the first bad row, 0-based).
@@ -216,7 +214,6 @@ def braking_salient_inputs(gap_m: np.ndarray) -> np.ndarray:
 
     Args:
         gap_m: gap from the ego's camera to the lead's rear, metres, any shape ``[...]``.
-
     Returns:
         float64 ``[M, 11]`` with ``M = gap_m.size`` (flattened, C order).
     """

@@ -120,7 +120,6 @@ def fold_state_dict(
         batch_norm: a BatchNorm after each hidden Linear.
         in_dim: the input features (the 14 of the encoding).
         out_dim: the outputs.
-
     Raises:
         ValueError: the state does not fit the architecture (:func:`state_problem`'s reason)."""
     shapes = mlnn_shapes(hidden, batch_norm=batch_norm, in_dim=in_dim, out_dim=out_dim)
@@ -392,18 +391,6 @@ class PEM:
             ) from None
         return module.eval()
 
-    def with_temperature(self, temperature: float, *, name: str | None = None) -> PEM:
-        """The same network with logits divided by ``temperature`` (temperature scaling, Guo et al. 2017)."""
-        return PEM(
-            name=name or self.name,
-            norm=self.norm,
-            state_dict=self.state_dict,
-            hidden=self.hidden,
-            batch_norm=self.batch_norm,
-            temperature=float(temperature),
-            metadata=dict(self.metadata),
-        )
-
     # -- evaluation -----------------------------------------------------------------------------
     def _mlp(self, x: np.ndarray) -> np.ndarray:
         """Logits float64 ``[N]`` of encoded features ``[N, 14]`` (folded layers, ReLU between)."""
@@ -430,10 +417,8 @@ class PEM:
 
         Args:
             raw_inputs: float ``[N, 11]``, KITTI column layout (:data:`pemviz.pem.encoding.INPUT_COLUMNS`).
-
         Returns:
             float64 ``[N]``, nats (log-odds); ``log p = -softplus(-logit)``, ``log(1-p) = -softplus(logit)``.
-
         Raises:
             ValueError: see :func:`encode_salient`.
         """
@@ -446,7 +431,6 @@ class PEM:
 
         Args:
             gap_m: gaps, metres, any shape ``[...]``.
-
         Returns:
             float64 logits of the same shape as ``gap_m``."""
         gap = np.asarray(gap_m, dtype=np.float64)

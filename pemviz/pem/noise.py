@@ -8,8 +8,7 @@ A detected obstacle's measurement error ``e = (dZ, dX)`` (metres; measured minus
 ``g`` a standard normal, Laplace or Student-t density, ``x`` the 14-dim encoding
 (:func:`pemviz.pem.encode_salient`). :class:`NoisePEM` is heteroscedastic, ``(m(x), log s(x))`` from a small ReLU
 network trained by maximum likelihood and evaluated in float64 numpy; :class:`HomoscedasticNoise` is the baseline.
-``log_prob`` is in nats. :func:`noise_training_data` builds the training set from the KITTI files,
-:func:`train_noise_pem` and :func:`fit_homoscedastic` fit; the family is chosen in ``pemviz.studies.noise_eval``."""
+``log_prob`` is in nats; the family is chosen in ``pemviz.studies.noise_eval``."""
 
 from __future__ import annotations
 
@@ -241,7 +240,6 @@ def noise_training_data(inputs: np.ndarray, label_table: np.ndarray, *, seed: in
         inputs: raw salient inputs ``[N, 11]`` (:data:`pemviz.pem.encoding.INPUT_COLUMNS`).
         label_table: the label file ``[N, 9]`` (:func:`pemviz.io.data.load_salient_label_table`).
         seed: seed of the dequantisation noise.
-
     Raises:
         ValueError: shapes other than ``[N, 11]`` and ``[N, 9]``, or no row left.
     """
@@ -297,7 +295,6 @@ def train_noise_pem(
         norm: z-score statistics of the encoding (default: fitted on ``inputs``).
         progress: print the training's progress.
         metadata: extra provenance stored with the model.
-
     Raises:
         ValueError: shapes other than ``[M, 11]`` / ``[M, 2]``, non-finite errors, an unknown family, fewer than 2
             rows, epochs < 1 or batch_size < 1."""

@@ -67,7 +67,6 @@ class NoisyPEM:
             features: encoded features ``[R, 14]``.
             detected: bool ``[R]``.
             errors: ``[R, 2]`` (range, lateral; metres); ignored (may be NaN) where not detected.
-
         Raises:
             ValueError: shapes other than ``[R, 14]``, ``[R]`` and ``[R, 2]``.
         """

@@ -153,10 +153,8 @@ def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
     Args:
         path: a file path, or the name of a shipped PEM (``"ml-nn"`` -> ``<assets>/pem_ml-nn.pt``, see
             :func:`pem_path`); default :data:`DEFAULT_PEM_NAME`.
-
     Returns:
         A :class:`PEM` (kind ``mlp``) or a :class:`TreePEM` (kind ``gbt``).
-
     Raises:
         FileNotFoundError: no such file (the message lists the shipped PEMs).
         PemFormatError: the file is not a pemviz PEM or is damaged.

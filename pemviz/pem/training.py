@@ -106,10 +106,8 @@ def train_pem(
             also when training on a cross-validation fold).
         progress: show a tqdm progress bar over epochs.
         metadata: extra provenance stored with the PEM.
-
     Returns:
         The trained :class:`PEM` (eval mode).
-
     Raises:
         ValueError: mismatched lengths, labels not in {0, 1}, bad encodings, epochs < 1 or batch_size < 2.
     """

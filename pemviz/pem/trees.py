@@ -242,7 +242,6 @@ def train_tree_pem(
         labels: the detections ``[N]`` in {0, 1}.
         norm: z-score statistics (default: fitted on ``inputs``; pemviz uses the full file's).
         metadata: extra provenance stored with the model.
-
     Raises:
         ValueError: mismatched lengths or labels not in {0, 1}.
     """

@@ -1,11 +1,6 @@
-"""The built-in scenarios' problems: each scenario as a :class:`pemviz.core.problems.Problem`.
-
-The braking scenario (:func:`braking_problem`, :func:`braking_formula`), the toy (:func:`toy_problem`), the crowd
-toy (:func:`crowd_problem`) and the cut-in (:func:`cut_in_problem`, :func:`cut_in_params`); the named problems with
-a known exact answer (:data:`PROBLEMS`, :data:`TOY_PROBLEMS`, :data:`CROWD_PROBLEMS`, :func:`build_problem`), the
-problem a run of a config estimates (:func:`problem_for`) and its alternative targets (:func:`with_alternatives`,
-:data:`PEM_SHIFTS`). Each problem lives in its scenario's package; the cut-in's modules are imported by a cut-in run
-alone."""
+"""The built-in scenarios' problems, each a :class:`pemviz.core.problems.Problem`: the named problems with a known exact
+answer, the problem a run of a config estimates (:func:`problem_for`) and its alternative targets. Each problem lives
+in its scenario's package; the cut-in's modules are imported by a cut-in run alone."""
 
 from __future__ import annotations
 

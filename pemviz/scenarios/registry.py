@@ -373,20 +373,14 @@ def problem_for(config: Any) -> Any:
 
 
 _CUT_IN_COST_FACTOR = 6.7
-"""A cut-in rollout step costs 6.7 braking ones (its five cars, their salient variables, measurement errors and
-tracker): 9.5 x 5.6 s / 7.9 s, the cut-in 1.4x faster, measured 2026-11-25 (``benchmarks/calibrate_cost.py``)."""
+"""A cut-in rollout step costs 6.7 braking ones (``benchmarks/calibrate_cost.py``)."""
 
 _CROSSING_COST_FACTOR = 4.0
-"""A crossing rollout step (its pedestrians, the noise PEM's measurement errors and the Kalman tracker) costs 4 braking
-ones: 20,000 plain rollouts' CPU seconds against the model's, 4.1 and 5.7 times braking's and 3.0 times the cut-in's
-over the factor the model gives each, measured on 2 loaded cores (their median, 4.1; ``benchmarks/time_estimates.py``
-checks it)."""
+"""A crossing rollout step costs 4 braking ones (``benchmarks/time_estimates.py`` checks it)."""
 
 _CROSSING_COST_PARTS = {"step": 9.0, "fit": 1.55, "torch": 1.0, "probe": 0.81}
-"""A crossing batch's time step costs 9 braking ones whatever its size (two tracked pedestrians, the noise PEM's
-errors, the measurement-error head on torch), its fits 1.55 braking's; its first fit imports torch
-(``benchmarks/calibrate_cost.py --parts``, docs/validation.md). Its pilot of plain rollouts takes 0.81 times the
-model's CPU seconds where its run takes the model's, a cut-in's 3.84 (``benchmarks/calibrate_cost.py --probe``)."""
+"""A crossing batch's fixed cost per time step, its fits, its torch import and its pilot of plain rollouts, relative
+to the model's (``benchmarks/calibrate_cost.py --parts`` and ``--probe``)."""
 
 
 def _cut_in(name: str, rarity: str, defaults: str, **more: Any) -> Scenario:
@@ -409,18 +403,10 @@ def _cut_in(name: str, rarity: str, defaults: str, **more: Any) -> Scenario:
     )
 
 
-# The method and budget a scenario runs with when neither a method nor a preset is asked for (run_defaults): on the
-# cut-in scenes the adaptive sampler's estimates are orders of magnitude low (the user guide's Validation page). The
-# cut-in runs its own tilted proposal (tilt: pemviz.scenarios.cut_in.tilt) on 7,280 rollouts, about 13,000
-# rollout-equivalents with its look-aheads; over an ODD of its start gap, where that proposal (solved for one gap) does
-# not apply, plain Monte Carlo of 100,000 rollouts (about 35 s). At the rare cut-in (about 1e-7) no shipped method
-# answers (beyond): the tilt's and the cross-entropy sampler's weights back no interval there, no reference exists, and
-# plain Monte Carlo needs some 10^9 rollouts for an interval; it runs plain Monte Carlo of 5,000 rollouts (about 15 s),
-# whose Clopper-Pearson bound holds whatever p, and says that no method shipped answers. The crossing (a noisy
-# detector behind a Kalman tracker, p about 3e-4), where the cross-entropy sampler is 5 to 10 orders of magnitude low
-# and splitting on the scene-neutral look-ahead costs 1.3 times plain Monte Carlo for the same median error
-# (benchmarks/scene_neutral.py), runs plain Monte Carlo to a 20 % interval (at most 500,000 rollouts, about 15 s);
-# over an ODD of its AEB's parameters, where no plain Monte Carlo follows the stages, plain Monte Carlo of 200,000.
+# run_defaults: on the cut-in and crossing scenes the adaptive sampler's estimates are orders of magnitude low (the
+# user guide's Validation page), so the cut-in runs its own tilt, and where no proposal applies (an ODD, the rare
+# cut-in, the crossing) plain Monte Carlo, whose Clopper-Pearson bound holds whatever p.
+
 
 for _scenario in (
     Scenario(

@@ -5,20 +5,9 @@ noise PEM's errors. Every function is elementwise over arrays of one shape (e.g.
 The camera (pinhole, KITTI's camera 2: :data:`pemviz.pem.camera.KITTI_FOCAL_PX`, the :data:`KITTI_IMAGE_SIZE_PX`
 image) looks along the road from ``camera_height_m`` above it, in KITTI's frame (Geiger et al. 2013, "Vision meets
 robotics: the KITTI dataset", IJRR 32(11)): x right, y down, z forward. An object is an upright box
-(:class:`ObjectKind`) on the road at ``(loc_x_m, loc_z_m)``, turned by ``rot_y_rad`` (KITTI's rotation_y). From the
-box:
-
-- **truncation**: ``1 - area(box & image) / area(box)`` of its 2D image box (:func:`image_box`; KITTI, eq. 5);
-- **occluded share** (:func:`occluded_share`): the share of the 2D box covered by nearer objects' boxes, from which
-  KITTI's occlusion level follows (:func:`occlusion_level`); :func:`view` takes the level from the caller,
-  :func:`views` computes it;
-- **visible**: the centre at least :data:`pemviz.pem.camera.MIN_RANGE_M` ahead, some of the box in the image and
-  (:func:`views`) the box covered less than ``hidden``. A camera above the roofs sees a far car over a near one
-  (``tests/stack/test_occlusion.py``).
-
-A detected object is **measured** (:func:`measure`) at its true position moved by the noise PEM's range error along
-the camera ray and its lateral error across it: ``Z_m = Z + dZ``, ``X_m = (X + dX) Z_m / Z``
-(:mod:`pemviz.pem.camera`).
+(:class:`ObjectKind`) on the road at ``(loc_x_m, loc_z_m)``, turned by ``rot_y_rad`` (KITTI's rotation_y); its
+truncation, occluded share and visibility follow from its 2D image box (:func:`image_box`, :func:`occluded_share`,
+:func:`views`), its measurement from the noise PEM's errors (:func:`measure`).
 
 Units: metres, radians."""
 
@@ -61,7 +50,6 @@ class ObjectKind:
     Attributes:
         kitti_class: a key of :data:`KITTI_CLASSES` (``pedestrian``, ``car``, ``cyclist`` ...).
         height_m, width_m, length_m: the box (KITTI's h, w, l; e.g. a pedestrian 1.75, 0.6, 0.8).
-
     Raises:
         ValueError: an unknown class, or a dimension not in (0, 30] m.
     """

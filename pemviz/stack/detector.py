@@ -7,10 +7,7 @@ Per object and step, with ``x`` the object's 11 KITTI salient variables (:func:`
 
 the detection PEM giving the logit of p(detected) (Innes & Ramamoorthy 2022, ICRA, Sec. IV-A) and the noise PEM
 (:class:`pemviz.pem.noise.NoisePEM`) the density of a detected object's range and lateral errors.
-:func:`camera_detector` returns that detector (a :class:`pemviz.pem.perception.SalientDetector`, every sampler's
-target); :func:`pemviz.core.event_probs.event_log_probs` gives a step's log-probability of detections (<= 0) and
-log-density of errors apart (Cover & Thomas 2006, *Elements of Information Theory*, Sec. 8.1). :func:`perceive`
-draws a step by hand; :func:`ahead_rows` gives a problem the rows where the detection curve is drawn."""
+:func:`camera_detector` returns that detector, every sampler's target."""
 
 from __future__ import annotations
 

@@ -2,11 +2,8 @@
 stage of a perception stack, for any scene (the Kalman filter: Kalman 1960, "A new approach to linear filtering and
 prediction problems", Trans. ASME, Journal of Basic Engineering 82(1), 35-45).
 
-Use: ``tracks = Tracks.empty((M, N))`` at the start (and :func:`start_confirmed` for objects the ego already
-follows); each step ``tracks = update(tracks, measured, z_x, z_y, range_m, prior_vx_mps, params)`` with the step's
-detections and their measured road positions (:func:`pemviz.stack.camera.measure`), let the controller read
-``tracks.x``, ``tracks.y``, ``tracks.vx``, ``tracks.vy`` where ``tracks.confirmed``, then ``tracks = predict(tracks,
-dt_s, params)``. The guide's page *A realistic perception stack* (``docs/realistic-stack.md``) writes a scene on it.
+Use: ``tracks = Tracks.empty((M, N))``, then each step :func:`update`, the controller reading the confirmed tracks,
+and :func:`predict` (``docs/realistic-stack.md`` writes a scene on it).
 
 Each track holds a constant-velocity state ``(position, velocity)`` per road axis with a 2 x 2 covariance; the axes
 are filtered independently (no cross-axis motion term, diagonal measurement covariance), which is exactly the
@@ -28,9 +25,8 @@ are filtered independently (no cross-axis motion term, diagonal measurement cova
   **established** (:func:`start_confirmed`): a track confirmed from the scene's start.
 
 Written here rather than taken from filterpy or simdkalman: the batched twin steps 10^4-10^5 filters per step as
-elementwise arithmetic on ``[N, M]`` arrays, step-identical to the one-rollout simulator (N = 1); the library
-filters are about 100 times slower per filter-step (docs/validation.md). ``tests/stack/test_tracker.py`` checks it
-against filterpy's ``KalmanFilter`` as the oracle.
+elementwise arithmetic on ``[N, M]`` arrays, which those libraries do about 100 times slower (docs/validation.md);
+``tests/stack/test_tracker.py`` checks it against filterpy's ``KalmanFilter``.
 
 Units: metres, seconds, m/s; variances in m^2 and (m/s)^2."""
 
@@ -58,7 +54,6 @@ class TrackerParams:
             lateral innovation is not gated); ``inf``: no gate.
         restart_after_steps: a track whose last update is this many steps old restarts at a measurement outside its
             gate.
-
     Raises:
         ValueError: a negative or non-finite value, or a measurement std of 0."""
 

@@ -85,10 +85,8 @@ def robustness(
         temperature: b of ``"smooth-cumulative"`` (> 0; larger is closer to min/max).
         signal_ranges: ``{"d": (lo, hi)}`` per signal, AGM predicate normalisation.
         trace_end: ``"truncate"`` (rtamt's convention) or ``"error"`` (windows must fit in the trace).
-
     Returns:
         numpy float64 [N] for numpy inputs; torch float64 [N] for torch inputs (differentiable).
-
     Raises:
         ValueError: unknown semantics, malformed text (an ``STLSyntaxError`` with its column), a missing signal,
             signals of different shapes, NaN in a signal used, ``time`` outside the trace, an interval past the

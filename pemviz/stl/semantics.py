@@ -176,7 +176,6 @@ class AGM(Semantics):
     Args:
         signal_ranges: ``{"d": (lo, hi)}`` per signal (its units): each predicate is divided by
             :func:`agm_scale` and clipped to [-1, 1]; None: predicates must already lie in [-1, 1].
-
     Raises:
         TypeError: ``signal_ranges`` is not a mapping.
     """
@@ -332,7 +331,6 @@ class SmoothCumulative(Semantics):
 
     Args:
         temperature: b of the softplus and the soft min/max, finite and > 0 (larger is closer to min/max).
-
     Raises:
         ValueError: ``temperature`` is not a finite number > 0.
     """

@@ -4,6 +4,7 @@ workers gives the serial rollouts and estimate, bit for bit, for the same seed."
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import importlib.util
 import io
@@ -162,14 +163,14 @@ Carlo after it (its stages are what is compared)."""
 
 @functools.cache
 def _serial_run(uniforms: str):
-    return _run(BLOCKS.replace(uniforms=uniforms), braking_problem(load_pem().with_temperature(4.0)))
+    return _run(BLOCKS.replace(uniforms=uniforms), braking_problem(dataclasses.replace(load_pem(), temperature=4.0)))
 
 
 @ray_missing
 @pytest.mark.parametrize("uniforms", ["array-rqmc", "iid"])
 def test_ray_tasks_of_whole_blocks_give_the_serial_rollouts_and_estimate_bit_for_bit(ray_workers, uniforms):
     # A less confident PEM (logits / 4) so that K = 2 stages of N = 20 already see crashes.
-    problem = braking_problem(load_pem().with_temperature(4.0))
+    problem = braking_problem(dataclasses.replace(load_pem(), temperature=4.0))
     serial, serial_batches, serial_stages = _serial_run(uniforms)
     executor = get_executor("ray")
     assert (executor.cpus, executor.in_flight) == (ray_workers, 2 * ray_workers)

@@ -4,6 +4,7 @@ error naming the rollout and step and write nothing."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -146,7 +147,7 @@ def test_run_rollouts_without_the_columns_recomputed_from_the_pem_and_sampler_gi
 def test_adaptive_rollouts_round_trip_through_a_proposal_checkpoint(tmp_path, capsys):
     """A proposal after a CE stage samples a batch; the listener snapshots it at sampling time; the file's
     columns and the recomputation from the PEM file and the checkpoint both give the batch's own mu_hat."""
-    weak = load_pem().with_temperature(4.0)  # a less confident PEM: crashes in 60 rollouts
+    weak = dataclasses.replace(load_pem(), temperature=4.0)  # a less confident PEM: crashes in 60 rollouts
     pem_file = save_pem(weak, tmp_path / "weak.pt")
     problem = braking_problem(weak)
     rng = np.random.default_rng(2)

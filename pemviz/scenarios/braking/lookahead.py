@@ -27,23 +27,18 @@ from pemviz.scenarios.braking.simulator import (
 )
 
 LOOK_AHEAD_GAP_M = 6.0
-"""The gap (metres) below which the detections are enumerated. ``pemviz run --margin 0``, seeds 0-39: from 6 m, median
-relative error 0.074, 37 of 40 intervals hold the exact answer, about 7 s a run (the enumeration: some 30,000
-branch steps a rollout, each one step of the scene's dynamics; half that time since its branches share their
-controller's commands, ``docs/validation.md``); from 5 m, 0.149 and 32 of 40, 2 s; from 2 m the weights stay heavy
-(ESS 8 of 1,000), from 7 m a run takes about a minute."""
+"""The gap (metres) below which the detections are enumerated: nearer, the weights stay heavy; further, a run takes
+minutes (``pemviz run --margin 0``, ``docs/validation.md``)."""
 
 LOOK_AHEAD_ROLLOUT_S = 1.8e-3
-"""Seconds per rollout of the look-ahead from :data:`LOOK_AHEAD_GAP_M` targeting 0 m, about (2-core developer
-machine: 1.6 s of CPU for the final batch of 1,000 of ``pemviz run --margin 0 --seed 0``, 0.17-0.23 s for a CE stage
-of 100), for the run's time estimates."""
+"""Seconds per rollout of the look-ahead from :data:`LOOK_AHEAD_GAP_M` targeting 0 m, about, for the run's time
+estimates (``pemviz run --margin 0 --seed 0``)."""
 
 PRUNE_NATS = 40.0
 """A branch whose probability is this far (nats) below the failure probability found from its rollout is dropped."""
 
 MAX_BRANCHES = 4_000_000
-"""The most branches held at once (about 0.3 GB); more raise an error rather than exhaust the memory. Rollouts are
-enumerated in groups of 100: from 6 m, targeting 0 m, a group held at most 1.4 x 10^6 (seeds 0-4)."""
+"""The most branches held at once (about 0.3 GB); more raise an error rather than exhaust the memory."""
 
 
 def start_steps(gap_m: np.ndarray, start_gap_m: float) -> np.ndarray:

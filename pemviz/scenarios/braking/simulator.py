@@ -162,7 +162,6 @@ def ego_acceleration(
         gap_m: [N] gap from the ego's camera to the lead's rear (metres).
         ego_speed_mps: [N] ego speed (m/s).
         ctrl: controller memory before this step.
-
     Returns:
         (acceleration [N] in m/s^2, never below -speed/dt so the ego never reverses; new memory).
         In contact with the lead (gap <= ``contact_gap_m``) the ego is stopped, as after a CARLA collision.
@@ -189,7 +188,6 @@ def ego_commands(
         params: the scenario's constants.
         ego_speed_mps: [N] ego speed (m/s).
         integral_kmh_s: [N] the PID integral before this step (km/h s).
-
     Returns:
         (the PID integral after this step [N] (km/h s), the full brake's deceleration [N] (m/s^2, >= 0), the PID's
         acceleration [N] (m/s^2): throttle minus its brake).

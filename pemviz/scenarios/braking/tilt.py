@@ -36,12 +36,10 @@ LogitFn = Callable[[np.ndarray], np.ndarray]
 TILT_GAPS = 200
 """Gap nodes of the committor's grid, from the crash gap to 1 m past the braking distance."""
 TILT_SPEEDS = 40
-"""Speed nodes of the committor's grid, from 0 to 1 m/s above the faster of the ego's start and target speeds. Seeds
-0-99 at 1,000 rollouts, relative variance per rollout (solve in rollout-equivalents): 150 x 20 1.45 (3,840), 200 x 20
-1.05 (5,120), 200 x 40 0.85 (10,240), 400 x 20 1.24 (10,240); 100 x 60 (seeds 0-29) 2.4 (7,680)."""
+"""Speed nodes of the committor's grid, from 0 to 1 m/s above the faster of the ego's start and target speeds."""
 TILT_EPS = 0.05
-"""The PEM's share of each step's proposal (each step's importance weight is at most 1 / eps). Seeds 0-99 at 1,000
-rollouts on the default grid: relative variance per rollout 0.79 at 0.02, 0.85 at 0.05, 1.2 at 0.1, 2.7 at 0.2."""
+"""The PEM's share of each step's proposal (each step's importance weight is at most 1 / eps)."""
+
 LOG_V_FLOOR = -700.0
 """log V where no crash can follow (nats): finite, so that log V interpolates; read as V = 0."""
 SOLVED_KEPT = 4
@@ -277,7 +275,6 @@ class BrakingTilt:
         target: the PEM as a detector (the rollouts' p).
         n_gap, n_speed: the committor's grid (:data:`TILT_GAPS`, :data:`TILT_SPEEDS`).
         eps: the PEM's share of each step's proposal, in (0, 1].
-
     Raises:
         ValueError: ``eps`` outside (0, 1].
     """

@@ -10,9 +10,7 @@ result is a bracket [enumerated, enumerated + dropped bound], refined until narr
 (``benchmarks/truth_braking.py``).
 
 The dynamics are :func:`pemviz.scenarios.braking.simulator.braking_step`; probabilities are natural logs (nats) in
-float64. The toy's closed form is :func:`pemviz.scenarios.toy.simulator.toy_log_failure_probability`, the latched
-scenario's :mod:`pemviz.scenarios.braking.truth_latched`, the shipped PEMs' answers
-:mod:`pemviz.scenarios.braking.truth_known`."""
+float64."""
 
 from __future__ import annotations
 
@@ -61,14 +59,7 @@ def branching_start(params: BrakingParams) -> BrakingStart:
     raise ValueError("branching_start: the gap never drops below the braking distance; p_fail is 0 or 1")
 
 
-# -- 3. main scenario: exact enumeration with a rigorous bound ---------------------------------------------------
-#
-# A grid DP with interpolation smears V, a sum of step functions of the state, across its jumps: on the
-# latched variant (exact answer known) it was 40 % off on an 801 x 801 grid while moving by only 9 % from
-# 401 x 401 (benchmarks/truth_braking.py). Here instead every detection sequence is followed exactly (no
-# grid, no merging), and a sequence is dropped only when an upper bound on everything it can still contribute
-# is negligible. The bound comes from a DP over a (gap, speed) grid of the least number of misses that can
-# still lead to a crash, which rounds states in the safe direction and so stays a valid lower bound.
+# -- 3. main scenario: exact enumeration with a rigorous bound (module docstring) --------------------------------
 
 
 def _relaxed_step(params: BrakingParams, lead_speed_mps: float, gap_m, speed_mps, pending, detected):

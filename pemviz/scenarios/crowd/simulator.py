@@ -46,7 +46,6 @@ class CrowdParams:
         p_detect: p(detect) of every obstacle at every step, in (0, 1).
         offsets: each obstacle's distance beyond the nearest (units, >= 0, the first 0): M = len(offsets).
         noise_sd: the standard deviation of a detected obstacle's distance error (units, >= 0; 0: exact).
-
     Raises:
         ValueError: parameters outside these ranges.
     """

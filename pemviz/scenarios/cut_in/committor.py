@@ -173,19 +173,6 @@ class Grid:
         total = np.cumsum(t, axis=1)[:, -1:]  # summed in one order (a vector reduction's would depend on the CPU)
         return pc, (1.0 - eps) * (t / total) + eps * pc
 
-    def level_dist(self, r: np.ndarray) -> np.ndarray:
-        """Each class's distribution of levels [k, 1 + NB^2, LMAX + 1] from the branches' robustness ``r`` [k,
-        NBRANCH] (metres): a bin, half each edge's; a joint class, the error whose mean level is lower."""
-        oh = np.eye(LMAX + 1)[level(r)]
-        dr, dl = (np.einsum("nb,kbl->knl", mp, oh) for mp in self.maps)
-        el = np.arange(LMAX + 1)
-        use_r = (dr @ el)[:, :, None] <= (dl @ el)[:, None, :]
-        k = r.shape[0]
-        out = np.empty((k, 1 + self.nb * self.nb, LMAX + 1))
-        out[:, 0] = oh[:, 0]
-        out[:, 1:] = np.where(use_r[..., None], dr[:, :, None, :], dl[:, None, :, :]).reshape(k, -1, LMAX + 1)
-        return out
-
     def classify(self, u: np.ndarray, p0: np.ndarray) -> np.ndarray:
         """The class (int64 [k]) of the uniforms ``u`` [k, 3] given p(detect) ``p0`` [k]."""
         bi, bj = (np.clip(np.searchsorted(self.edges, u[:, c], side="right") - 1, 0, self.nb - 1) for c in (1, 2))

@@ -169,7 +169,6 @@ class CutInParams:
         ego_a_min_mps2, other_a_min_mps2, reaction_time_s, cut_in_grace_s: R_G1's parameters
             (:func:`safe_distance`): the assumed braking of the ego and of the vehicle in front, the ego's reaction
             time and the time ``t_c`` after a cut-in during which the rule is waived.
-
     Raises:
         ValueError: a value outside its range (the message names the field, what is allowed and what was given)."""
 

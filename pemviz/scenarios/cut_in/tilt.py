@@ -84,7 +84,6 @@ class CutInTilt(CutInLookAhead):
         window, end, beam_width, beta, eps: :data:`TILT_WINDOW`, :data:`TILT_END`, :data:`TILT_BEAM_WIDTH`,
             :data:`TILT_BETA`, :data:`TILT_EPS`.
         options: the look-ahead's (:class:`~pemviz.scenarios.cut_in.lookahead.CutInLookAhead`).
-
     Raises:
         ValueError: a window that does not fit the scene, eps outside (0, 1], beta outside (0, 1].
     """

@@ -42,7 +42,6 @@ class ToyParams:
         n_steps: steps per rollout; default ``total - safe + 2``, the first step at which a failure can
             be observed plus one (a failing rollout ends at its failure, as in the authors' ``car_rollout``);
             at least that.
-
     Raises:
         ValueError: for parameters outside these ranges.
     """
