@@ -1,14 +1,9 @@
-"""The settings table: what each :class:`pemviz.config.ExperimentConfig` field is, in one place.
+"""The settings table: what each :class:`pemviz.config.ExperimentConfig` setting is, in one place.
 
-Each field's symbol, words, allowed range, unit, help, command-line flag and owner (the estimator that reads it) is a
-:class:`Setting` in :data:`SETTINGS`: the config's checks (:mod:`pemviz.config`), the command line
-(:mod:`pemviz.commands`), the panel's form (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read it
-here. The allowed values of the choices (:data:`METRICS`, ...) and the numeric limits (:data:`MAX_SEED`, ...) live
-beside it; the cross-entropy sampler's rows are the fields of its settings
-(:class:`pemviz.methods.adaptive.CrossEntropySettings`, each made by :func:`pemviz.methods.setting`; the adaptive and
-state methods' :attr:`pemviz.methods.Method.settings`), with its choices and limits beside them; the retry's and plain
-Monte Carlo's after any method's stages are the fields of :class:`FallbackSettings` here, with the retry's N
-(:meth:`FallbackSettings.retry_n`) and plain Monte Carlo's cap (:func:`plain_fallback_most`).
+Each setting's symbol, words, range, unit, help, flag and owner is a :class:`Setting` in :data:`SETTINGS`, read by the
+config's checks, the command line, the panel's form and the estimators (:func:`settings_of`); the allowed choices and
+limits live beside it. The cross-entropy sampler's rows are the fields of
+:class:`pemviz.methods.adaptive.CrossEntropySettings`; the fallback's those of :class:`FallbackSettings` here.
 """
 
 from __future__ import annotations
@@ -101,22 +96,17 @@ RETRY_MOST_N = 10_000
 @dataclass(frozen=True)
 class FallbackSettings:
     """The retry and plain Monte Carlo after a method's stages where their weights back no interval (a verdict other
-    than ``reliable``): :attr:`pemviz.config.ExperimentConfig.fallback` of a run, read by
-    :class:`pemviz.estimators.fallback.PlainFallback` whatever the method (the one its record's
-    :attr:`~pemviz.methods.Method.then` names: the adaptive and state methods'). Each field, made by :func:`setting`,
-    carries its row of :data:`SETTINGS` (owner :data:`FALLBACK`).
+    than ``reliable``), read by :class:`pemviz.estimators.fallback.PlainFallback` whatever the method. Each field, made
+    by :func:`setting`, carries its row of :data:`SETTINGS` (owner :data:`FALLBACK`).
 
     Attributes:
-    plain_fallback: plain Monte Carlo rollouts after the stages, at most this many times their simulations (the
-        default 500; :func:`plain_fallback_most`), never above :data:`PLAIN_FALLBACK_MOST` nor what the run's cap of
-        simulations leaves (``max_sims``; with a stop rule, by default 1,000,000 in all), to the run's precision
-        target (``rel_error``, else a 20 % interval) or requirement; the run's answer is then plain Monte Carlo's
-        where it saw a failure (:mod:`pemviz.estimators.fallback`). 0: none (the ``paper`` preset's). Not over an
-        operating design domain.
-    retry_factor: before that plain Monte Carlo, the stages once more, with N this many times as large
-        (:meth:`retry_n`; the default 4: 5,100 simulations after the default 2,100), from a stream of their own; their
-        answer is the run's where their weights back an interval. 0 or 1: no retry. Only with ``plain_fallback`` > 0
-        and no precision target or requirement.
+    plain_fallback: plain Monte Carlo rollouts after the stages, at most this many times their simulations
+        (:func:`plain_fallback_most`; capped by :data:`PLAIN_FALLBACK_MOST` and ``max_sims``), to the run's precision
+        target or requirement; the run's answer is then plain Monte Carlo's where it saw a failure. 0: none. Not over
+        an operating design domain.
+    retry_factor: before that plain Monte Carlo, the stages once more with N this many times as large
+        (:meth:`retry_n`), from a stream of their own. 0 or 1: no retry. Only with ``plain_fallback`` > 0 and no stop
+        rule.
     """
 
     plain_fallback: int = setting(
@@ -172,38 +162,28 @@ def plain_fallback_most(ratio: int, spent: int, max_sims: int | None = None) -> 
 
 @dataclass(frozen=True)
 class Setting:
-    """What one :class:`~pemviz.config.ExperimentConfig` field is, in the one place every reader takes it from: the
-    config's own check and its :class:`~pemviz.config.ConfigError` messages, the command line's flags
-    (:mod:`pemviz.commands`), the panel's form and its hints and the run labels (:mod:`pemviz.app.form`), and the
-    estimators that read it (:func:`settings_of`).
+    """What one :class:`~pemviz.config.ExperimentConfig` setting is, in the one place every reader takes it from: the
+    config's checks, the command line's flags, the panel's form and the estimators (:func:`settings_of`).
 
     Attributes:
-        name: the :class:`~pemviz.config.ExperimentConfig` field.
-        words: what it is, as a noun in plain words with its symbol (``"the smoothing alpha"``); error messages say
-            ``<words> must be <allowed>``.
-        help: what it does, one line, no measured figures (the flag's help and the panel's hint, after the range).
-        kind: ``int``, ``real``, ``choice``, ``method`` (the built-in :attr:`choices` or a name the method registry
-            has registered in this process: :func:`pemviz.methods.registered_names`), ``scenario`` (the same for the
-            scenario registry: :func:`scenario_names`), ``bool``,
-            ``text``, ``pem`` (a shipped PEM name or a file, checked
-            where it is loaded: the config does no I/O) or ``params`` (``(name, value)`` pairs of the scenario's
-            parameters, :mod:`pemviz.scenarios.parameters`, checked against the scenario by the config).
+        name: the setting's flat name.
+        words: what it is, a noun with its symbol (``"the smoothing alpha"``): ``<words> must be <allowed>``.
+        help: what it does, one line, no measured figures (the flag's help and the panel's hint).
+        kind: ``int``, ``real``, ``choice``, ``method`` (a registered method), ``scenario`` (a registered scenario),
+            ``bool``, ``text``, ``pem`` (a shipped PEM name or a file, checked where loaded) or ``params`` (the
+            scenario's parameters, :mod:`pemviz.scenarios.parameters`).
         symbol: the paper's symbol (``alpha``, ``sigma``, ``K``, ``N``, ``N_e``; ``k`` of AMS), or None.
-        short: the name in the panel and the run labels when it is neither the symbol nor the field's words.
+        short: the name in the panel and the run labels when it is neither the symbol nor the words.
         unit: the unit of a physical quantity (``""``: a count, a probability or a name).
         lo, hi, lo_open, hi_open: the allowed range of a number; ``lo_open`` / ``hi_open`` exclude the end.
-        hi_words: how the upper end is written (``2^64 - 1`` rather than its 20 digits).
+        hi_words: how the upper end is written (``2^64 - 1``).
         text_words: what a ``text`` setting takes, in words (``a Ray address``).
         optional: None is allowed too.
         choices: the allowed values of a ``choice``.
-        choice_help: (value, what it does) for each choice: the rest of the help, and the panel dropdown's hint.
+        choice_help: (value, what it does) for each choice.
         flags: the command-line flags, the first the one error messages name (empty: no flag).
-        panel: where the panel's form shows it (:data:`PANEL_PLACES`: ``main``, or ``advanced``, the folder; empty:
-            not shown); the form's fields are the rows that say so, in the table's order (:mod:`pemviz.app.form`).
-        owner: who reads it: :data:`RUN` (every method), :data:`FALLBACK` (the fallback after any method's stages:
-            :class:`pemviz.estimators.fallback.PlainFallback`) or the method whose estimator reads it (``adaptive``:
-            :class:`pemviz.estimators.cross_entropy.CrossEntropy`; ``ams``:
-            :class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`).
+        panel: where the panel's form shows it (:data:`PANEL_PLACES`; empty: not shown).
+        owner: who reads it: :data:`RUN`, :data:`FALLBACK` or the method whose estimator reads it.
     """
 
     name: str

@@ -1,13 +1,7 @@
 """The panel's experiment form: what was typed, parsed exactly, with every error in plain words.
 
-Numbers are typed into text fields and parsed here, so the form never rounds, rescales or silently
-keeps an earlier value: ``12.5`` in N is an error (N counts rollouts), ``1e-3`` in alpha is 0.001, an
-empty field is an error. :func:`parse_form` returns the config and, per field, the reason it is
-refused, all at once; a scenario's parameters are parsed by their own kind (:func:`parse_params`) and only those
-changed from the scenario's defaults go into the run's ``scenario_params``; a method's own settings are parsed by their
-rows (:func:`parse_own`) and go into the config by their names, as their flags do. :func:`run_cost` says what a run will
-take before it starts (the model of :mod:`pemviz.engine.cost`), and :func:`run_label` names a run by the settings
-that differ from the defaults. No viser here.
+Numbers are typed into text fields and parsed here, never rounded or rescaled (``12.5`` in N is an error, ``1e-3`` in
+alpha is 0.001). :func:`parse_form` returns the config and, per field, the reason it is refused, all at once. No viser.
 """
 
 from __future__ import annotations

@@ -32,10 +32,8 @@ from pemviz.sinks import Sink
 
 
 class RunControl:
-    """Starting, stopping and following a run: owns the buttons and lines above the tabs (Run, Stop, Run anyway, the
-    cost, the status line, the progress bars, the accuracy, the form's errors), the newest run (:attr:`record`, the
-    one the live plots, status and rollouts show), its worker thread and cancel token. A new run is kept under *Runs*,
-    listed under *Rollouts* and cleared from the scene; its events refresh them (:class:`RunListener`).
+    """Starting, stopping and following a run: owns the buttons and lines above the tabs, the newest run
+    (:attr:`record`), its worker thread and cancel token; the run's events refresh the tabs (:class:`RunListener`).
 
     Args:
         client: the viser client the controls draw into.

@@ -169,11 +169,8 @@ def estimate_rollouts(
     look_ahead: LookAheadFn | None = None,
 ) -> RolloutEstimate:
     """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says, through
-    the engine's code (:func:`file_problem`, :func:`pemviz.estimators.base.log_weight`,
-    :func:`pemviz.core.estimate.estimate`, :func:`pemviz.estimators.pooling.pool`): ``log w_i = sum_{t < k_i} log p
-    - log q`` with k_i = T - 1 (``"full"``) or the failure step (``"to-failure"``; :mod:`pemviz.core.weights`); the
-    NLL sums log p before the failure.
-
+    the engine's code: ``log w_i = sum_{t < k_i} log p - log q`` with k_i = T - 1 (``"full"``) or the failure step
+    (``"to-failure"``; :mod:`pemviz.core.weights`).
     Args:
         data: the rollout file read (:func:`pemviz.io.rollouts.read_rollouts`).
         log_p: float64 [N, T] each action's log-probability under the PEM (nats).

@@ -1,22 +1,9 @@
 """Rerun sink: writes an experiment's events into a rerun recording (``.rrd`` file, or a live viewer).
 
-The sink only listens to the engine's events (:mod:`pemviz.engine.events`); it never drives the engine. What it
-knows of the run and the problem comes with :class:`~pemviz.engine.events.RunStarted`: the stages and their names
-from the run's plan, the signals, thresholds and scene from the problem's view. Its look (colours, figures, scene
-lanes) is :mod:`pemviz.sinks.rerun_views`'s, its layout :mod:`pemviz.sinks.rerun_blueprint`'s (three tabs: *Stages*
-on the ``stage`` timeline, *Explain* and *Rollouts* on ``step``), the most likely failure's entities
-:mod:`pemviz.sinks.rerun_explain`'s, the estimate's Markdown :mod:`pemviz.sinks.rerun_text`'s.
-
-Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch,
-:func:`pemviz.core.plan.stage_label`), ``step`` (0..T-1, one simulation step) and ``repetition`` (only when the sink
-is given one). The entity paths and what each holds are listed in docs/recording.md. Per stage the recording holds
-summaries, two histograms, the marginal proposal's bars, at most 500 rollouts' traces in one entity per signal and a
-few featured rollouts, so a run of 10^5 rollouts a stage stays a few MB.
-
-Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed, scenario and its
-parameters (``scenario_params``). The file is written when the sink is closed (after the run, Ctrl-C or SIGTERM)
-under a unique temporary name and moved to ``PATH``, so a recording is never half-written, keeps every finished
-stage, and a kill leaves an existing ``PATH`` as it was."""
+The sink only listens to the engine's events. Its look is :mod:`pemviz.sinks.rerun_views`'s,
+its layout :mod:`pemviz.sinks.rerun_blueprint`'s. Timelines ``stage``, ``step`` and ``repetition``; the entity paths
+are listed in docs/recording.md. The file is written when the sink is closed (after the run, Ctrl-C or SIGTERM) under a
+temporary name and moved to ``PATH``: never half-written, and a kill leaves an existing ``PATH`` as it was."""
 
 from __future__ import annotations
 

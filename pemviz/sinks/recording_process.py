@@ -1,14 +1,9 @@
 """A rerun recording written by a second process while the run goes on (``pemviz run --save``, the program only).
 
-Importing rerun and logging to it hold the interpreter's lock, so a second process, not a thread, takes them off the
-run's path. :class:`RecordingProcess` is the run's listener: it pickles each event as it arrives and a writer thread
-feeds them to ``python -m pemviz.sinks.recording_process PATH OVERWRITE``, whose :func:`main` hands them in order to
-a :class:`pemviz.sinks.recording.RerunSink` writing ``PATH``. The child rebuilds the run's problem from
-:class:`~pemviz.engine.events.RunStarted`'s config (:func:`pemviz.scenarios.problems.problem_for`).
-
-The sink's promises hold across the two processes: :meth:`RecordingProcess.close` returns when the file is written
-or raises what :meth:`pemviz.sinks.recording.RerunSink.close` raises (or an ``OSError`` with the child's last
-words); Ctrl-C and SIGTERM reach the run only, and the child keeps every finished stage; a run killed outright
+Importing rerun and logging hold the interpreter's lock, so a second process takes them off the run's path.
+:class:`RecordingProcess` pickles each event to ``python -m pemviz.sinks.recording_process PATH OVERWRITE``, whose
+:func:`main` hands them to a :class:`pemviz.sinks.recording.RerunSink`. :meth:`RecordingProcess.close` returns when the
+file is written or raises what the sink's close raises; Ctrl-C and SIGTERM reach the run only; a run killed outright
 leaves no file.
 
 Protocol: pickled ``("event", event)`` messages on the child's standard input, then one ``("close", commit)``; the
