@@ -1,7 +1,4 @@
-"""The *Explain* tab of a :class:`pemviz.app.session.Session`: the rollout shown in the 3D scene, step by step: for
-a lane scene (:class:`pemviz.app.drawing.LanePanel`) its severity, story, strip charts, controller and decisive
-misses; for several objects (:class:`pemviz.app.drawing.ObjectsPanel`) the decisive errors, every object's events,
-the tracker and controller charts and the scene from above."""
+"""The *Explain* tab of a :class:`pemviz.app.session.Session`: the rollout shown in the 3D scene, step by step."""
 
 from __future__ import annotations
 

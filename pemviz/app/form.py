@@ -139,20 +139,16 @@ def format_param(p: Parameter, value: Value) -> str:
 
 
 def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[str, PairValue], ...], dict[str, str]]:
-    """The changed parameters of ``scenario`` and the errors of its parameter fields.
-
-    Each text is parsed by its parameter's kind (:meth:`pemviz.scenarios.parameters.Parameter.parse`); a value equal
-    to the scenario's default is left out, any other is checked on its own by the scenario
-    (:meth:`pemviz.scenarios.registry.Scenario.build_params`: its range), then the changed ones together.
+    """The changed parameters of ``scenario`` and the errors of its parameter fields: each text parsed by its
+    parameter's kind, a value equal to the default left out, the others checked alone, then together.
 
     Args:
         scenario: a registered scenario's name.
         texts: parameter name -> the text typed into its field.
     Returns:
-        ``(pairs, errors)``: the ``(name, value)`` pairs that differ from the defaults, in the order of ``texts``
-        (the run's ``scenario_params``), and the errors, by :func:`param_key` of the field (one line each), or under
-        ``""`` for values each valid alone but refused together. An unknown scenario gives no pairs and no errors
-        (the config refuses it).
+        ``(pairs, errors)``: the ``(name, value)`` pairs that differ from the defaults, in the order of ``texts``, and
+        the errors by :func:`param_key` of the field, or under ``""`` for values refused together. An unknown scenario
+        gives no pairs and no errors (the config refuses it).
     """
     try:
         found = get(scenario)
@@ -258,11 +254,8 @@ _HORIZONS: dict[tuple[Any, ...], tuple[int, float, Any, Any]] = {}
 
 
 def horizon(cfg: ExperimentConfig) -> tuple[int, float]:
-    """T, the steps of a rollout of ``cfg``'s problem, and its look-ahead's seconds a rollout
-    (:attr:`pemviz.core.problems.Problem.n_steps`, :attr:`~pemviz.core.problems.Problem.look_ahead_s`), as the run's
-    clock reads them: the problem built once per scene, parameters, PEM, crash gap and simulator
-    (:func:`pemviz.scenarios.registry.problem_for`); (:data:`pemviz.engine.cost.N_STEPS`, 0) where it cannot be
-    built (the run then says why)."""
+    """T, the steps of a rollout of ``cfg``'s problem, and its look-ahead's seconds a rollout, the problem built once
+    per scene; (:data:`pemviz.engine.cost.N_STEPS`, 0) where it cannot be built (the run then says why)."""
     return _horizon(cfg)[:2]
 
 
@@ -290,13 +283,10 @@ def _horizon(cfg: ExperimentConfig) -> tuple[int, float, Any, Any]:
 
 
 def run_cost(cfg: ExperimentConfig, n_steps: int | None = None, slowdown: float | None = None) -> RunCost:
-    """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of the plan its estimator states,
-    :func:`pemviz.estimators.run_plan`, on its problem's :func:`horizon`, or ``n_steps`` steps, no look-ahead and no
-    problem): simulations, memory of the largest batch, expected seconds as planned and with what may follow on its
-    scene (whatever the scene with ``n_steps``), on this machine as loaded now (times ``slowdown``; None:
-    :func:`pemviz.engine.resources.load_slowdown` of a pilot of the problem's rollouts,
-    :func:`pemviz.engine.cost.pilot_speed`, as the console's first progress line says them,
-    :class:`pemviz.sinks.StageClock`; about 0.3-0.7 s, read again after :data:`LOAD_FRESH_S`)."""
+    """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of its plan on its problem's :func:`horizon`,
+    or ``n_steps`` steps): simulations, memory of the largest batch, expected seconds as planned and with what may
+    follow, on this machine as loaded now (times ``slowdown``; None: :func:`pemviz.engine.resources.load_slowdown` of a
+    pilot, read again after :data:`LOAD_FRESH_S`)."""
     from pemviz.engine.experiment import stream_above  # the engine and the estimators import torch: only when asked
     from pemviz.estimators import run_plan
 

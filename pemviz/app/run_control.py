@@ -1,7 +1,5 @@
-"""Run control of a :class:`pemviz.app.session.Session`: Run / Stop, the cost of the run, the status line (stage,
-elapsed time, the time left in the stage and in the whole run), the progress bars, the accuracy of the final estimate
-and the form's errors. The experiment runs in a worker thread (:class:`pemviz.engine.experiment.Experiment`); its
-events reach the panel through a :class:`RunListener`, and Stop reaches it through the cancel token."""
+"""Run control of a :class:`pemviz.app.session.Session`: Run / Stop, the cost, the status line, the progress bars and
+the form's errors; the experiment runs in a worker thread, its events reach the panel through a :class:`RunListener`."""
 
 from __future__ import annotations
 

@@ -1,10 +1,6 @@
-"""What the viser panel knows about a run, built from the engine's events; no viser here.
-
-:class:`PanelRun` is an engine listener that keeps the run's plan, problem view, stage results, proposal curves,
-final estimate, least-robust rollouts (:class:`Trajectory`), event log and most likely failure. :func:`keep_runs`
-decides which runs stay for comparison, :func:`object_proposal_view` bins one object's detections by its distance
-ahead, and :func:`export_path` / :func:`export_run` write a run into ``recordings/`` without letting a name from the
-browser escape that folder."""
+"""What the viser panel knows about a run, built from the engine's events (:class:`PanelRun`), which runs stay for
+comparison (:func:`keep_runs`), and a run's export into ``recordings/`` without letting a name from the browser escape
+that folder. No viser here."""
 
 from __future__ import annotations
 
@@ -78,11 +74,9 @@ def object_proposal_view(
     event: RolloutsSampled, axis: ViewAxis, max_rollouts: int = MAX_VIEW_ROLLOUTS
 ) -> ProposalView | None:
     """q(detect) of the sampler and p(detect) of the PEM for the object ``axis.view_object`` over the states a batch
-    of several objects visited where it is visible (``axis.visible_column``), binned by its distance ahead
-    (``axis.distance_column``, metres; ``axis.edges``), as :func:`pemviz.core.proposal_view.proposal_view`; the
-    detectors are asked for the object's logits (:func:`pemviz.core.proposal_view.object_detect_probabilities`,
-    while ``event.sampler`` is the one that drew the batch) on at most ``max_rollouts`` rollouts. None for a batch
-    of one object a step, without the axis' columns or both detectors, or without a visible state.
+    of several objects visited where it is visible, binned by its distance ahead (metres; ``axis.edges``), as
+    :func:`pemviz.core.proposal_view.proposal_view`, on at most ``max_rollouts`` rollouts. None for a batch of one
+    object a step, without the axis' columns or both detectors, or without a visible state.
     """
     batch = event.batch
     names = tuple(batch.object_names or ())

@@ -1,8 +1,5 @@
-"""The 3D scene of a :class:`pemviz.app.session.Session`: the chosen rollout's cars, played step by step in sync
-with *Explain*, as its drawing object gives them (:mod:`pemviz.app.drawing`). A lane scene shows the ego and the
-object ahead, the sensor's zones, a ruler, the detections as a trail and a gate where the margin was breached; a
-scene of several objects every car seen from the ego. Before any rollout: the idle scene of the chosen scenario.
-Layout: :mod:`pemviz.app.scene_layout`."""
+"""The 3D scene of a :class:`pemviz.app.session.Session`: the chosen rollout's cars, played step by step in sync with
+*Explain*, as its drawing object gives them; before any rollout, the idle scene of the chosen scenario."""
 
 from __future__ import annotations
 
