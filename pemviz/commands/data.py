@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=f"Download the salient files from {data.ORIGIN_BASE_URL} into the user cache "
         f"({data.user_cache_dir()}) or --dest, checking each SHA-256; a bad download writes nothing.",
     )
-    f.add_argument("--dest", default=None, metavar="DIR", help="target folder (default: the user cache)")
+    f.add_argument("--dest", metavar="DIR", help="target folder (default: the user cache)")
     f.add_argument(
         "--base-url",
         default=data.ORIGIN_BASE_URL,

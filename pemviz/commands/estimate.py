@@ -60,7 +60,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     lp = p.add_mutually_exclusive_group()
     lp.add_argument(
         "--pem",
-        default=None,
         metavar="NAME|PATH",
         help=f"recompute log p from this PEM, {SETTINGS['pem'].allowed} (default: the log_p column, else "
         "the sidecar's PEM)",
@@ -69,7 +68,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     lq = p.add_mutually_exclusive_group()
     lq.add_argument(
         "--proposal",
-        default=None,
         metavar="CKPT|pem|naive50|mixed50",
         help="recompute log q from a proposal checkpoint or a named sampler "
         "(default: the log_q column, else the sidecar's proposal)",
@@ -84,7 +82,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--weights",
-        default=None,
         choices=CONVENTIONS,
         help="importance weights: to-failure = prod p/q over the steps before the failure step (pemviz's "
         "sampler); full = over every step but the last (the paper's eq. 6); both unbiased. Default: "
@@ -95,7 +92,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--json",
         dest="json_path",
-        default=None,
         metavar="PATH.json",
         help="write the estimate as one JSON document (log mu_hat in full float64; the estimate's fields as in "
         "pemviz run --json, and each stage's; format: pemviz.io.result.estimate_document)",
@@ -103,7 +99,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     rec = p.add_argument_group("recording (rerun)")
     rec.add_argument(
         "--save",
-        default=None,
         metavar="PATH.rrd",
         help="write the recording here (default recordings/estimate-<name>-<time>.rrd)",
     )

@@ -32,7 +32,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("result", metavar="RUN", help="the run's result document (pemviz run --json), or its recording")
     p.add_argument(
         "--out",
-        default=None,
         metavar="PAGE.html",
         help="where the page goes (default: RUN.html beside the source; its twin PAGE.md)",
     )

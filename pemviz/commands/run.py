@@ -88,7 +88,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_setting(p, "method")
     p.add_argument(
         "--preset",
-        default=None,
         help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}): {preset_help()}. A preset "
         "sets some of the values below; a flag given here overrides it.",
     )
@@ -98,7 +97,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--save-rollouts",
         dest="save_rollouts",
-        default=None,
         metavar="PATH.parquet",
         help="write the rollouts of every stage the estimate uses, each with its stage, sampler component and the "
         "log density it was weighed with, for `pemviz estimate` to reproduce the estimate "
@@ -114,7 +112,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--json",
         dest="json_path",
-        default=None,
         metavar="PATH.json",
         help="write the result as one JSON document: estimate, interval, verdict, requirement outcome, "
         "settings, seed, version, the recording's path (format: pemviz.io.result; schema: the user "
@@ -123,7 +120,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--junit",
         dest="junit_path",
-        default=None,
         metavar="PATH.xml",
         help="with --require: write the requirement as a JUnit XML test case (passed, failure when "
         "violated, error when undecided) for CI dashboards",
@@ -131,7 +127,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--report",
         dest="report_path",
-        default=None,
         metavar="PATH.html",
         help="write a safety-case report: one self-contained HTML page (and PATH.md, its Markdown twin) "
         "with the estimate, verdict, severity, scenario, PEM, settings and the sha256 of the inputs",

@@ -33,7 +33,6 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
     )
     rec.add_argument(
         "--save",
-        default=None,
         metavar="PATH.rrd",
         help="write the recording to this file "
         "(default recordings/<scenario>-<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd)",
@@ -51,7 +50,7 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
         metavar="URL",
         help=f"stream to a running rerun viewer (default URL {DEFAULT_VIEWER_URL}; or give it with --url)",
     )
-    rec.add_argument("--url", default=None, help="the viewer for --connect, e.g. rerun+http://127.0.0.1:9876/proxy")
+    rec.add_argument("--url", help="the viewer for --connect, e.g. rerun+http://127.0.0.1:9876/proxy")
     rec.add_argument("--headless", action="store_true", help="open no browser (with --serve)")
     rec.add_argument("--grpc-port", dest="grpc_port", type=int, default=9876, help="--serve: gRPC port (default 9876)")
     rec.add_argument(

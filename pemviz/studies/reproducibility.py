@@ -146,14 +146,14 @@ def main(argv: list[str] | None = None) -> None:
 
     p = argparse.ArgumentParser(prog="python -m pemviz.studies.reproducibility", description=__doc__.split("\n")[0])
     p.add_argument("--scenario", default="braking")
-    p.add_argument("--k", type=int, default=None, help="cross-entropy stages K (default: the default config's)")
-    p.add_argument("--n", type=int, default=None, help="rollouts per stage N")
-    p.add_argument("--n-final", type=int, default=None, help="rollouts of the final estimate N_e")
-    p.add_argument("--pretrain", type=int, default=None, help="pretraining rollouts")
-    p.add_argument("--chunk", type=int, default=None, help="ExperimentConfig.chunk_rollouts")
+    p.add_argument("--k", type=int, help="cross-entropy stages K (default: the default config's)")
+    p.add_argument("--n", type=int, help="rollouts per stage N")
+    p.add_argument("--n-final", type=int, help="rollouts of the final estimate N_e")
+    p.add_argument("--pretrain", type=int, help="pretraining rollouts")
+    p.add_argument("--chunk", type=int, help="ExperimentConfig.chunk_rollouts")
     p.add_argument("--executor", default="serial")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--plain-fallback", type=int, default=None, help="plain_fallback (0: the stages alone)")
+    p.add_argument("--plain-fallback", type=int, help="plain_fallback (0: the stages alone)")
     a = p.parse_args(argv)
     fields = {
         "plain_fallback": a.plain_fallback,
