@@ -49,13 +49,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "weights": "recomputed",
         "final_estimate": "last-stage",
     },
-    "quick": {
-        "n_stages": 8,
-        "ce_epochs": 200,
-        "pretrain_rollouts": 50,
-        "pretrain_epochs": 200,
-        "learning_rate": 2e-2,
-    },
+    "quick": {"n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2},
     "state-ce-step": {
         "target_share": 0.0,
         "plain_share": 0.0,

@@ -15,27 +15,11 @@ import viser.uplot as up
 from pemviz.app.captions import add_chart, set_chart, show_chart
 from pemviz.app.html import GREY as GREY_BOX
 from pemviz.app.html import box
-from pemviz.app.plots import (
-    LEGEND,
-    _ring,
-    axes,
-    off_scale_series,
-    robust_range,
-    run_colour,
-    run_series,
-    stage_values,
-)
+from pemviz.app.plots import LEGEND, _ring, axes, off_scale_series, robust_range, run_colour, run_series, stage_values
 from pemviz.app.runs import PanelRun
 from pemviz.core.proposal_view import ProposalView
 from pemviz.engine.events import RolloutsSampled
-from pemviz.sinks.colours import (
-    BLACK,
-    GREY,
-    css,
-    hex_colour,
-    stage_rgb,
-    stage_span,
-)
+from pemviz.sinks.colours import BLACK, GREY, css, hex_colour, stage_rgb, stage_span
 
 PROB, LOG_ODDS = "prob", "log_odds"
 LOG_ODDS_SPAN = 12.0
@@ -323,10 +307,7 @@ def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
     known = exact is not None and math.isfinite(exact)
     exact10 = exact / ln10 if exact is not None else math.nan  # log10 of the exact answer, drawn where known
     rng = robust_range(
-        np.concatenate(lines),
-        np.concatenate(matters),
-        **MU_HAT_RULE,
-        at_least=(exact10, exact10) if known else None,
+        np.concatenate(lines), np.concatenate(matters), **MU_HAT_RULE, at_least=(exact10, exact10) if known else None
     )
     data = [x, *(rng.drawn(y) for y in lines)]
     if known:

@@ -189,11 +189,7 @@ class RangeRules(TypedDict, total=False):
     min_pad: float
 
 
-STAGE_RULES: dict[str, RangeRules] = {
-    "log10_mu_hat": {"min_gap": 3.0, "min_pad": 0.05},
-    "gamma": {},
-    "nll": {},
-}
+STAGE_RULES: dict[str, RangeRules] = {"log10_mu_hat": {"min_gap": 3.0, "min_pad": 0.05}, "gamma": {}, "nll": {}}
 """:func:`robust_range` settings of the per-stage charts. log10 mu_hat: a stage more than 3 orders of magnitude (and
 twice the others' spread) from the others is off scale, at least 0.05 (log10 probability) of room each side;
 gamma and NLL keep every value (their fall over the stages is what they show)."""

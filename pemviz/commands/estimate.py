@@ -98,9 +98,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     rec = p.add_argument_group("recording (rerun)")
     rec.add_argument(
-        "--save",
-        metavar="PATH.rrd",
-        help="write the recording here (default recordings/estimate-<name>-<time>.rrd)",
+        "--save", metavar="PATH.rrd", help="write the recording here (default recordings/estimate-<name>-<time>.rrd)"
     )
     rec.add_argument("--no-record", action="store_true", help="write no recording")
     rec.add_argument(

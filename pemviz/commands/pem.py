@@ -20,14 +20,7 @@ from pemviz.pem.noise import nll, noise_training_data
 from pemviz.pem.recipes import NOISE_RECIPES, PEM_RECIPES
 from pemviz.pem.store import load_reference_pem, noise_pem_path, pem_path, save_noise_pem
 from pemviz.studies import noise_eval
-from pemviz.studies.pem_eval import (
-    MODEL_NAMES,
-    EvalConfig,
-    evaluate_pems,
-    format_csv,
-    format_markdown,
-    summary_lines,
-)
+from pemviz.studies.pem_eval import MODEL_NAMES, EvalConfig, evaluate_pems, format_csv, format_markdown, summary_lines
 from pemviz.studies.pem_eval_recording import write_recording
 
 NOISE_CSV = "pem-noise-eval.csv"
@@ -62,9 +55,7 @@ def _add_train(actions: argparse._SubParsersAction) -> None:
         "cross-validated; hetero-t: the noise PEM of range and lateral errors)",
     )
     t.add_argument(
-        "--epochs",
-        type=int,
-        help="epochs for ml-nn and hetero-t, trees for gbt (default: the model's, 300, 300, 100)",
+        "--epochs", type=int, help="epochs for ml-nn and hetero-t, trees for gbt (default: the model's, 300, 300, 100)"
     )
     t.add_argument("--seed", type=int, help="seed (default: the model's shipped seed)")
     t.add_argument(

@@ -31,9 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "report", DESCRIPTION)
     p.add_argument("result", metavar="RUN", help="the run's result document (pemviz run --json), or its recording")
     p.add_argument(
-        "--out",
-        metavar="PAGE.html",
-        help="where the page goes (default: RUN.html beside the source; its twin PAGE.md)",
+        "--out", metavar="PAGE.html", help="where the page goes (default: RUN.html beside the source; its twin PAGE.md)"
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing page and its twin")
     p.set_defaults(func=main)

@@ -11,15 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pemviz import commands
-from pemviz.commands import (
-    COMMANDS,
-    UsageError,
-    add_row,
-    add_setting,
-    interrupted,
-    pem_argument,
-    setting_error,
-)
+from pemviz.commands import COMMANDS, UsageError, add_row, add_setting, interrupted, pem_argument, setting_error
 from pemviz.commands.run_outputs import RunOutputs, plan_outputs
 from pemviz.commands.run_recording import (
     add_recording_args,

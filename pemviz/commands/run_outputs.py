@@ -125,10 +125,7 @@ def plan_outputs(
         flag: None
         if value is None
         else _checked(lambda v=value, s=suffix, f=flag: check_output_path(v, s, f, overwrite=overwrite))
-        for flag, value, suffix in (
-            ("--json", args.json_path, ".json"),
-            ("--junit", args.junit_path, ".xml"),
-        )
+        for flag, value, suffix in (("--json", args.json_path, ".json"), ("--junit", args.junit_path, ".xml"))
     }
     outputs = RunOutputs(recording, rollouts, found["--json"], found["--junit"], report, overwrite)
     check_distinct(outputs)

@@ -19,12 +19,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.io.rollout_format import (
-    SALIENT_COLUMNS,
-    RolloutFormatError,
-    RolloutMeta,
-    check_stage_counts,
-)
+from pemviz.io.rollout_format import SALIENT_COLUMNS, RolloutFormatError, RolloutMeta, check_stage_counts
 from pemviz.pem import braking_salient_inputs
 from pemviz.pem.encoding import INPUT_COLUMNS
 

@@ -101,10 +101,7 @@ def _stages_located(shares: FailureShares, rows: np.ndarray) -> list[tuple[int, 
 
 
 def failures_severity(
-    shares: FailureShares,
-    sampled: Mapping[int, RolloutsSampled],
-    problem: object,
-    rows: np.ndarray | None = None,
+    shares: FailureShares, sampled: Mapping[int, RolloutsSampled], problem: object, rows: np.ndarray | None = None
 ) -> FailureSeverity | None:
     """Each failure's min distance and impact speed (:func:`pemviz.core.severity.rollout_severity`, read from the
     rollout in its stage's batch) and their distribution by share of p.

@@ -94,11 +94,7 @@ def _stages_tab(view: ProblemView | None, features: bool = False) -> rrb.Contain
         ),
     )
     return rrb.Vertical(
-        proposal,
-        rrb.Grid(*series, grid_columns=4),
-        histograms,
-        row_shares=[1.0, 1.15, 0.6],
-        name=tab_name("stages"),
+        proposal, rrb.Grid(*series, grid_columns=4), histograms, row_shares=[1.0, 1.15, 0.6], name=tab_name("stages")
     )
 
 

@@ -49,11 +49,7 @@ def stage_row(res: StageResult, label: str) -> str:
 
 
 def estimate_markdown(
-    e: Estimate,
-    where: str,
-    exact_log_p: float | None,
-    reference: Reference | None,
-    final: FinalEstimate | None = None,
+    e: Estimate, where: str, exact_log_p: float | None, reference: Reference | None, final: FinalEstimate | None = None
 ) -> str:
     """The ``estimate`` document of ``e``, headed ``where`` (e.g. "Final estimate"): mu_hat with its interval (or its
     bound), k-hat, verdict, the exact answer (``exact_log_p``) or the ``reference`` where known and, for the

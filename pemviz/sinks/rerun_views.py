@@ -147,11 +147,7 @@ class Figure:
         grid = [[[x, 0.0], [x, h]] for x in X] + [[[0.0, y], [w, y]] for y in Y]
         stream.log(f"{self.path}/axes/grid", rr.LineStrips2D(grid, colors=GRID_RGBA, radii=-0.5), static=True)
         frame: list[list[list[float]]] = [[[0, 0], [w, 0], [w, h], [0, h], [0, 0]]]
-        stream.log(
-            f"{self.path}/axes/frame",
-            rr.LineStrips2D(frame, colors=AXIS_RGBA, radii=-1.0),
-            static=static,
-        )
+        stream.log(f"{self.path}/axes/frame", rr.LineStrips2D(frame, colors=AXIS_RGBA, radii=-1.0), static=static)
         pos = [[x, h + 0.045 * h] for x in X] + [[-0.06 * w, y] for y in Y]
         labels = [f"{v:g}" for v in xt] + [f"{v:g}" for v in yt]
         for text, xy in ((self.x_label, [w / 2, h + 0.13 * h]), (self.y_label, [-0.06 * w, -0.07 * h])):
