@@ -1,10 +1,6 @@
 """Groups of the failures of a run's final estimate (:mod:`pemviz.core.population`) for the listeners that show them:
-which rollout of which stage's kept batch each failure is, and the key of the decisive events it shares with others.
-
-Groups: the keys the drawing object gives (``failure_keys``), else the step at which the rollout fails
-(:func:`pemviz.estimators.base.failure_steps`), else one group. Severity: each located failure's min distance and
-impact speed (:func:`pemviz.core.severity.rollout_severity`) weighed by the shares (:func:`failures_severity`). No
-I/O."""
+which rollout of which stage's kept batch each failure is, the key of the decisive events it shares with others (the
+drawing object's ``failure_keys``, else the failure step), and the failures' severity by their shares. No I/O."""
 
 from __future__ import annotations
 

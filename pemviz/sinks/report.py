@@ -1,7 +1,5 @@
-"""A safety-case report of one run: one self-contained HTML page (inline styles, an inline SVG severity curve, no
-script) and its Markdown twin, from the run's result document (:func:`pemviz.io.result.result_document`): the
-estimate with its interval, ESS, verdict and exact answer or reference, the severity curve, the scenario, spec and
-PEM, the console's lines, the settings, seed, version, command and every input's sha256.
+"""A safety-case report of one run: one self-contained HTML page (inline styles and SVG, no script) and its Markdown
+twin, from the run's result document (:func:`pemviz.io.result.result_document`).
 """
 
 from __future__ import annotations

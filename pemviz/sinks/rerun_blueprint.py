@@ -1,11 +1,7 @@
 """The layout of a pemviz recording in rerun's viewer (the blueprint sent with it, :mod:`pemviz.sinks.recording`).
 
-rerun shows one timeline at a time, so the recording opens on ``step`` and every tab has content there. Three tabs,
-one per question: **Stages** (what the sampler learned: the proposal views of :mod:`pemviz.core.proposal_view` and
-:mod:`pemviz.sinks.rerun_features`, the per-stage figures of :mod:`pemviz.sinks.rerun_stage_figures`, the
-histograms), **Explain** (the most likely failure) and **Rollouts** (the kept rollouts and the scene's lanes);
-beside them the estimate, the run's description, the final failures and p(severity | failure). Everything here
-builds blueprint objects and logs nothing."""
+The recording opens on the ``step`` timeline and every tab has content there: **Stages** (what the sampler learned),
+**Explain** (the most likely failure) and **Rollouts** (the kept rollouts and the scene's lanes). Logs nothing."""
 
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
-"""The recording's rollouts (*Rollouts* tab, ``step`` timeline): which of a stage's rollouts are kept (one entity
-per signal, one series per rollout), which are featured as entities of their own (:func:`featured`: the least robust
-and the most likely failures, their detections and misses marked), and how both are logged. Featuring is kept to a
-few: each entity costs kilobytes and a millisecond.
+"""The recording's rollouts (*Rollouts* tab, ``step`` timeline): which of a stage's rollouts are kept (one entity per
+signal, one series per rollout), which few are featured as entities of their own (:func:`featured`), and how both are
+logged.
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
-"""The per-stage series of a recording as static figures, visible on every timeline (rerun draws every view on the one
-chosen timeline, so series over ``stage`` would be blank on ``step``).
-
-Each figure (:class:`pemviz.sinks.rerun_views.Figure`, re-logged after each stage): the series over the stages
-finished so far, for log10 mu_hat with its 95 % intervals and the exact answer or reference as a line; the y range
-covers the finite values (log10 mu_hat: of the stages with a failure) with 8 % padding. No I/O beyond the stream."""
+"""The per-stage series of a recording as static figures (:class:`pemviz.sinks.rerun_views.Figure`, re-logged after
+each stage), visible on every timeline: rerun draws every view on the one chosen timeline, so series over ``stage``
+would be blank on ``step``."""
 
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
 """What the rerun recording looks like (:mod:`pemviz.sinks.recording`): colours, figures with axes, the marginal
-proposal's bars, the words for a rollout's outcome, the run's description and the top-down scene of a problem whose
-drawing object draws one (:class:`pemviz.sinks.drawing.RecordingDrawing`). The layout is
-:mod:`pemviz.sinks.rerun_blueprint`'s.
-
-Everything here draws into a :class:`rerun.RecordingStream` it is given and keeps no state of a run.
+proposal's bars, a rollout's outcome in words, the run's description and the top-down scene. Everything here draws into
+a :class:`rerun.RecordingStream` it is given and keeps no state of a run.
 """
 
 from __future__ import annotations
@@ -27,11 +24,8 @@ from pemviz.sinks.drawing import recording_hooks
 
 def _pyarrow_without_pandas() -> None:
     """Let pyarrow settle, before rerun's first conversion, that this process hands it no pandas objects, without
-    importing pandas (about 0.2 s of a default run's 2.7 s). rerun turns numpy arrays into Arrow arrays with
-    ``pyarrow.array``, whose pandas shim imports pandas on first use only to see whether the array is a pandas one.
-    The import is refused for that one call (a finder that raises ``ImportError``, removed at once); pyarrow's paths
-    that need pandas (``to_pandas``, ``Table.from_pandas``) still import it when asked, as its shim retries there.
-    Nothing changes where pandas is imported already."""
+    importing pandas: the import is refused for that one call (a finder that raises ``ImportError``, removed at once);
+    pyarrow's paths that need pandas still import it when asked. Nothing changes where pandas is imported already."""
     import sys
 
     import pyarrow as pa
@@ -278,11 +272,9 @@ MARGINAL_PATH = "proposal_marginal"
 def log_marginal_proposal(stream: rr.RecordingStream, pv: ProposalView, rgb: tuple[int, ...]) -> None:
     """One stage's :class:`~pemviz.core.proposal_view.ProposalView` as bars per gap bin, on the current timeline.
 
-    Two charts: ``miss`` (q(miss) = 1 - q(detect), mean over the bin's visited states) and ``log_odds`` (the median
-    of log q(miss) / q(detect), nats, clipped to :data:`~pemviz.core.proposal_view.LOG_ODDS_SPAN_NATS`). In each bin:
-    the PEM's (grey, left half of the bin) and the sampler's (``rgb``, right half) as a narrow bar, and behind the
-    sampler's two light bars to its 10 % and 90 % quantiles, so the lighter band between them is the spread.
-    Empty bins have no bars. ``stats`` holds every array of the view (:class:`rerun.AnyValues`).
+    Two charts: ``miss`` (q(miss), mean over the bin's visited states) and ``log_odds`` (the median of log q(miss) /
+    q(detect), nats, clipped to :data:`~pemviz.core.proposal_view.LOG_ODDS_SPAN_NATS`): the PEM's (grey) and the
+    sampler's (``rgb``) bars, with the sampler's 10-90 % spread behind. ``stats`` holds every array of the view.
     """
     c, w = pv.centres_m, np.diff(pv.edges_m)
     empty = pv.n_states == 0
