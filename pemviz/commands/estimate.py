@@ -1,10 +1,6 @@
-"""``pemviz estimate ROLLOUTS.parquet``: the failure probability from logged rollouts, and a recording.
-
-The rollouts come from anywhere in the format of :mod:`pemviz.io.rollout_format`. log p and log q of every action
-come from the file's columns, or are recomputed from a PEM (``--pem``) and what sampled the rollouts
-(``--proposal``); without options, columns where present, else what the sidecar names. Weights follow the sidecar's
-convention (``--weights`` overrides; :mod:`pemviz.core.weights`) and pooling, and the mean importance weight checks
-``log q``. Everything is checked before the recording is created: bad input writes nothing.
+"""``pemviz estimate ROLLOUTS.parquet``: the failure probability from logged rollouts (:mod:`pemviz.io.rollout_format`),
+and a recording. log p and log q come from the file's columns, or are recomputed from a PEM (``--pem``) and what
+sampled the rollouts (``--proposal``). Everything is checked before the recording is created: bad input writes nothing.
 """
 
 from __future__ import annotations

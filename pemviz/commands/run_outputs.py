@@ -1,7 +1,5 @@
-"""The files a ``pemviz run`` will write, planned once from its arguments before any work: :func:`plan_outputs`
-checks every path (an existing file without ``--overwrite``, an unwritable folder, a wrong suffix, two outputs
-naming one file) and returns the :class:`RunOutputs` the sinks and result writer take their paths from. Nothing is
-created here.
+"""The files a ``pemviz run`` will write, planned and checked once from its arguments before any work
+(:func:`plan_outputs`); nothing is created here.
 """
 
 from __future__ import annotations

@@ -1,7 +1,5 @@
-"""Where ``pemviz run`` sends its recording: rerun's script flags (``--save``, ``--serve``, ``--connect``,
-``--stdout``, ``--headless``) with ``--no-record`` (:func:`add_recording_args`), the target asked for
-(:func:`recording_target`), the viewer check of ``--connect`` (:func:`probe_viewer`), ``--serve``'s sink
-(:func:`serve`) and the default name (:func:`default_recording_path`). Only :func:`serve` imports rerun.
+"""Where ``pemviz run`` sends its recording: rerun's script flags with ``--no-record``, the target asked for, the viewer
+check of ``--connect`` and the default name. Only :func:`serve` imports rerun.
 """
 
 from __future__ import annotations
