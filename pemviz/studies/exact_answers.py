@@ -32,9 +32,8 @@ class ExactAnswer:
 def exact_answer(
     name: str, pem_path: str | None = None, *, progress: Callable[[str], None] | None = None, recompute: bool = False
 ) -> ExactAnswer:
-    """The exact p_fail of a problem of :data:`~pemviz.scenarios.problems.PROBLEMS` (milliseconds where kept or in
-    closed form; 20-40 s of enumeration for ``main`` with another PEM or ``recompute``), ``progress`` receiving a
-    line per refinement.
+    """The exact p_fail of a problem of :data:`~pemviz.scenarios.problems.PROBLEMS`, ``progress`` receiving a line per
+    refinement.
 
     Raises:
         ValueError: an unknown name.

@@ -1,7 +1,6 @@
-"""The paper's Tables II and III (Innes & Ramamoorthy 2022) with repetitions, standard errors and the exact answer:
-a row is R repetitions of one config (:class:`RowSpec`), summarised by :func:`summarise_row` (mean +- std/sqrt(R),
-failures, NLL, ESS, ratio to the exact p_fail); :func:`write_recording` writes the proposal curves and the paper's
-Fig. 4. ``pemviz tables`` is its command line.
+"""The paper's Tables II and III (Innes & Ramamoorthy 2022) with repetitions, standard errors and the exact answer: a
+row is R repetitions of one config (:class:`RowSpec`), summarised by :func:`summarise_row`; ``pemviz tables`` is its
+command line.
 """
 
 from __future__ import annotations

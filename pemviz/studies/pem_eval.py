@@ -1,14 +1,7 @@
-"""PEM quality: 5-fold cross-validation of the PEM models (paper Table I) with calibration.
-
-Protocol (Innes & Ramamoorthy (2022), Table I; the authors' ``eval_kfold_class_models.py``):
-``StratifiedKFold(n_splits=5)`` on the detected label, no shuffle, the encoding's z-scores from the full file. Per
-fold: BCE (nats), ROC-AUC, average precision and expected calibration error (15 equal-width bins); the table reports
-the mean over folds beside the paper's. Models: ``ml-nn`` (:mod:`pemviz.pem.network`), ``lr`` (scikit-learn logistic
-regression), ``guess-mu`` (the training folds' rate), ``b-nn`` (:mod:`pemviz.pem.bayes`), ``gbt``
-(:mod:`pemviz.pem.trees`, the best by these folds).
-
-:func:`evaluate_pems` computes; :func:`format_markdown` / :func:`format_csv` and
-:func:`pemviz.studies.pem_eval_recording.write_recording` present."""
+"""PEM quality: 5-fold cross-validation of the PEM models (Innes & Ramamoorthy 2022, Table I; the authors'
+``eval_kfold_class_models.py``) with calibration: ``StratifiedKFold(n_splits=5)`` on the detected label, no shuffle,
+z-scores from the full file; per fold BCE (nats), ROC-AUC, average precision and expected calibration error (15 bins).
+Models: :data:`MODEL_NAMES`."""
 
 from __future__ import annotations
 

@@ -1,15 +1,10 @@
 """What a seed reproduces, and where: a run's fingerprint under the CPU's vector-dispatch settings, chunk sizes and
 executors.
 
-A detection is drawn as ``u <= q``, so a last-bit change of q can flip a draw; every number that decides a draw or a
-fit is computed in arithmetic fixed by IEEE 754 alone (:mod:`pemviz.core.exact`). The contract this module checks
-(:func:`compare`): on one machine any chunk size and executor give the same fingerprint, bit for bit; on any x86-64
-CPU and dispatch setting (:data:`DISPATCH_SETTINGS`) the same rollouts, thresholds, elites and printed numbers, log
-mu_hat within :data:`LOG_MU_RTOL` relative.
-
-``python -m pemviz.studies.reproducibility [--scenario S] [--k K] [--n N] [--n-final N_e] [--chunk C] [--executor E]
-[--seed S] [--plain-fallback R]`` prints one run's fingerprint as JSON; ``benchmarks/reproducibility.py`` runs the
-matrix."""
+The contract this module checks (:func:`compare`): on one machine any chunk size and executor give the same
+fingerprint, bit for bit; on any x86-64 CPU and dispatch setting (:data:`DISPATCH_SETTINGS`) the same rollouts,
+thresholds, elites and printed numbers, log mu_hat within :data:`LOG_MU_RTOL` relative (:mod:`pemviz.core.exact`).
+``python -m pemviz.studies.reproducibility --help`` runs one; ``benchmarks/reproducibility.py`` the matrix."""
 
 from __future__ import annotations
 
