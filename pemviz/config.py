@@ -2,8 +2,7 @@
 
 What each knob is (symbol, range, help, flag) lives in :data:`pemviz.settings.SETTINGS`, which the config's checks, the
 command line, the panel's form and the estimators all read. This module holds :class:`ExperimentConfig`, its checks of
-the settings against each other and :class:`ConfigError`.
-"""
+the settings against each other and :class:`ConfigError`."""
 
 from __future__ import annotations
 
@@ -61,8 +60,7 @@ class Execution:
     executor: where rollouts are simulated, one of :data:`EXECUTORS`.
     workers: the worker processes of ``executor="local"`` (None: every usable core; 1: this process).
     ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
-    chunk_rollouts: None (the default streaming) or the most rollouts simulated and scored at a time (memory).
-    """
+    chunk_rollouts: None (the default streaming) or the most rollouts simulated and scored at a time (memory)."""
 
     executor: str = "local"
     workers: int | None = None
@@ -80,8 +78,7 @@ class StopRule:
     require: None or ``"p < T"`` (``<``, ``<=``, ``>``, ``>=``; T in (0, 1)): final batches until an alpha-spending
         sequential test decides it (:mod:`pemviz.core.requirement`).
     max_sims: with a stop rule, the most simulations in all (None: :data:`DEFAULT_MAX_SIMS`); at least the planned.
-    max_time_s: with ``rel_error``, no batch is started or sized to end after this many seconds (None: no cap).
-    """
+    max_time_s: with ``rel_error``, no batch is started or sized to end after this many seconds (None: no cap)."""
 
     rel_error: float | None = None
     require: str | None = None
@@ -97,8 +94,7 @@ class Perception:
     pem: path of PEM weights, or None for the shipped default.
     pem_uncertainty: re-weight the rollouts under every member of the PEM's bootstrap ensemble and under the
         logit shifts :data:`pemviz.scenarios.problems.PEM_SHIFTS` (:mod:`pemviz.core.reweight`).
-    pem_shift: None or D: re-weight the rollouts under the PEM with every logit shifted by D (log-odds).
-    """
+    pem_shift: None or D: re-weight the rollouts under the PEM with every logit shifted by D (log-odds)."""
 
     pem: str | None = None
     pem_uncertainty: bool = False
@@ -136,8 +132,7 @@ class ExperimentConfig:
         ams: splitting's settings (:class:`pemviz.methods.ams.AmsSettings`).
         fallback: the retry and plain Monte Carlo after a method's stages (:class:`pemviz.settings.FallbackSettings`).
         method_settings: an instance of the method's :attr:`pemviz.methods.Method.settings` (None: its defaults; for a
-            method without them, None).
-    """
+            method without them, None)."""
 
     method: str = DEFAULT_METHOD
     n_per_stage: int = 100
@@ -164,8 +159,7 @@ class ExperimentConfig:
 
         Raises:
             ConfigError: a setting out of range or against another, or another built-in method's own setting changed;
-                TypeError: a name that is no setting.
-        """
+                TypeError: a name that is no setting."""
         method = method_or_none(settings.get("method", DEFAULT_METHOD))  # None: refused when the config is checked
         kind = method.settings_class() if method else None  # the method's own settings class, or None
         mine = _names(kind)
@@ -198,8 +192,7 @@ class ExperimentConfig:
         settings (:attr:`method_settings`).
 
         Raises:
-            AttributeError: not a setting (of this run's method).
-        """
+            AttributeError: not a setting (of this run's method)."""
         if name in CROSS_ENTROPY:
             return getattr(self.adaptive, name)
         group = GROUP_OF.get(name)
@@ -367,8 +360,7 @@ def default_of(name: str) -> Any:
     dataclasses without making a config.
 
     Raises:
-        KeyError: not a setting.
-    """
+        KeyError: not a setting."""
     cls = CrossEntropySettings if name in CROSS_ENTROPY else GROUPS.get(GROUP_OF.get(name, ""), ExperimentConfig)
     for f in dataclasses.fields(cls):
         if f.name == name:

@@ -1,7 +1,6 @@
 """The runs of the conformance kit (:mod:`pemviz.testing`): an experiment driven by the engine (:func:`run_engine`),
 with its rollout file and recording (:func:`run_with_files`), each sink's errors kept for the check that owns it.
-Importing this module imports no simulator, PEM, recording library or torch.
-"""
+Importing this module imports no simulator, PEM, recording library or torch."""
 
 from __future__ import annotations
 

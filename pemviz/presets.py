@@ -1,7 +1,6 @@
 """Named sampler settings (presets), each applied on top of :class:`pemviz.config.ExperimentConfig`'s defaults:
 the recommended sampler, the paper's, the authors' code's, a quick one and the default before its mixture over
-rollouts. Read by ``pemviz run --preset``, the panel's preset dropdown, ``validate`` and ``tables``.
-"""
+rollouts. Read by ``pemviz run --preset``, the panel's preset dropdown, ``validate`` and ``tables``."""
 
 from __future__ import annotations
 

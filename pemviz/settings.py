@@ -3,8 +3,7 @@
 Each setting's symbol, words, range, unit, help, flag and owner is a :class:`Setting` in :data:`SETTINGS`, read by the
 config's checks, the command line, the panel's form and the estimators (:func:`settings_of`); the allowed choices and
 limits live beside it. The cross-entropy sampler's rows are the fields of
-:class:`pemviz.methods.adaptive.CrossEntropySettings`; the fallback's those of :class:`FallbackSettings` here.
-"""
+:class:`pemviz.methods.adaptive.CrossEntropySettings`; the fallback's those of :class:`FallbackSettings` here."""
 
 from __future__ import annotations
 
@@ -106,8 +105,7 @@ class FallbackSettings:
         an operating design domain.
     retry_factor: before that plain Monte Carlo, the stages once more with N this many times as large
         (:meth:`retry_n`), from a stream of their own. 0 or 1: no retry. Only with ``plain_fallback`` > 0 and no stop
-        rule.
-    """
+        rule."""
 
     plain_fallback: int = setting(
         500,
@@ -150,8 +148,7 @@ def plain_fallback_most(ratio: int, spent: int, max_sims: int | None = None) -> 
     """The most plain rollouts the fallback (:class:`pemviz.estimators.fallback.PlainFallback`) draws after stages that
     simulated ``spent`` rollout-equivalents: ``ratio`` (``plain_fallback``) times ``spent`` (at least 1), at most
     :data:`PLAIN_FALLBACK_MOST` and what the run's cap ``max_sims`` leaves
-    (:attr:`pemviz.config.ExperimentConfig.most_simulations`); 0 when ``ratio`` <= 0 or nothing is left.
-    """
+    (:attr:`pemviz.config.ExperimentConfig.most_simulations`); 0 when ``ratio`` <= 0 or nothing is left."""
     if ratio <= 0:
         return 0
     most = min(int(ratio) * max(1, int(spent)), PLAIN_FALLBACK_MOST)
@@ -183,8 +180,7 @@ class Setting:
         choice_help: (value, what it does) for each choice.
         flags: the command-line flags, the first the one error messages name (empty: no flag).
         panel: where the panel's form shows it (:data:`PANEL_PLACES`; empty: not shown).
-        owner: who reads it: :data:`RUN`, :data:`FALLBACK` or the method whose estimator reads it.
-    """
+        owner: who reads it: :data:`RUN`, :data:`FALLBACK` or the method whose estimator reads it."""
 
     name: str
     words: str
@@ -302,8 +298,7 @@ class Setting:
 
         Raises:
             ValueError: empty, not a number, not finite, or not whole where it must be; the message says what
-                to type, in :attr:`allowed`'s words.
-        """
+                to type, in :attr:`allowed`'s words."""
         raw = str(text).strip()
         if self.optional and raw.lower() == "none":  # what the messages say to type for "no value"
             return None
@@ -486,8 +481,7 @@ class ConfigError(ValueError):
 
     Attributes:
         field: the :class:`~pemviz.config.ExperimentConfig` attribute (or the method's setting) at fault (None when not
-            one field).
-    """
+            one field)."""
 
     def __init__(self, message: str, field: str | None = None) -> None:
         super().__init__(message)
@@ -501,8 +495,7 @@ def rows_of(cls: type, owner: str) -> dict[str, Setting]:
     sampler's are rows of :data:`SETTINGS`).
 
     Raises:
-        TypeError: a field without a row (not made by :func:`setting`), or a name the settings table already has.
-    """
+        TypeError: a field without a row (not made by :func:`setting`), or a name the settings table already has."""
     skip = CROSS_ENTROPY if issubclass(cls, CrossEntropySettings) else frozenset()
     for f in dataclasses.fields(cls):
         if f.name not in skip and (ROW not in f.metadata or f.name in SETTINGS):
@@ -516,8 +509,7 @@ def check_settings(settings: object, owner: str = "") -> None:
 
     Raises:
         ConfigError: the first that is not, in one line (the config's words: ``coin_share (eps) = 2.0 is invalid: the
-            coin's share eps must be a number in (0, 1)``); TypeError: as :func:`rows_of`.
-    """
+            coin's share eps must be a number in (0, 1)``); TypeError: as :func:`rows_of`."""
     for s in rows_of(type(settings), owner).values():
         value = getattr(settings, s.name)
         if not s.accepts(value):

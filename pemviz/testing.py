@@ -9,8 +9,7 @@ method, the way pemviz's own tests do::
 
 Each returns a :class:`Report` and raises :class:`ConformanceError` (an AssertionError naming the subject, the check
 and what was wrong) at the first failing check. Each takes seconds; files go to a temporary folder (``folder=``
-keeps them). Importing this module imports no simulator, PEM, recording library or torch.
-"""
+keeps them). Importing this module imports no simulator, PEM, recording library or torch."""
 
 from __future__ import annotations
 
@@ -71,8 +70,7 @@ class Report:
         subject: ``scenario braking``, ``estimator adaptive``.
         passed: the checks that passed, in the order they ran.
         skipped: ``(check, reason)`` of those that do not apply (a scenario without a single simulator, a method
-            without importance weights).
-    """
+            without importance weights)."""
 
     subject: str
     passed: tuple[str, ...]

@@ -1,7 +1,6 @@
 """What the panel asks of a scenario's drawing object (:attr:`pemviz.core.problem_view.ProblemView.drawing`): the
 hooks of :class:`PanelDrawing`, returning plain data (:mod:`pemviz.scenarios.panel_data`), so the panel names no
-scenario: a lane scene (:class:`LanePanel`) or several objects around the ego (:class:`ObjectsPanel`).
-"""
+scenario: a lane scene (:class:`LanePanel`) or several objects around the ego (:class:`ObjectsPanel`)."""
 
 from __future__ import annotations
 

@@ -30,8 +30,7 @@ class ExperimentTab:
 
     Args:
         client: the viser client the tab draws into.
-        app: the server (the form's first values and preset).
-    """
+        app: the server (the form's first values and preset)."""
 
     def __init__(self, client: viser.ClientHandle, app: PanelHost) -> None:
         self.client, self.app = client, app
@@ -131,8 +130,7 @@ class ExperimentTab:
 
     def echo(self) -> None:
         """Send every field's value as the server has it back to the browser, so the form shows what runs (viser's
-        client throttles GUI updates at 50 ms and can drop a value typed just before Run).
-        """
+        client throttles GUI updates at 50 ms and can drop a value typed just before Run)."""
         with self.client.atomic():
             for handle in (
                 *self.fields.values(),

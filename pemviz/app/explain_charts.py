@@ -1,6 +1,5 @@
 """uPlot figures of *Explain*: what the system under test did along the rollout explained (a lane scene's brake and
-acceleration; for several objects, car 0's gap, lateral offset, track and the ACC's acceleration).
-"""
+acceleration; for several objects, car 0's gap, lateral offset, track and the ACC's acceleration)."""
 
 from __future__ import annotations
 

@@ -43,8 +43,7 @@ class ExplainTab:
     Args:
         client: the viser client the tab draws into.
         strip_title: the first strip chart's title before a rollout is shown (the idle scene's
-            :attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`).
-    """
+            :attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`)."""
 
     def __init__(self, client: viser.ClientHandle, strip_title: str = "distance and speeds") -> None:
         self.client, self.strip_title = client, strip_title

@@ -44,8 +44,7 @@ def parse_number(field: Setting, text: str) -> tuple[float | int | None, str]:
     """``(value, "")`` for a valid entry, ``(None, reason)`` otherwise; the reason names the field in words.
 
     Parsed by :meth:`pemviz.settings.Setting.parse` (as the command line's flags are), then checked against the
-    setting's range. Nothing is rounded or clipped.
-    """
+    setting's range. Nothing is rounded or clipped."""
     if field.optional and str(text).strip() == "":  # an optional setting left empty: its default (None)
         return None, ""
     try:
@@ -91,8 +90,7 @@ def parse_own(method: str, texts: Mapping[str, str]) -> tuple[dict[str, Any], di
         texts: setting name -> the text typed into its field.
     Returns:
         ``(values, errors)``: name -> value of each valid field (the config takes them by name,
-        :meth:`pemviz.config.ExperimentConfig.of`), and name -> one line of each refused one.
-    """
+        :meth:`pemviz.config.ExperimentConfig.of`), and name -> one line of each refused one."""
     rows = {s.name: s for s in own_rows(method)}
     values: dict[str, Any] = {}
     errors: dict[str, str] = {}
@@ -148,8 +146,7 @@ def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[s
     Returns:
         ``(pairs, errors)``: the ``(name, value)`` pairs that differ from the defaults, in the order of ``texts``, and
         the errors by :func:`param_key` of the field, or under ``""`` for values refused together. An unknown scenario
-        gives no pairs and no errors (the config refuses it).
-    """
+        gives no pairs and no errors (the config refuses it)."""
     try:
         found = get(scenario)
     except KeyError:
@@ -222,8 +219,7 @@ def parse_form(
             ``scenario_params`` are the changed ones (``()``: none changed). None: ``base``'s are kept.
         own: the chosen method's own settings' fields, name -> the text typed (:func:`parse_own`): each goes into the
             config by its name, as its flag on ``pemviz run`` does; errors by the setting's name. None or ``{}``:
-            ``base``'s settings if it is of that method, else the method's defaults.
-    """
+            ``base``'s settings if it is of that method, else the method's defaults."""
     errors: dict[str, str] = {}
     values: dict[str, Any] = {}
     for key, text in texts.items():

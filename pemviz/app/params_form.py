@@ -29,8 +29,7 @@ class ChoiceFolder:
 
     Args:
         client: the viser client the folder draws into.
-        config0: the panel's starting config (its values are the first texts of the value it is of).
-    """
+        config0: the panel's starting config (its values are the first texts of the value it is of)."""
 
     title = ""
     """The folder's label."""
@@ -109,8 +108,7 @@ class ChoiceFolder:
 class ScenarioParamsForm(ChoiceFolder):
     """The folder *scenario parameters* (collapsed at first): a field per parameter of the chosen scenario, labelled
     with its name and unit, first showing the starting config's value or the scenario's default; only the fields
-    changed from the defaults go into the run (:func:`pemviz.app.form.parse_params`).
-    """
+    changed from the defaults go into the run (:func:`pemviz.app.form.parse_params`)."""
 
     title = "scenario parameters"
 

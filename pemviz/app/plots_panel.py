@@ -19,8 +19,7 @@ class PlotsPanel:
 
     Args:
         client: the viser client the panel draws into.
-        explain: the *Explain* tab, built in the panel's middle tab.
-    """
+        explain: the *Explain* tab, built in the panel's middle tab."""
 
     def __init__(self, client: viser.ClientHandle, explain: ExplainTab) -> None:
         self.client, self.explain = client, explain

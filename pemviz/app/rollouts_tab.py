@@ -77,8 +77,7 @@ class RolloutsTab:
     Args:
         client: the viser client the tab draws into.
         lock: the session's lock.
-        scene: the 3D scene that shows the chosen rollout.
-    """
+        scene: the 3D scene that shows the chosen rollout."""
 
     def __init__(self, client: viser.ClientHandle, lock: threading.RLock, scene: SceneView) -> None:
         self.client, self.lock, self.scene = client, lock, scene

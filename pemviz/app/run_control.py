@@ -42,8 +42,7 @@ class RunControl:
         rollouts_tab: the *Rollouts* tab, which lists it.
         scene: the 3D scene, cleared for it.
         explain: the *Explain* tab.
-        plots_panel: the plots panel, refreshed as it goes.
-    """
+        plots_panel: the plots panel, refreshed as it goes."""
 
     def __init__(
         self,
@@ -102,8 +101,7 @@ class RunControl:
         """Start a run with the form's values; returns why it was refused instead.
 
         A run whose cost is above the limits (:meth:`pemviz.engine.cost.RunCost.needs_confirm`) starts only
-        ``confirmed`` (the *Run anyway* button).
-        """
+        ``confirmed`` (the *Run anyway* button)."""
         with self.lock:
             if self.running:
                 return "a run is going: press Stop first"

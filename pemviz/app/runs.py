@@ -76,8 +76,7 @@ def object_proposal_view(
     """q(detect) of the sampler and p(detect) of the PEM for the object ``axis.view_object`` over the states a batch
     of several objects visited where it is visible, binned by its distance ahead (metres; ``axis.edges``), as
     :func:`pemviz.core.proposal_view.proposal_view`, on at most ``max_rollouts`` rollouts. None for a batch of one
-    object a step, without the axis' columns or both detectors, or without a visible state.
-    """
+    object a step, without the axis' columns or both detectors, or without a visible state."""
     batch = event.batch
     names = tuple(batch.object_names or ())
     obj, edges_m = axis.view_object, np.asarray(axis.edges, dtype=np.float64)
@@ -120,8 +119,7 @@ _EXPORT_NAME_OK = re.compile(r"[^A-Za-z0-9._-]")
 
 def keep_runs(runs: list[PanelRun], new: PanelRun, max_runs: int = MAX_RUNS) -> list[PanelRun]:
     """The runs kept once ``new`` starts: at most ``max_runs``, oldest first; pinned and running runs stay, then
-    unpinned stopped or failed runs are dropped first, then unpinned finished ones.
-    """
+    unpinned stopped or failed runs are dropped first, then unpinned finished ones."""
     kept = list(runs) + [new]
     for statuses in (("cancelled", "failed"), ("finished",)):
         for r in list(kept):
@@ -215,8 +213,7 @@ class Trajectory:
         """float64 [T] the observation ``name`` of the rollout.
 
         Raises:
-            ValueError: the rollout has no such observation.
-        """
+            ValueError: the rollout has no such observation."""
         names = tuple(self.batch.observation_names)
         if name not in names:
             raise ValueError(f"the rollout has no observation {name!r} ({', '.join(names)})")
@@ -262,8 +259,7 @@ def least_robust(
     kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJECTORIES, features: FeaturesFn | None = None
 ) -> list[Trajectory]:
     """Merge a stage's rollouts into the kept list: the ``n`` least robust, least first, ties the earlier stage /
-    lower index first (``features``: as :func:`trajectory`).
-    """
+    lower index first (``features``: as :func:`trajectory`)."""
     if n <= 0 or event.batch.n == 0:
         return list(kept)
     r = np.asarray(event.robustness, dtype=np.float64)
@@ -278,8 +274,7 @@ class Population:
 
     Attributes:
         grouping: the failures, where each lies in the kept batches, their groups.
-        rollouts: per rank, the failure as a :class:`Trajectory`, or None where its stage kept only a sample.
-    """
+        rollouts: per rank, the failure as a :class:`Trajectory`, or None where its stage kept only a sample."""
 
     grouping: FailureGrouping
     rollouts: tuple[Trajectory | None, ...]
@@ -323,8 +318,7 @@ def population_of(
 
 class PanelRun(Sink):
     """One run as the panel shows it; an engine listener (call it with each event), thread-safe: readers take
-    :attr:`lock` or copy the (replaced, never mutated) lists.
-    """
+    :attr:`lock` or copy the (replaced, never mutated) lists."""
 
     def __init__(self, run_id: int, config: ExperimentConfig) -> None:
         self.run_id = run_id
@@ -501,8 +495,7 @@ def sanitize_export_name(name: str) -> str:
     dots are stripped, and ``.rrd`` is appended unless present.
 
     Raises:
-        ValueError: nothing usable is left (e.g. ``''``, ``'..'``, ``'/'``).
-    """
+        ValueError: nothing usable is left (e.g. ``''``, ``'..'``, ``'/'``)."""
     base = str(name).replace("\\", "/").split("/")[-1].strip()
     base = _EXPORT_NAME_OK.sub("_", base).lstrip(".")
     if base.lower().endswith(".rrd"):
@@ -519,8 +512,7 @@ def export_path(recordings_dir: str | os.PathLike, name: str) -> Path:
     """``recordings_dir / sanitize_export_name(name)``, checked to lie inside ``recordings_dir``.
 
     Raises:
-        ValueError: an unusable name, or a path that would leave ``recordings_dir``.
-    """
+        ValueError: an unusable name, or a path that would leave ``recordings_dir``."""
     root = Path(recordings_dir).resolve()
     path = root / sanitize_export_name(name)
     if path.resolve().parent != root:  # e.g. a symlink planted under the name
@@ -532,8 +524,7 @@ def export_run(record: PanelRun, path: Path) -> Path:
     """Replay a run's events into a rerun recording at ``path`` (written to a temp file, then moved).
 
     Returns:
-        ``path``. Nothing is left at ``path`` (or beside it) if writing fails.
-    """
+        ``path``. Nothing is left at ``path`` (or beside it) if writing fails."""
     with record.lock:
         events = list(record.events)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -30,8 +30,7 @@ class RunsTab:
         app: the server (the recordings folder).
         lock: the session's lock.
         rollouts_tab: the *Rollouts* tab, which lists the run chosen here.
-        plots_panel: the plots panel, whose *Compare* tab shows the kept runs.
-    """
+        plots_panel: the plots panel, whose *Compare* tab shows the kept runs."""
 
     def __init__(
         self,
@@ -87,8 +86,7 @@ class RunsTab:
         """Write a kept run to ``recordings_dir / <sanitised name>.rrd``.
 
         Raises:
-            ValueError: the run is not kept or has no events, or an unusable name.
-        """
+            ValueError: the run is not kept or has no events, or an unusable name."""
         record = self.kept_run(run_id)
         if not record.events:
             raise ValueError(f"{record.short_label} has nothing to export yet")

@@ -96,8 +96,7 @@ def add_lane_nodes(
     and its label.
 
     Returns:
-        (every node made, in the order made; the object's box; the ruler; the ruler's label).
-    """
+        (every node made, in the order made; the object's box; the ruler; the ruler's label)."""
     road_len, x0, lane = 240.0, -60.0, 4.0
     road = scene.add_box(
         "/road",

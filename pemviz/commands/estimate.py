@@ -113,8 +113,7 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
 
     Raises:
         UsageError: a column asked for or needed is absent and nothing names how to recompute it.
-        FileNotFoundError / ValueError: a PEM or proposal that cannot be loaded.
-    """
+        FileNotFoundError / ValueError: a PEM or proposal that cannot be loaded."""
     meta, base = data.meta, (data.path.parent if data.path else Path("."))
     pem_ref = args.pem or meta.pem
     pem_cache: dict[str, Any] = {}
@@ -270,8 +269,7 @@ def check_plausible(e: Any, q_src: str) -> None:
     at 1, :func:`pemviz.core.estimate.estimate`).
 
     Raises:
-        UsageError: one line naming the proposal and the numbers.
-    """
+        UsageError: one line naming the proposal and the numbers."""
     if e.log_mean_weight > math.log(1000.0):
         raise UsageError(
             f"mu_hat = {format_probability(e.log_mu_hat)} with mean importance weight "
@@ -289,8 +287,7 @@ def pem_spread_lines(
 
     Raises:
         UsageError: a file of several objects or with measurement errors (its rows are not in it), a PEM without a
-            shipped ensemble, or a PEM that cannot be read.
-    """
+            shipped ensemble, or a PEM that cannot be read."""
     from pemviz.core.detectors import PEMDetector
     from pemviz.core.reweight import Alternative, PemSpread, ShiftedDetector
     from pemviz.pem.ensemble import ensemble_for, load_ensemble
@@ -348,8 +345,7 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
     under a unique temporary name and moved to ``PATH`` once complete (:func:`pemviz.core.files.atomic_write`).
 
     Raises:
-        OSError: the file could not be written (nothing is left); OutputExists: ``PATH`` exists, no ``overwrite``.
-    """
+        OSError: the file could not be written (nothing is left); OutputExists: ``PATH`` exists, no ``overwrite``."""
     import rerun as rr  # only when a recording is asked for
 
     def log(stream: rr.RecordingStream) -> None:
@@ -406,8 +402,7 @@ def main(args: argparse.Namespace) -> int:
         The exit status, 0.
 
     Raises:
-        UsageError: a bad metric, PEM or output path, or a run weighed with a look-ahead this version cannot rebuild.
-    """
+        UsageError: a bad metric, PEM or output path, or a run weighed with a look-ahead this version cannot rebuild."""
     if not SETTINGS["metric"].accepts(args.metric):
         raise UsageError(f"--metric {args.metric!r}: use {SETTINGS['metric'].allowed}")
     pem_argument(args.pem)

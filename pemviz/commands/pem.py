@@ -137,8 +137,7 @@ def train_main(args: argparse.Namespace) -> int:
         The exit status: 0, or 1 after one error line when the salient data cannot be read.
 
     Raises:
-        UsageError: an unknown model, ``--epochs`` < 1, a bad ``--ensemble`` or output path.
-    """
+        UsageError: an unknown model, ``--epochs`` < 1, a bad ``--ensemble`` or output path."""
     if args.model not in PEM_RECIPES and args.model not in NOISE_RECIPES:
         raise UsageError(f"--model {args.model!r}: use one of {', '.join([*PEM_RECIPES, *NOISE_RECIPES])}")
     if args.epochs is not None and args.epochs < 1:
@@ -305,8 +304,7 @@ def eval_main(args: argparse.Namespace) -> int:
         The exit status: 0, or 1 after one error line when the salient data cannot be read.
 
     Raises:
-        UsageError: a bad model list, fold list, ``--ensemble``, ``--jobs`` or output path.
-    """
+        UsageError: a bad model list, fold list, ``--ensemble``, ``--jobs`` or output path."""
     config, noise_config = eval_config_from_args(args)
     if getattr(args, "ensemble", None) is not None and (args.ensemble < 2 or args.jobs < 1):
         raise UsageError(f"--ensemble {args.ensemble} --jobs {args.jobs}: give M >= 2 members and at least 1 job")

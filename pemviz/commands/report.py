@@ -1,7 +1,6 @@
 """``pemviz report RUN``: a safety-case report of a run, one self-contained HTML page and its Markdown twin, from
 the run's result document (:mod:`pemviz.sinks.report`): ``--json RESULT.json``, or the ``run.result.json`` a
-recording run writes beside ``run.rrd``. ``pemviz run --report PAGE.html`` writes the same page at the end of a run.
-"""
+recording run writes beside ``run.rrd``. ``pemviz run --report PAGE.html`` writes the same page at the end of a run."""
 
 from __future__ import annotations
 
@@ -41,8 +40,7 @@ def read_result(path: Path) -> dict:
     """The result document at ``path``.
 
     Raises:
-        UsageError: not a readable JSON file, or not a pemviz result document (one line saying what it is).
-    """
+        UsageError: not a readable JSON file, or not a pemviz result document (one line saying what it is)."""
     if not path.exists():
         raise UsageError(f"{path}: no such file")
     if path.is_dir():
@@ -85,8 +83,7 @@ def main(args: argparse.Namespace) -> int:
 
     Raises:
         UsageError: a page or twin that cannot be written (or exists without ``--overwrite``), or a result document
-            that lacks a field.
-    """
+            that lacks a field."""
     src = Path(args.result)
     doc = read_result(src)
     name = src.name[: -len(RESULT_BESIDE_SUFFIX)] if src.name.endswith(RESULT_BESIDE_SUFFIX) else src.stem

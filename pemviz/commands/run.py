@@ -197,8 +197,7 @@ def scenario_params(
     Raises:
         ConfigError: an unknown scenario, a text that is not NAME=VALUE, a name that is not one of the scenario's
             parameters (the message lists them), a value not of its type or outside the dataclass's range, a name
-            given twice; one line.
-    """
+            given twice; one line."""
     from pemviz.scenarios.parameters import ParameterError, parse_assignments
     from pemviz.settings import SETTINGS
 
@@ -287,8 +286,7 @@ def write_results(
     (:func:`plan_outputs`).
 
     Raises:
-        OSError, pemviz.core.files.OutputExists: a file that could not be written (nothing partial is left).
-    """
+        OSError, pemviz.core.files.OutputExists: a file that could not be written (nothing partial is left)."""
     from pemviz.io.result import result_beside, write_junit, write_result_json
 
     json_path, junit_path, report_path = outputs.result_files
@@ -315,8 +313,7 @@ def main(args: argparse.Namespace) -> int:
         The exit status of the run (:func:`_run_experiment`).
 
     Raises:
-        UsageError: a bad setting, PEM or output path, or ``--executor ray`` without Ray.
-    """
+        UsageError: a bad setting, PEM or output path, or ``--executor ray`` without Ray."""
     if commands.AS_PROGRAM:  # scipy.special, which the PEM's modules import, without numpy's unused submodules
         from pemviz.sinks.process import import_scipy_special_lean
 

@@ -1,6 +1,5 @@
 """The files a ``pemviz run`` will write, planned and checked once from its arguments before any work
-(:func:`plan_outputs`); nothing is created here.
-"""
+(:func:`plan_outputs`); nothing is created here."""
 
 from __future__ import annotations
 
@@ -25,8 +24,7 @@ class RunOutputs:
         recording: the ``.rrd`` recording when it goes to a file (``--save``, or the default under ``recordings/``).
         rollouts: the rollout file (``--save-rollouts``; its sidecar and proposal checkpoint beside it).
         json, junit, report: ``--json``, ``--junit`` and ``--report`` (the report's Markdown twin beside it).
-        overwrite: ``--overwrite``: existing files may be replaced.
-    """
+        overwrite: ``--overwrite``: existing files may be replaced."""
 
     recording: Path | None = None
     rollouts: Path | None = None
@@ -135,8 +133,7 @@ def check_distinct(outputs: RunOutputs) -> None:
     ``b.rollouts.json``, with ``--json b.rollouts.json``): the second would replace the first at the end of the run.
 
     Raises:
-        UsageError: naming both flags and the file.
-    """
+        UsageError: naming both flags and the file."""
     seen: dict[Path, str] = {}
     for flag, path in outputs.named():
         key = Path(os.path.abspath(path))

@@ -1,6 +1,5 @@
 """Where ``pemviz run`` sends its recording: rerun's script flags with ``--no-record``, the target asked for, the viewer
-check of ``--connect`` and the default name. Only :func:`serve` imports rerun.
-"""
+check of ``--connect`` and the default name. Only :func:`serve` imports rerun."""
 
 from __future__ import annotations
 
@@ -61,8 +60,7 @@ def recording_target(args: argparse.Namespace) -> str:
     """Which one of save / serve / connect / stdout / none the flags ask for (default: save).
 
     Raises:
-        UsageError: two of them at once, a port without --serve, or a bad port.
-    """
+        UsageError: two of them at once, a port without --serve, or a bad port."""
     if isinstance(args.connect, str):  # --connect URL
         if args.url is not None and args.url != args.connect:
             raise UsageError(f"--connect {args.connect} and --url {args.url}: give the viewer URL once")
@@ -97,8 +95,7 @@ def probe_viewer(url: str | None, timeout_s: float = CONNECT_TIMEOUT_S) -> str:
         The URL.
 
     Raises:
-        UsageError: not a ``rerun+http(s)://HOST:PORT/...`` URL, or nothing answers within ``timeout_s``.
-    """
+        UsageError: not a ``rerun+http(s)://HOST:PORT/...`` URL, or nothing answers within ``timeout_s``."""
     url = url or DEFAULT_VIEWER_URL
     scheme: str | None
     host: str | None

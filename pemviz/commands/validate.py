@@ -1,6 +1,5 @@
 """``pemviz validate``: the sampler and the baselines against exact failure probabilities, several seeds each at equal
-simulation budgets (:mod:`pemviz.studies.validation`).
-"""
+simulation budgets (:mod:`pemviz.studies.validation`)."""
 
 from __future__ import annotations
 
@@ -78,8 +77,7 @@ def main(args: argparse.Namespace) -> int:
 
     Raises:
         UsageError: an unknown problem, preset or baseline, nothing to run, ``--seeds`` or ``--jobs`` < 1, or an output
-            folder that cannot be used.
-    """
+            folder that cannot be used."""
     problems = split_choices(args.problems, validation_problems(), "problems", _without_exact)
     presets = presets_of(args.presets, "presets")
     from pemviz.methods import BUILTIN_METHODS, method_names

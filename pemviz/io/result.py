@@ -287,8 +287,7 @@ def write_result_json(path: str | os.PathLike[str], doc: dict[str, Any], *, over
     """Write ``doc`` (:func:`result_document`) atomically as JSON.
 
     Raises:
-        OSError: the file could not be written (nothing is left); OutputExists: ``path`` exists, no ``overwrite``.
-    """
+        OSError: the file could not be written (nothing is left); OutputExists: ``path`` exists, no ``overwrite``."""
     text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
 
     def write(tmp: str) -> None:
@@ -301,8 +300,7 @@ def junit_xml(doc: dict[str, Any], console: str = "") -> bytes:
     """One JUnit test suite with one test case, the requirement of ``doc`` (:func:`result_document`).
 
     Raises:
-        ValueError: ``doc`` has no requirement.
-    """
+        ValueError: ``doc`` has no requirement."""
     req = doc.get("requirement")
     if req is None:
         raise ValueError("a JUnit test case needs a requirement (--require)")
@@ -335,8 +333,7 @@ def write_junit(
     """Write :func:`junit_xml` atomically.
 
     Raises:
-        ValueError: ``doc`` has no requirement; OSError, OutputExists: as :func:`write_result_json`.
-    """
+        ValueError: ``doc`` has no requirement; OSError, OutputExists: as :func:`write_result_json`."""
     data = junit_xml(doc, console)
 
     def write(tmp: str) -> None:

@@ -77,8 +77,7 @@ class RolloutMeta:
         objects: M, the objects perceived at each step.
         noise: the names of a detected object's measurement-error components (metres); empty: none.
         odd_parameters: the columns of the parameters drawn per rollout from an ODD; empty: none.
-        version: the file's format version (:data:`READ_VERSIONS`).
-    """
+        version: the file's format version (:data:`READ_VERSIONS`)."""
 
     formula: str
     dt_s: float
@@ -161,8 +160,7 @@ class RolloutMeta:
         """Parse and check a sidecar object.
 
         Raises:
-            RolloutFormatError: not an object, wrong format tag or version, a missing or invalid field.
-        """
+            RolloutFormatError: not an object, wrong format tag or version, a missing or invalid field."""
 
         def bad(msg: str) -> RolloutFormatError:
             return RolloutFormatError(f"{where}: {msg}")
@@ -239,8 +237,7 @@ def parse_formula(formula: str, bad: Callable[[str], Exception]) -> Any:
 
     Raises:
         ``bad(message)``: not valid STL, the message in one line (``formula 'G[0,99](d >= ' is not valid STL: ...
-            at column 12``).
-    """
+            at column 12``)."""
     try:
         return stl.parse(formula)
     except ValueError as exc:
@@ -414,8 +411,7 @@ def check_stage_counts(meta: RolloutMeta, counts: Mapping[int, list[int]], error
     sidecar's ``stages`` (each stage listed, its n and its components' n) and ``pooling`` (each pooled stage held).
 
     Raises:
-        what ``error(message)`` returns (a :class:`RolloutFormatError` naming the file).
-    """
+        what ``error(message)`` returns (a :class:`RolloutFormatError` naming the file)."""
     for k, held in sorted(counts.items()):
         info = meta.stage_info(k)
         if meta.stages and info is None:
@@ -439,8 +435,7 @@ def read_sidecar(path: str | os.PathLike[str]) -> RolloutMeta:
     :func:`existing_sidecar`).
 
     Raises:
-        RolloutFormatError: no sidecar, not JSON, or an invalid field.
-    """
+        RolloutFormatError: no sidecar, not JSON, or an invalid field."""
     side = existing_sidecar(path)
     if not side.is_file():
         raise RolloutFormatError(

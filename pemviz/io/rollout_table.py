@@ -31,8 +31,7 @@ contact)."""
 def braking_salient(gap_m: np.ndarray) -> np.ndarray:
     """The PEM's salient variables of the lead at each gap, float64 [N, T, 11] for gaps [N, T] (metres).
 
-    :func:`pemviz.pem.braking_salient_inputs` row by row (the lead's KITTI salient variables at each gap).
-    """
+    :func:`pemviz.pem.braking_salient_inputs` row by row (the lead's KITTI salient variables at each gap)."""
     gap = np.asarray(gap_m, dtype=np.float64)
     return braking_salient_inputs(gap).reshape(*gap.shape, len(INPUT_COLUMNS))
 
@@ -75,16 +74,14 @@ class RolloutData(RolloutBatch):
         """:meth:`pemviz.core.rollouts.RolloutBatch.log_weight` of the file's columns, float64 [N] (nats).
 
         Raises:
-            ValueError: the file has no ``log_p`` or no ``log_q`` column.
-        """
+            ValueError: the file has no ``log_p`` or no ``log_q`` column."""
         return self.to_batch().log_weight(n_factors)
 
     def to_batch(self, log_p: np.ndarray | None = None, log_q: np.ndarray | None = None) -> RolloutBatch:
         """A :class:`RolloutBatch` with the given (default: the file's) log-probabilities [N, T].
 
         Raises:
-            ValueError: a log-probability that is neither given nor in the file.
-        """
+            ValueError: a log-probability that is neither given nor in the file."""
         log_p = self.log_p if log_p is None else log_p
         log_q = self.log_q if log_q is None else log_q
         if log_p is None or log_q is None:
@@ -216,8 +213,7 @@ class _Table:
                 NaN and +inf are still refused.
         Raises:
             RolloutFormatError: a wrong type, a null, a value that is not allowed, in one line naming the column,
-                rollout and step.
-        """
+                rollout and step."""
         col = self.table.column(name)
         if not (pa.types.is_floating(col.type) or pa.types.is_integer(col.type)):
             raise self._type_error(name, "numbers (float64)", located=True)

@@ -1,7 +1,6 @@
 """Sinks: listeners of the engine's events (console table, rerun recording, rollout file, viser panel), which never
 drive it. :class:`Sink` is their base (one method per event of :mod:`pemviz.engine.events`); :class:`StageClock` is
-the clock the console and the panel predict time left from.
-"""
+the clock the console and the panel predict time left from."""
 
 from __future__ import annotations
 

@@ -169,8 +169,7 @@ class McRoute:
         n: rollouts for a 20 % interval at ``log_p`` (:func:`mc_rollouts`).
         seconds: their time at the run's measured seconds a simulation (None: not measured).
         log_floor: with ``upper``, the run's 95 % lower bound of p (nats) where it is below ``log_p``; None: none.
-        n_floor: rollouts for a 20 % interval at ``log_floor`` (:attr:`n` without one).
-    """
+        n_floor: rollouts for a 20 % interval at ``log_floor`` (:attr:`n` without one)."""
 
     log_p: float
     source: str
@@ -353,8 +352,7 @@ def next_step(
         wall_s: the run's wall-clock seconds (None: the line gives no times).
         plain_s: a plain rollout's seconds measured here after the run (the engine's probe,
             :attr:`pemviz.engine.events.FinalEstimate.plain_rollout_s`); None: from the run's own speed.
-        committor: whether the scene has a learned committor (:class:`AdviceText`), for splitting's route.
-    """
+        committor: whether the scene has a learned committor (:class:`AdviceText`), for splitting's route."""
     if e.verdict == "reliable" or config is None:
         return None
     # a scene at whose rarity no method shipped answers: that, and the bound

@@ -38,8 +38,7 @@ class RecordingDrawing(Drawing, Protocol):
             (:meth:`explanation`) and charts the failures' share of contact (e.g. True for the braking scenario,
             False where the scene is drawn from the rollouts' object rows instead).
         object_words: the object the detector looks for, as a sentence names it (e.g. ``the car ahead``), for a
-            rollout of one object.
-    """
+            rollout of one object."""
 
     @property
     def draws_scene(self) -> bool: ...
@@ -57,8 +56,7 @@ class RecordingDrawing(Drawing, Protocol):
             method: one sentence on the run's method (Markdown).
         Returns:
             (the title and the paragraph on the scenario, in Markdown; what the scene adds to the paragraph on how
-            to read the recording, a phrase that starts with `` and``).
-        """
+            to read the recording, a phrase that starts with `` and``)."""
         ...
 
     def outcome_values(self, batch: RolloutBatch, i: int) -> Mapping[str, Any] | None:

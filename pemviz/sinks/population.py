@@ -41,8 +41,7 @@ class FailureGrouping:
         groups: the groups, largest share first (their shares add up to 1).
         basis: what the groups share, in words.
         severity: each failure's min distance and impact speed in the order of ``shares``, and their distribution
-            by share (:func:`failures_severity`); None without the run's problem, or where it has no severity scale.
-    """
+            by share (:func:`failures_severity`); None without the run's problem, or where it has no severity scale."""
 
     shares: FailureShares
     found: tuple[tuple[RolloutsSampled, int] | None, ...]
@@ -112,8 +111,7 @@ def failures_severity(
         The distribution (failures not located are left out of it, their values NaN), or None where ``problem`` is
         None or has no severity scale.
     Raises:
-        ValueError: a rollout in contact at its first step (:func:`pemviz.core.severity.severity_of_signal`).
-    """
+        ValueError: a rollout in contact at its first step (:func:`pemviz.core.severity.severity_of_signal`)."""
     if problem is None or getattr(problem, "severity", None) is None:
         return None
     severe = cast(SeverityProblem, problem)  # a problem with a severity scale, as just checked
@@ -274,8 +272,7 @@ class FailureGroups:
         drawing: the scenario's drawing object (``ProblemView.drawing``), or None.
         problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step elsewhere), or None.
         keys: group the failures (False: only their severity, without the drawing object's keys, whose cost may
-            grow with the failures).
-    """
+            grow with the failures)."""
 
     def __init__(self, drawing: object = None, problem: object = None, keys: bool = True) -> None:
         self.drawing, self.problem, self.keys = drawing, problem, keys

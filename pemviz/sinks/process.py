@@ -1,8 +1,7 @@
 """What the ``pemviz`` program sets in its own process (or its recording process), never when pemviz is imported as
 a library: :func:`settle_pyarrow_without_pandas` (pyarrow need not import pandas to learn there is none) and
 :func:`import_scipy_special_lean` (scipy.special without the numpy submodules its array-API shim would import only
-to copy).
-"""
+to copy)."""
 
 from __future__ import annotations
 
@@ -63,8 +62,7 @@ def import_scipy_special_lean() -> bool:
     scipy.special's array-API shim copies numpy's namespace (``clone_module``,
     ``scipy/_lib/array_api_compat/_internal.py``), importing each lazy submodule it meets; here numpy's ``__all__``
     and ``__dir__`` leave them out during the import, and the shim gets them back as lazily imported names (PEP
-    562). Only the program calls this (:data:`pemviz.commands.AS_PROGRAM`), before any thread starts.
-    """
+    562). Only the program calls this (:data:`pemviz.commands.AS_PROGRAM`), before any thread starts."""
     if "scipy.special" in sys.modules:
         return False
     import numpy as np

@@ -77,8 +77,7 @@ class RerunSink(Sink):
             (static figures show the latest repetition).
         problem: the run's :class:`pemviz.core.problems.Problem` (also settable as :attr:`problem` before the run),
             for the failures' severity (``final/failures``' min distance and impact speed,
-            ``final/severity_of_failures``); None: not logged.
-    """
+            ``final/severity_of_failures``); None: not logged."""
 
     def __init__(
         self,
@@ -150,8 +149,7 @@ class RerunSink(Sink):
         """A sink that saves to ``path`` when :meth:`close` commits it: encoded in memory
         (:meth:`rerun.RecordingStream.binary_stream`), written by :meth:`close` to a unique temporary file beside
         ``path`` and moved onto it, so a kill leaves the previous ``path`` untouched and a write error is an
-        ``OSError`` with no file left.
-        """
+        ``OSError`` with no file left."""
         stream = rr.RecordingStream(APP_ID, batcher_config=FILE_BATCHER)
         sink = cls(stream, **kw)
         sink._binary = rr.binary_stream(stream)  # what stream.binary_stream() calls, in words mypy reads
@@ -189,8 +187,7 @@ class RerunSink(Sink):
 
         Raises:
             OSError: the file could not be written (nothing is left; an existing file is untouched).
-            pemviz.core.files.OutputExists: the file appeared meanwhile and ``overwrite`` was not given.
-        """
+            pemviz.core.files.OutputExists: the file appeared meanwhile and ``overwrite`` was not given."""
         if self._closed:
             return None
         self._closed = True

@@ -46,8 +46,7 @@ class RecordingProcess(Sink):
         overwrite: replace an existing ``path`` (else :class:`pemviz.core.files.OutputExists` at :meth:`close`).
 
     Raises:
-        OSError: the child process could not be started.
-    """
+        OSError: the child process could not be started."""
 
     def __init__(self, path: str | os.PathLike, *, overwrite: bool = False) -> None:
         self.path = Path(path)
@@ -114,8 +113,7 @@ class RecordingProcess(Sink):
         Raises:
             pemviz.core.files.OutputExists: ``path`` appeared meanwhile and ``overwrite`` was not given.
             OSError: the file could not be written (nothing is left; an existing file is untouched), the child
-                failed (its last line of errors), or it did not finish within :data:`CLOSE_TIMEOUT_S` seconds.
-        """
+                failed (its last line of errors), or it did not finish within :data:`CLOSE_TIMEOUT_S` seconds."""
         if self._closed:
             return None
         self._closed = True
@@ -217,8 +215,7 @@ def _report(**fields: object) -> None:
 def main(argv: list[str] | None = None) -> int:
     """The child: read the run's events from standard input into a file recording; report on standard output.
 
-    ``argv``: ``[PATH, OVERWRITE]`` (``"1"``: replace an existing file). Returns 0 (its outcome is in the report).
-    """
+    ``argv``: ``[PATH, OVERWRITE]`` (``"1"``: replace an existing file). Returns 0 (its outcome is in the report)."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)  # the run decides: it closes the sink, and the child then writes
     path, overwrite = (sys.argv[1:] if argv is None else argv)[:2]

@@ -234,8 +234,7 @@ def default_blueprint(
         features: the Stages tab shows the feature view of a state-dependent proposal
             (:mod:`pemviz.sinks.rerun_features`), beside or before the reference-state curve.
     Raises:
-        ValueError: ``tab`` not one of :data:`TABS`.
-    """
+        ValueError: ``tab`` not one of :data:`TABS`."""
     if tab not in TABS:
         raise ValueError(f"default_blueprint: tab must be one of {TABS}, got {tab!r}")
     return rrb.Blueprint(

@@ -76,8 +76,7 @@ class StageFigures:
         stream: the recording.
         last_stage: the plan's last stage (the x axis runs from 0 to it; it grows if a run adds stages).
         known_log10: log10 of the exact answer, or of the reference, drawn across log10 mu_hat; None: none known.
-        scene: the problem has a scene with contact (its share of contact is drawn).
-    """
+        scene: the problem has a scene with contact (its share of contact is drawn)."""
 
     stream: rr.RecordingStream
     last_stage: int

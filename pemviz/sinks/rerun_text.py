@@ -1,7 +1,6 @@
 """What the rerun recording (:mod:`pemviz.sinks.recording`) says of its estimate: the ``estimate`` document, the
 parts of the ``description`` below its head (:func:`pemviz.sinks.rerun_views.intro_markdown`) and the values of the
-``final`` entity, as Markdown or plain values from the engine's events and config: no state, no I/O, no rerun.
-"""
+``final`` entity, as Markdown or plain values from the engine's events and config: no state, no I/O, no rerun."""
 
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
 """What the rerun recording looks like (:mod:`pemviz.sinks.recording`): colours, figures with axes, the marginal
 proposal's bars, a rollout's outcome in words, the run's description and the top-down scene. Everything here draws into
-a :class:`rerun.RecordingStream` it is given and keeps no state of a run.
-"""
+a :class:`rerun.RecordingStream` it is given and keeps no state of a run."""
 
 from __future__ import annotations
 
@@ -102,8 +101,7 @@ class Figure:
     """A static x-y plot in a 2D view: data in axis units under ``PATH/data``, a frame under ``PATH/axes``.
 
     A :class:`rerun.Transform3D` on ``PATH/data`` maps (x, y) in axis units to a ``width`` x ``height``
-    box with y pointing up (rerun's 2D y axis points down), so the logged points keep their real values.
-    """
+    box with y pointing up (rerun's 2D y axis points down), so the logged points keep their real values."""
 
     path: str
     x_label: str
@@ -274,8 +272,7 @@ def log_marginal_proposal(stream: rr.RecordingStream, pv: ProposalView, rgb: tup
 
     Two charts: ``miss`` (q(miss), mean over the bin's visited states) and ``log_odds`` (the median of log q(miss) /
     q(detect), nats, clipped to :data:`~pemviz.core.proposal_view.LOG_ODDS_SPAN_NATS`): the PEM's (grey) and the
-    sampler's (``rgb``) bars, with the sampler's 10-90 % spread behind. ``stats`` holds every array of the view.
-    """
+    sampler's (``rgb``) bars, with the sampler's 10-90 % spread behind. ``stats`` holds every array of the view."""
     c, w = pv.centres_m, np.diff(pv.edges_m)
     empty = pv.n_states == 0
     span = LOG_ODDS_SPAN_NATS

@@ -1,7 +1,6 @@
 """Engine listener that saves the rollouts of the run's estimate as a rollout file (``pemviz run --save-rollouts``).
 
-The file format (Parquet table, JSON sidecar, proposal checkpoint) is :mod:`pemviz.io.rollout_format`'s.
-"""
+The file format (Parquet table, JSON sidecar, proposal checkpoint) is :mod:`pemviz.io.rollout_format`'s."""
 
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
 """The exact failure probabilities validation judges the estimators against: :func:`exact_answer`
 (:class:`ExactAnswer`: closed forms, the latched simulator, the enumeration of :mod:`pemviz.scenarios.braking.truth`
-or its kept answers, or a registered scenario's), :func:`validation_problems` and :func:`validation_problem`.
-"""
+or its kept answers, or a registered scenario's), :func:`validation_problems` and :func:`validation_problem`."""
 
 from __future__ import annotations
 
@@ -36,8 +35,7 @@ def exact_answer(
     refinement.
 
     Raises:
-        ValueError: an unknown name.
-    """
+        ValueError: an unknown name."""
     t0 = time.perf_counter()
     if name in TOY_PROBLEMS:
         params = TOY_PROBLEMS[name]
@@ -119,8 +117,7 @@ def validation_problem(name: str, pem_path: str | None = None):
     ``pem_path``'s PEM (:mod:`pemviz.scenarios.registry`).
 
     Raises:
-        ValueError: an unknown name, or a registered scenario whose problem carries no exact answer.
-    """
+        ValueError: an unknown name, or a registered scenario whose problem carries no exact answer."""
     if name in PROBLEMS:
         return build_problem(name, pem_path)
     from pemviz.config import ExperimentConfig

@@ -43,8 +43,7 @@ class NoiseEvalConfig(CrossValidation):
     heteroscedastic networks (default: the shipped recipe's), ``seed`` (networks and dequantisation).
 
     Raises:
-        ValueError: an unknown or repeated model, n_splits < 2, a fold outside 0..n_splits-1, or epochs < 1.
-    """
+        ValueError: an unknown or repeated model, n_splits < 2, a fold outside 0..n_splits-1, or epochs < 1."""
 
     models: tuple[str, ...] = NOISE_MODEL_NAMES
     n_splits: int = 5
@@ -151,8 +150,7 @@ def evaluate_noise_pems(
     (:func:`pemviz.io.data.load_salient_label_table`); ``on_fold(model, score)`` after each fit.
 
     Raises:
-        ValueError: shapes other than ``[N, 11]`` and ``[N, 9]``, or labels not in {0, 1}.
-    """
+        ValueError: shapes other than ``[N, 11]`` and ``[N, 9]``, or labels not in {0, 1}."""
     config = NoiseEvalConfig() if config is None else config
     start = time.perf_counter()
     raw = np.asarray(inputs, dtype=np.float64)

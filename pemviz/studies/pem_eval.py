@@ -65,8 +65,7 @@ def check_study(config: CrossValidation, known: tuple[str, ...], sizes: tuple[st
     """Check a study's settings: its models among ``known``, at least 2 folds, and each field of ``sizes`` >= 1.
 
     Raises:
-        ValueError: an unknown or repeated model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1.
-    """
+        ValueError: an unknown or repeated model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1."""
     models = config.models
     if not models or any(m not in known for m in models) or len(set(models)) != len(models):
         raise ValueError(f"models {list(models)}: use distinct ones of {', '.join(known)}")
@@ -86,8 +85,7 @@ class EvalConfig(CrossValidation):
     model.
 
     Raises:
-        ValueError: an unknown model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1.
-    """
+        ValueError: an unknown model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1."""
 
     models: tuple[str, ...] = MODEL_NAMES
     n_splits: int = 5
@@ -122,8 +120,7 @@ class ModelEvaluation:
 
     ``test_rows`` int ``[M]`` (rows of the data file, fold after fold), ``test_fold`` ``[M]``, ``logits``
     float64 ``[M]`` (each row scored by the model that did not train on it), ``gap_prob`` float64
-    ``[F, G]`` (each fold's model on :data:`GAP_GRID_M`).
-    """
+    ``[F, G]`` (each fold's model on :data:`GAP_GRID_M`)."""
 
     name: str
     description: str
@@ -302,8 +299,7 @@ def evaluate_pems(
     each fit; the authors' PEM curve is added when ``../shared/reference/carla-stuff-pem`` is present.
 
     Raises:
-        ValueError: mismatched lengths or labels not in {0, 1}.
-    """
+        ValueError: mismatched lengths or labels not in {0, 1}."""
     config = EvalConfig() if config is None else config
     start = time.perf_counter()
     raw = np.asarray(inputs, dtype=np.float64)
