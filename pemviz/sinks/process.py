@@ -50,9 +50,7 @@ def settle_pyarrow_without_pandas() -> bool:
 
 UNUSED_NUMPY_SUBMODULES = ("f2py", "testing")
 """numpy's lazily imported submodules that scipy's array-API shim copies at import and pemviz's run never uses (the
-Fortran wrapper generator and the test helpers): about 40 ms of imports on a quiet 2-core machine, 60 ms under load
-(``python -X importtime -c "import scipy.special"``, numpy 2.4, scipy 1.17). ``numpy.ma`` is not one of them:
-``numpy.unique`` imports it."""
+Fortran wrapper generator and the test helpers). ``numpy.ma`` is not one of them: ``numpy.unique`` imports it."""
 
 
 def import_scipy_special_lean() -> bool:
