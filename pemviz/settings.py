@@ -40,17 +40,13 @@ measurement errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``
 
 
 REGISTERED_SCENARIOS: list[str] = []
-"""The scenarios registered in this process besides :data:`SCENARIOS` (:func:`pemviz.scenarios.registry.register` adds
-each name, ``unregister`` removes it): the built-in toys ``toy`` and ``crowd`` once the registry is imported, and the
-plugins' scenarios once they are loaded (:func:`pemviz.scenarios.registry.load_plugins`; the commands load them before
-they read a config). The settings sit below the registry: they read this list and never import it."""
+"""The scenarios registered in this process besides :data:`SCENARIOS` (written by
+:func:`pemviz.scenarios.registry.register`): the settings read this list and never import the registry."""
 
 
 SCENARIO_COST_FACTORS: dict[str, float] = {}
-"""Scenario name -> how many times the cost model's reference rollout step one of its rollout steps costs
-(:attr:`pemviz.scenarios.registry.Scenario.cost_factor`, which :func:`pemviz.scenarios.registry.register` writes here
-for every scenario it registers and ``unregister`` removes): what :func:`pemviz.engine.cost.stage_cost` scales a
-scenario's simulation seconds by, reading this table and never the registry (1 for a name not here)."""
+"""Scenario name -> how many reference rollout steps one of its rollout steps costs (written by
+:func:`pemviz.scenarios.registry.register`, read by :func:`pemviz.engine.cost.stage_cost`; 1 for a name not here)."""
 
 SCENARIO_COST_PARTS: dict[str, dict[str, float]] = {}
 """Scenario name -> the other parts of a run's cost its scene declares (:attr:`pemviz.scenarios.registry.Scenario.
@@ -64,10 +60,8 @@ def scenario_names() -> tuple[str, ...]:
 
 
 EXECUTORS = ("local", "serial", "ray")
-"""Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``local`` in worker processes on this
-machine (every usable core, or ``workers``), ``serial`` in this process, ``ray`` as Ray tasks on a local or remote
-cluster; the same seed gives the same rollouts and estimate, bit for
-bit (:mod:`pemviz.engine.executors`)."""
+"""Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``local`` worker processes, ``serial``
+in this process, ``ray`` on a Ray cluster; the same seed gives the same rollouts and estimate, bit for bit."""
 
 UNIFORMS = ("array-rqmc", "iid")
 """How a batch's rollouts draw their detections (:class:`~pemviz.config.ExperimentConfig` ``uniforms``)."""
@@ -129,10 +123,8 @@ class FallbackSettings:
     )
 
     def retry_n(self, n: int, stop_rule: str | None = None) -> int | None:
-        """N of the retry of stages of ``n`` rollouts (:class:`pemviz.estimators.fallback.PlainFallback`): ``n`` times
-        ``retry_factor``, at most :data:`RETRY_MOST_N`; None where the run has none (``retry_factor`` < 2,
-        ``plain_fallback`` = 0, a ``stop_rule``, the run's precision target or requirement:
-        :attr:`pemviz.config.ExperimentConfig.stop_rule`, or ``n`` at :data:`RETRY_MOST_N` already)."""
+        """N of the retry of stages of ``n`` rollouts: ``n`` times ``retry_factor``, at most :data:`RETRY_MOST_N`; None
+        where the run has none (``retry_factor`` < 2, ``plain_fallback`` = 0, a stop rule, or ``n`` at the most)."""
         factor, n = int(self.retry_factor), int(n)
         if factor < 2 or self.plain_fallback <= 0 or stop_rule is not None or n >= RETRY_MOST_N:
             return None
@@ -145,10 +137,9 @@ simulations below it: a large run of the stages gets no larger fallback)."""
 
 
 def plain_fallback_most(ratio: int, spent: int, max_sims: int | None = None) -> int:
-    """The most plain rollouts the fallback (:class:`pemviz.estimators.fallback.PlainFallback`) draws after stages that
-    simulated ``spent`` rollout-equivalents: ``ratio`` (``plain_fallback``) times ``spent`` (at least 1), at most
-    :data:`PLAIN_FALLBACK_MOST` and what the run's cap ``max_sims`` leaves
-    (:attr:`pemviz.config.ExperimentConfig.most_simulations`); 0 when ``ratio`` <= 0 or nothing is left."""
+    """The most plain rollouts the fallback draws after stages that simulated ``spent`` rollout-equivalents: ``ratio``
+    times ``spent`` (at least 1), at most :data:`PLAIN_FALLBACK_MOST` and what ``max_sims`` leaves; 0 when ``ratio``
+    <= 0 or nothing is left."""
     if ratio <= 0:
         return 0
     most = min(int(ratio) * max(1, int(spent)), PLAIN_FALLBACK_MOST)
@@ -332,10 +323,8 @@ def _rows(cls: type, owner: str, skip: frozenset[str] = frozenset()) -> dict[str
 
 
 def _settings(*settings: Setting | str) -> tuple[dict[str, Setting], dict[str, Setting]]:
-    """The table: the run's and splitting's rows, and the cross-entropy sampler's and the fallback's, each named where
-    the runs have always recorded it (result documents, rollout files, ``runs.jsonl``: the keys keep their order),
-    taken from its field of :class:`~pemviz.methods.adaptive.CrossEntropySettings` or :class:`FallbackSettings`; then
-    the fields not named here (settings added there), which follow every other row."""
+    """The table: the run's and splitting's rows, then the cross-entropy sampler's and the fallback's, in the order runs
+    have always recorded them; fields added to their settings follow every other row."""
     own = {**_rows(CrossEntropySettings, CROSS_ENTROPY_METHOD), **_rows(FallbackSettings, FALLBACK)}
     table = {s.name: s for s in (own.pop(row) if isinstance(row, str) else row for row in settings)}
     return table, own
@@ -470,10 +459,8 @@ OWN_DEFAULTS: dict[str, Any] = {
 """The built-in methods' own settings but the table's (the state method's) at their defaults, by name: what a run of
 another method records for them (every run has recorded them since they were the config's)."""
 RECORDED: tuple[str, ...] = (*_NAMED, *OWN_DEFAULTS, *_ADDED)
-"""The keys a run records its settings by (:meth:`pemviz.config.ExperimentConfig.flat`: result documents, rollout
-files, ``runs.jsonl``), in order: the table's rows where runs have always recorded them, the built-in methods' own
-settings (:data:`OWN_DEFAULTS`), then the rows added to the cross-entropy sampler's settings since; a method of one's
-own's follow."""
+"""The keys a run records its settings by (:meth:`pemviz.config.ExperimentConfig.flat`), in order: the table's rows,
+the built-in methods' own settings (:data:`OWN_DEFAULTS`), then rows added to the cross-entropy sampler's settings."""
 
 
 class ConfigError(ValueError):
@@ -542,9 +529,8 @@ def _is_int(x: object) -> bool:
 
 def setting_of(config: object, name: str, default: object = None) -> Any:
     """The setting ``name`` (a flat name of :data:`SETTINGS`) of ``config``: an
-    :class:`~pemviz.config.ExperimentConfig`'s :meth:`~pemviz.config.ExperimentConfig.value`, else (None, an object
-    that stands for a config) its attribute ``name`` or ``default``. For the layers below the config (a scenario's
-    factory), which do not import it."""
+    :class:`~pemviz.config.ExperimentConfig`'s :meth:`~pemviz.config.ExperimentConfig.value`, else its attribute
+    ``name`` or ``default``: for the layers below the config, which do not import it."""
     value = getattr(config, "value", None)
     if callable(value) and name in SETTINGS:
         return value(name)

@@ -1,7 +1,5 @@
-"""Failure-probability estimates from logged rollouts (a file of :mod:`pemviz.io.rollout_format`): ``pemviz
-estimate``. log p and log q of every action come from the file's columns or are recomputed under a PEM
-(:func:`pem_log_prob`) and the detector that sampled (:func:`sampler_detector`, or a checkpoint);
-:func:`estimate_rollouts` forms mu_hat as the engine does (Innes & Ramamoorthy 2022, eq. 6)."""
+"""Failure-probability estimates from logged rollouts (``pemviz estimate``): log p and log q from the file's columns or
+recomputed, and mu_hat formed as the engine does (:func:`estimate_rollouts`; Innes & Ramamoorthy 2022, eq. 6)."""
 
 from __future__ import annotations
 

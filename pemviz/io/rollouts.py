@@ -1,7 +1,5 @@
-"""Logged rollouts on disk: read and validate a rollout file (:func:`read_rollouts`); writing is
-:mod:`pemviz.io.rollout_writer`'s, the format :mod:`pemviz.io.rollout_format`'s and the table's checks
-:mod:`pemviz.io.rollout_table`'s. Bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError` naming the
-file, the column, the rollout and the step."""
+"""Logged rollouts on disk: read and validate a rollout file (:func:`read_rollouts`). Bad input raises
+:class:`~pemviz.io.rollout_format.RolloutFormatError` naming the file, the column, the rollout and the step."""
 
 from __future__ import annotations
 

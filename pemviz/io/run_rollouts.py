@@ -1,7 +1,5 @@
 """What a run's rollout file holds beyond the rollouts, by the run's problem (what
-:class:`pemviz.sinks.rollouts.RolloutSink` writes): the sidecar (:func:`pemviz.io.rollout_sidecars.braking_meta` for
-the braking scenario, with the lead's salient variables, :func:`pemviz.io.rollout_table.braking_salient`; else
-:func:`pemviz.io.rollout_sidecars.problem_meta`) and the severity columns."""
+:class:`pemviz.sinks.rollouts.RolloutSink` writes): the sidecar, the braking lead's salient variables, the severity."""
 
 from __future__ import annotations
 
