@@ -240,14 +240,14 @@ def summary_lines(
     ]
     for row in result.stages:
         lines.append(
-            f"{'-' if row.stage is None else row.stage:>7} {row.kind or '-':>8} " f"{estimate_cells(row.estimate)}"
+            f"{'-' if row.stage is None else row.stage:>7} {row.kind or '-':>8} {estimate_cells(row.estimate)}"
         )
     if result.pooled:
         which = ", ".join(map(str, result.pooled))
         lines.append(f"{'final':>7} {'':>8} {estimate_cells(e)}   <- stages {which} pooled ({result.rule})")
     elif len(result.stages) > 1:
         lines.append(
-            f"{'final':>7} {'':>8} {estimate_cells(e)}   <- every rollout alike " "(the sidecar gives no pooling)"
+            f"{'final':>7} {'':>8} {estimate_cells(e)}   <- every rollout alike (the sidecar gives no pooling)"
         )
     nll = "-" if math.isnan(e.nll_mean) else f"{e.nll_mean:.4f}"
     lines.append(

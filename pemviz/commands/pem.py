@@ -172,7 +172,7 @@ def train_main(args: argparse.Namespace) -> int:
     }
     if ensemble is not None:
         metadata["command"] = (
-            f"pemviz pem train --model {recipe.name} --ensemble {ensemble} --seed {seed} " f"--epochs {epochs}"
+            f"pemviz pem train --model {recipe.name} --ensemble {ensemble} --seed {seed} --epochs {epochs}"
         )
         _train_ensemble(
             recipe, data, ensemble, seed=seed, epochs=epochs, out=out, progress=not args.no_progress, metadata=metadata

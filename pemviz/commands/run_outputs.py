@@ -115,7 +115,7 @@ def plan_outputs(
         report = _checked(lambda: check_report_paths(report, "--report", overwrite=overwrite))
     if args.junit_path is not None and cfg.stop.require is None:
         raise UsageError(
-            "--junit writes a requirement as a test case: give one with --require, e.g. " "--require 'p < 1e-9'"
+            "--junit writes a requirement as a test case: give one with --require, e.g. --require 'p < 1e-9'"
         )
     found = {
         flag: None

@@ -271,7 +271,7 @@ class _Table:
         if len(present) != len(SEVERITY_COLUMNS):
             absent = [c for c in SEVERITY_COLUMNS if c not in names]
             raise self.error(
-                f"severity columns incomplete: {present[0]!r} without {absent[0]!r} (give both or " "neither)"
+                f"severity columns incomplete: {present[0]!r} without {absent[0]!r} (give both or neither)"
             )
         dist = self.floats(SEVERITY_COLUMNS[0])
         col = self.table.column(SEVERITY_COLUMNS[1])

@@ -455,7 +455,7 @@ def _after_mc(
             f"--max-time ({command} --max-time {math.ceil(route.seconds)}), or an importance-sampling method "
             "(--method adaptive), with its verdict"
         )
-    return f"more rollouts: {command} samples until the interval is within {PERCENT} " f"({route.text(s_per, 'plain')})"
+    return f"more rollouts: {command} samples until the interval is within {PERCENT} ({route.text(s_per, 'plain')})"
 
 
 def final_lines(

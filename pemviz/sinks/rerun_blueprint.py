@@ -154,7 +154,7 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
             rrb.Tabs(
                 rrb.TimeSeriesView(
                     origin=f"{e}/controller",
-                    name="Controller: acceleration (m/s^2), brake commanded, " "brake applied",
+                    name="Controller: acceleration (m/s^2), brake commanded, brake applied",
                     plot_legend=rrb.PlotLegend(corner="LeftBottom"),
                 ),
                 rrb.TimeSeriesView(
