@@ -225,12 +225,6 @@ class RerunSink(Sink):
         self._groups(event)
         log_stage_features(self.stream, event, self.problem, self._colour(event.stage))  # while its sampler drew
 
-    def on_stage_finished(self, event: StageFinished) -> None:
-        self._stage_finished(event.result)
-
-    def on_final_estimate(self, event: FinalEstimate) -> None:
-        self._final(event)
-
     def on_run_cancelled(self, event: RunCancelled) -> None:
         self.finished = True
         self.status_md = f"**Run cancelled** ({event.reason}) after {len(event.stages)} finished stages."
@@ -332,8 +326,8 @@ class RerunSink(Sink):
         self._log_proposal_legend()
 
     # -- stage finished -------------------------------------------------------------------------------
-    def _stage_finished(self, res: StageResult) -> None:
-        s = self.stream
+    def on_stage_finished(self, event: StageFinished) -> None:
+        s, res = self.stream, event.result
         colour = self._colour(res.stage)
         s.set_time("stage", sequence=res.stage)
         if self.repetition is not None:
@@ -490,7 +484,7 @@ class RerunSink(Sink):
         )
 
     # -- final --------------------------------------------------------------------------------------
-    def _final(self, ev: FinalEstimate) -> None:
+    def on_final_estimate(self, ev: FinalEstimate) -> None:
         s = self.stream
         self.finished = True
         s.log("final", rr.AnyValues(**final_values(ev)), static=True)
