@@ -44,7 +44,6 @@ __all__ = [
     "load_salient_data",
     "load_salient_inputs",
     "load_salient_label_table",
-    "load_salient_labels",
     "sha256_file",
     "user_cache_dir",
 ]
@@ -276,15 +275,6 @@ def load_salient_inputs(path: str | os.PathLike[str]) -> np.ndarray:
         DataFormatError: wrong column count, non-number or NaN (names file and line).
         FileNotFoundError: ``path`` does not exist."""
     return _parse_table(Path(path), len(INPUT_COLUMNS))
-
-
-def load_salient_labels(path: str | os.PathLike[str]) -> np.ndarray:
-    """Detection labels (column 0 of the label file), float64 ``[N]`` with values in {0, 1}.
-
-    Raises:
-        DataFormatError: see :func:`load_salient_label_table`.
-        FileNotFoundError: ``path`` does not exist."""
-    return np.ascontiguousarray(load_salient_label_table(path)[:, 0])
 
 
 def load_salient_label_table(path: str | os.PathLike[str]) -> np.ndarray:
