@@ -26,11 +26,7 @@ from pemviz.settings import SETTINGS, SIMULATORS
 class ExperimentTab:
     """The *Experiment* tab: owns the form's fields (:attr:`fields`: text, :attr:`choices`: dropdowns, :attr:`preset`)
     and their error lines, the scenario's parameters (:attr:`params`) and the form as last checked (:attr:`parsed`);
-    whoever builds it is told of each change.
-
-    Args:
-        client: the viser client the tab draws into.
-        app: the server (the form's first values and preset)."""
+    whoever builds it is told of each change."""
 
     def __init__(self, client: viser.ClientHandle, app: PanelHost) -> None:
         self.client, self.app = client, app

@@ -25,11 +25,7 @@ Field = tuple[str, str, str, str]
 class ChoiceFolder:
     """The fields of one value of a choice inside a folder (:attr:`fields`, their error lines, :attr:`shown`),
     rebuilt by :meth:`show`; a subclass gives :meth:`fields_of`, :meth:`empty` (an empty line hides the folder) and
-    :meth:`error_key`.
-
-    Args:
-        client: the viser client the folder draws into.
-        config0: the panel's starting config (its values are the first texts of the value it is of)."""
+    :meth:`error_key`."""
 
     title = ""
     """The folder's label."""

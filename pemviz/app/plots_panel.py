@@ -15,11 +15,7 @@ from pemviz.core.estimate import format_probability
 
 class PlotsPanel:
     """The plots panel: owns the panel, its *Live* and *Compare* charts and HTML and its *ODD* tab; its *Explain* tab
-    is the :class:`pemviz.app.explain_tab.ExplainTab` it is given.
-
-    Args:
-        client: the viser client the panel draws into.
-        explain: the *Explain* tab, built in the panel's middle tab."""
+    is the :class:`pemviz.app.explain_tab.ExplainTab` it is given."""
 
     def __init__(self, client: viser.ClientHandle, explain: ExplainTab) -> None:
         self.client, self.explain = client, explain

@@ -31,18 +31,7 @@ from pemviz.sinks import Sink
 
 class RunControl:
     """Starting, stopping and following a run: owns the buttons and lines above the tabs, the newest run
-    (:attr:`record`), its worker thread and cancel token; the run's events refresh the tabs (:class:`RunListener`).
-
-    Args:
-        client: the viser client the controls draw into.
-        app: the server (run numbers, the warm-up).
-        lock: the session's lock.
-        form: the *Experiment* tab, read at Run.
-        runs_tab: the *Runs* tab, which keeps each new run.
-        rollouts_tab: the *Rollouts* tab, which lists it.
-        scene: the 3D scene, cleared for it.
-        explain: the *Explain* tab.
-        plots_panel: the plots panel, refreshed as it goes."""
+    (:attr:`record`), its worker thread and cancel token; the run's events refresh the tabs (:class:`RunListener`)."""
 
     def __init__(
         self,

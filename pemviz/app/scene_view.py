@@ -54,12 +54,6 @@ class SceneView:
     """The 3D scene and its playback (step slider, Play, follow cars, caption under *Rollouts*), the rollout shown and
     whether it plays; the :class:`pemviz.app.explain_tab.ExplainTab` it is given follows it.
 
-    Args:
-        client: the viser client the scene draws into.
-        drawing: the lane scene's drawing object drawn first (a :class:`pemviz.app.drawing.LanePanel`).
-        lock: the session's lock (GUI callbacks run in a thread pool, the run in a worker thread).
-        explain: the *Explain* tab that follows the rollout shown.
-
     Raises:
         ValueError: ``drawing`` draws no lane scene."""
 

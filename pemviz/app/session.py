@@ -25,11 +25,7 @@ __all__ = ["PanelHost", "Session"]
 class Session:
     """The panel of one browser client: builds and wires its parts (:attr:`control`, :attr:`form`,
     :attr:`rollouts_tab`, :attr:`runs_tab`, :attr:`scene`, :attr:`explain`, :attr:`plots_panel`), each owning its
-    state and GUI handles.
-
-    Args:
-        app: the server (recordings folder, scenario constants, warm-up).
-        client: the viser client this session draws into."""
+    state and GUI handles."""
 
     def __init__(self, app: PanelHost, client: viser.ClientHandle) -> None:
         self.app = app

@@ -94,9 +94,7 @@ def run_job(job: Job, workers: int | None = None) -> RunRecord:
     """Run one :class:`Job` (in this process, its rollouts on ``workers`` processes: None, every usable core) and
     summarise it."""
     problem = validation_problem(job.problem, job.pem_path)
-    if (
-        dict(job.fields).get("method", DEFAULT_METHOD) not in BUILTIN_METHODS
-    ):  # a method of one's own: its plugin, in this worker
+    if dict(job.fields).get("method", DEFAULT_METHOD) not in BUILTIN_METHODS:  # a plugin's method: load it here
         from pemviz.methods import load_method_plugins
 
         load_method_plugins()
