@@ -33,10 +33,8 @@ DEFAULT_SCENARIO = "braking"
 """The scenario a run estimates when none is named (``--scenario``)."""
 
 SCENARIOS = (DEFAULT_SCENARIO, "cut-in", "cut-in-rare")
-"""What a run estimates (:func:`pemviz.scenarios.problems.problem_for`): ``braking``, the paper's scenario (one lead
-car, a closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and
-measurement errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same at about 1e-7
-(:mod:`pemviz.scenarios.cut_in`)."""
+"""What a run estimates (:func:`pemviz.scenarios.problems.problem_for`): ``braking``, the paper's scenario; ``cut-in``,
+a car cutting in on a 3-lane highway (about 9e-5); ``cut-in-rare``, the same at about 1e-7."""
 
 
 REGISTERED_SCENARIOS: list[str] = []

@@ -60,9 +60,8 @@ N_TRAJECTORIES = 20
 """Least-robust rollouts listed per run."""
 
 MAX_VIEW_ROLLOUTS = 1000
-"""At most this many rollouts of a stage (evenly spaced) make its proposal view of a scene of several objects: the
-detectors are asked again for each state (a batch keeps only each step's sum over objects), the 100,000 states of
-1,000 rollouts of five objects in about 0.2 s on one core."""
+"""At most this many rollouts of a stage (evenly spaced) make its proposal view of a scene of several objects, whose
+detectors are asked again for each state (1,000 rollouts of five objects: about 0.2 s on one core)."""
 
 
 DEFAULT_AXIS = ViewAxis("gap d (m), 0.5 m bins", "the object", None, "below", np.linspace(0.0, 13.0, 27), "gap (m)")

@@ -109,10 +109,8 @@ SHOWN_DEFAULTS = {
     "ray_address": "a local one",
     "chunk_rollouts": "8192, and only stages above 20000 rollouts stream",
 }
-"""What a setting's None stands for, as the flags' help says it: the shipped default PEM
-(:data:`pemviz.pem.recipes.DEFAULT_PEM_NAME`, whose module imports torch; a test keeps the two equal), a local Ray
-cluster, the engine's chunks (:data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`,
-:data:`pemviz.engine.experiment.STREAM_ABOVE`; a test keeps them equal)."""
+"""What a setting's None stands for, as the flags' help says it (tests keep these equal to
+:data:`pemviz.pem.recipes.DEFAULT_PEM_NAME`, :data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE` and ``STREAM_ABOVE``)."""
 
 
 def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str, default: Any = None) -> None:

@@ -19,9 +19,8 @@ TABS = ("stages", "explain", "rollouts")
 """The blueprint's tabs, in order; :func:`default_blueprint` opens the one it is given (``stages`` by default)."""
 
 TIMELINE = {"stages": "step", "explain": "step", "rollouts": "step"}
-"""The timeline the viewer opens on with each tab: ``step`` for all three, so that every tab has content as opened
-(the Stages tab's figures are static and its bar charts carry ``step`` 0 too: the last stage's on ``step``, each
-stage's on ``stage``). rerun draws every view on one timeline (a view cannot choose its own: rerun-io/rerun#6828)."""
+"""The timeline the viewer opens on with each tab: ``step`` for all three, so that every tab has content as opened;
+rerun draws every view on one timeline (a view cannot choose its own: rerun-io/rerun#6828)."""
 
 EXPLAIN_PATH = "explain"
 """Root of the most likely failure's entities (:mod:`pemviz.sinks.rerun_explain`)."""
