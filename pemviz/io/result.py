@@ -1,12 +1,8 @@
-"""A run's result as files a CI job reads: one JSON document (``pemviz run --json``; ``pemviz estimate --json``'s holds
-the same ``estimate`` object, :func:`estimate_document`) and a JUnit XML test case for a requirement (``pemviz run
---junit``).
-
-The JSON document (``pemviz-result``, :data:`RESULT_VERSION`) holds the estimate with its interval, ESS, k-hat and
-verdict, the exact answer or reference, the requirement's outcome, the settings, seed, version and recording, and
-the failures by share, group and severity. Probabilities are given as numbers and as natural logs; a non-finite
-value is ``null``. Its JSON Schema is in the user guide ("pemviz in CI"). The JUnit file holds one test case named
-after the requirement: passed when met, ``<failure>`` when violated, ``<error type="undecided">`` when undecided."""
+"""A run's result as files a CI job reads: one JSON document (``pemviz run --json``, ``pemviz-result``,
+:data:`RESULT_VERSION`; ``pemviz estimate --json`` holds the same ``estimate`` object) and a JUnit XML test case for a
+requirement (``--junit``: passed when met, ``<failure>`` when violated, ``<error type="undecided">`` when undecided).
+Probabilities are given as numbers and as natural logs; a non-finite value is ``null``; the JSON Schema is in the user
+guide ("pemviz in CI")."""
 
 from __future__ import annotations
 

@@ -1,12 +1,7 @@
-"""A rollout file's Parquet table checked against the format and read into numpy (:class:`RolloutData`), and its
-optional columns: the severity (:data:`SEVERITY_COLUMNS`) and the braking lead's salient variables
-(:func:`braking_salient`).
-
-The reader (:func:`pemviz.io.rollouts.read_rollouts`) and the writer (:mod:`pemviz.io.rollout_writer`) validate with
-the same checks; bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError` naming the file, the column,
-the rollout and the step. The format is :mod:`pemviz.io.rollout_format`'s. The severity columns, ``min_distance_m``
-(metres, finite) and ``impact_speed_mps`` (m/s, > 0, null without contact), come both or neither, the same on all of
-a rollout's rows (:func:`pemviz.core.severity.rollout_severity`); estimates do not read them."""
+"""A rollout file's Parquet table checked against the format and read into numpy (:class:`RolloutData`), with the same
+checks for the reader and the writer, and its optional columns: the severity (:data:`SEVERITY_COLUMNS`: min distance in
+metres, impact speed in m/s, null without contact; both or neither, not read by estimates) and the braking lead's
+salient variables (:func:`braking_salient`)."""
 
 from __future__ import annotations
 
