@@ -1,8 +1,7 @@
 """pemviz: estimate the probability of rare safety failures of a perception-driven controller with a perception
 error model (PEM) and adaptive importance sampling, recorded for rerun and shown in a browser panel.
 
-Each sub-command lives in ``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``.
-"""
+Each sub-command lives in ``pemviz/commands/<name>.py`` and exposes ``register(subparsers)``."""
 
 from __future__ import annotations
 
@@ -101,8 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command; returns the exit status: 0 done; 1 a failure while working (full disk, out of memory), one
     line; 2 bad input, one line, nothing written; 130 Ctrl-C and 143 SIGTERM, one line saying what was finished
     (``PEMVIZ_DEBUG=1``: the traceback). Run as the program (``argv`` None), the process ends as soon as the command
-    has (:func:`_exit_now`).
-    """
+    has (:func:`_exit_now`)."""
     pemviz.commands.AS_PROGRAM = pemviz.commands.AS_PROGRAM or argv is None
     previous = None
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):

@@ -1,17 +1,8 @@
 """ExperimentConfig: every knob of a pemviz experiment, validated once.
 
-What each knob is (symbol, words, allowed range, help, command-line flag, the estimator that reads it) lives in one
-place, :data:`pemviz.settings.SETTINGS`, with the choices and limits beside it (:data:`METRICS`, :data:`MAX_SEED`,
-... below are :mod:`pemviz.settings`'s): the config's checks, the command line (:mod:`pemviz.commands`), the panel's
-form (:mod:`pemviz.app.form`) and the estimators (:func:`~pemviz.settings.settings_of`) all read it there. This module
-holds :class:`ExperimentConfig`, its checks of the settings against each other and :class:`ConfigError`.
-
-Where is alpha used? ``smoothing`` of the adaptive method's settings (:attr:`ExperimentConfig.adaptive`), then
-:class:`pemviz.estimators.cross_entropy.CrossEntropy` (its CE stage) and :func:`pemviz.estimators.ce_fit.ce_update` (the
-weighted fit). The metric: :class:`pemviz.engine.experiment.Experiment` ranks the rollouts with it
-(:meth:`pemviz.core.problems.Problem.robustness`). The seed: the engine's rollout stream and the estimator's fit,
-tie-breaking and initial-weight streams.
-"""
+What each knob is (symbol, range, help, flag) lives in :data:`pemviz.settings.SETTINGS`, which the config's checks, the
+command line, the panel's form and the estimators all read. This module holds :class:`ExperimentConfig`, its checks of
+the settings against each other and :class:`ConfigError`."""
 
 from __future__ import annotations
 
@@ -41,10 +32,7 @@ CROSS_ENTROPY_DEFAULTS = CrossEntropySettings()
 
 def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
     """The settings ``scenario`` runs with when neither a method nor a preset is asked for: its registry record's
-    :attr:`~pemviz.scenarios.registry.Scenario.run_defaults`, or over an operating design domain (a drawn parameter
-    among ``params``, the ``scenario_params`` pairs) its
-    :attr:`~pemviz.scenarios.registry.Scenario.odd_defaults` where it has them; empty: the config's defaults (also
-    for a scenario not registered)."""
+    ``run_defaults``, or over an ODD (a drawn parameter among ``params``) its ``odd_defaults`` where it has them."""
     from pemviz.scenarios.odd import is_odd
     from pemviz.scenarios.registry import known
 
@@ -56,9 +44,7 @@ def scene_defaults(scenario: str, params: Any = ()) -> dict[str, Any]:
 
 
 def objects_of(scenario: str) -> int:
-    """The objects ``scenario`` perceives a step (its registry record's
-    :attr:`~pemviz.scenarios.registry.Scenario.n_objects`; 1 for one not registered): what the config checks a method
-    against before anything is loaded."""
+    """The objects ``scenario`` perceives a step (its registry record's ``n_objects``; 1 for one not registered)."""
     from pemviz.scenarios.registry import known
 
     record = known(scenario)
@@ -72,15 +58,9 @@ class Execution:
 
     Attributes:
     executor: where rollouts are simulated, one of :data:`EXECUTORS`.
-    workers: the worker processes of ``executor="local"`` (None: every usable core,
-        :func:`pemviz.engine.resources.usable_cpus`; 1: this process, as ``serial``).
+    workers: the worker processes of ``executor="local"`` (None: every usable core; 1: this process).
     ray_address: the Ray cluster to use with ``executor="ray"`` (None: start a local one).
-    chunk_rollouts: None (serial stages above :data:`pemviz.engine.experiment.STREAM_ABOVE` rollouts stream
-        in chunks of :data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`) or the most rollouts simulated and scored at a
-        time (memory): a serial stage of more streams chunk by chunk. The rollouts, weights and estimate do not
-        depend on it (detectors give a row the same bits in any batch: :mod:`pemviz.core.exact`; Array-RQMC
-        couples fixed blocks, whatever the chunks).
-    """
+    chunk_rollouts: None (the default streaming) or the most rollouts simulated and scored at a time (memory)."""
 
     executor: str = "local"
     workers: int | None = None
@@ -90,23 +70,15 @@ class Execution:
 
 @dataclass(frozen=True)
 class StopRule:
-    """When a run stops adding final batches (:attr:`ExperimentConfig.stop`): the planned budget alone (every field
-    None), a precision target or a requirement, and their caps.
+    """When a run stops adding final batches (:attr:`ExperimentConfig.stop`); every field None: the planned budget.
 
     Attributes:
-    rel_error: None (the planned budget) or R, a precision target: after the planned stages the run adds final
-        batches from the same sampler, pooled with the first, until the 95 % interval's relative half-width
-        (:attr:`pemviz.core.estimate.Estimate.rel_half_width`) is at most R or a cap is hit
+    rel_error: None or R: final batches are added until the 95 % interval's relative half-width is at most R
         (:class:`pemviz.estimators.precision.PrecisionTarget`).
-    require: None or a requirement ``"p < T"`` (``<``, ``<=``, ``>``, ``>=``; T in (0, 1)): after the planned
-        stages the run adds final batches as for ``rel_error`` until the interval of an alpha-spending sequential
-        test lies wholly on one side of T (:mod:`pemviz.core.requirement`) or a cap is hit.
-    max_sims: with ``rel_error`` or ``require``, the most simulations in all, plain Monte Carlo after the stages
-        included (None: :data:`DEFAULT_MAX_SIMS`; :attr:`ExperimentConfig.most_simulations`); at least the planned
-        ones.
-    max_time_s: with ``rel_error``, no batch is started after this many seconds of the run, and none is sized to
-        end past it (None: no time cap); seconds.
-    """
+    require: None or ``"p < T"`` (``<``, ``<=``, ``>``, ``>=``; T in (0, 1)): final batches until an alpha-spending
+        sequential test decides it (:mod:`pemviz.core.requirement`).
+    max_sims: with a stop rule, the most simulations in all (None: :data:`DEFAULT_MAX_SIMS`); at least the planned.
+    max_time_s: with ``rel_error``, no batch is started or sized to end after this many seconds (None: no cap)."""
 
     rel_error: float | None = None
     require: str | None = None
@@ -122,8 +94,7 @@ class Perception:
     pem: path of PEM weights, or None for the shipped default.
     pem_uncertainty: re-weight the rollouts under every member of the PEM's bootstrap ensemble and under the
         logit shifts :data:`pemviz.scenarios.problems.PEM_SHIFTS` (:mod:`pemviz.core.reweight`).
-    pem_shift: None or D: re-weight the rollouts under the PEM with every logit shifted by D (log-odds).
-    """
+    pem_shift: None or D: re-weight the rollouts under the PEM with every logit shifted by D (log-odds)."""
 
     pem: str | None = None
     pem_uncertainty: bool = False
@@ -134,57 +105,34 @@ class Perception:
 class ExperimentConfig:
     """One experiment: the sampler of Innes & Ramamoorthy (2022, Algorithm 1) and its baselines.
 
-    The defaults are the recommended sampler (preset :data:`pemviz.presets.DEFAULT_PRESET`);
-    :data:`PRESETS["paper"] <pemviz.presets.PRESETS>` gives the paper's own settings. Its fields are the run's own
-    settings, five groups: :attr:`perception`, :attr:`execution`, :attr:`stop`, splitting's settings (:attr:`ams`),
-    the fallback's after any method's stages (:attr:`fallback`), and the method's own settings (:attr:`method_settings`:
-    the cross-entropy sampler's of the adaptive method, read as :attr:`adaptive`; the state method's, a plugin's).
-    Every setting has one flat name, its row of :data:`pemviz.settings.SETTINGS` (``smoothing``, ``executor``,
-    ``ams_killed``) or of the method's settings (``state_share``): :meth:`of` makes a
-    config from flat names, :meth:`value` reads one, :meth:`flat` gives them all (the result document's, the rollout
-    file's and ``runs.jsonl``'s ``config``), :meth:`replace` changes some.
+    The defaults are the recommended sampler (preset :data:`pemviz.presets.DEFAULT_PRESET`). Every setting has one flat
+    name, its row of :data:`pemviz.settings.SETTINGS` or of the method's settings: :meth:`of` makes a config from flat
+    names, :meth:`value` reads one, :meth:`flat` gives them all (what runs record as ``config``), :meth:`replace`
+    changes some.
 
     Attributes:
-    method: a registered method's name (:data:`pemviz.methods.BUILTIN_METHODS` or a plugin's); its record is
-        :attr:`method_record`.
+    method: a registered method's name; its record is :attr:`method_record`.
     n_per_stage: N, rollouts per stage; for mc / naive50 / mixed50 the number of rollouts; for ams the particles.
     metric: robustness semantics, one of :data:`METRICS`.
-    seed: seeds the rollouts, the fits, tie-breaking and the proposal's initial weights, each its own stream;
-        the same seed gives the same estimate.
-    uniforms: how the rollouts of a batch draw their detections, one of :data:`UNIFORMS`: ``iid``, one
-        independent U(0, 1) per rollout and step (the paper); ``array-rqmc`` (the default), the rollouts of each
-        fixed block of 8,192 of a batch (of each sampler of a mixture but the target's own share;
-        :data:`pemviz.core.rng.RQMC_BLOCK`, whatever the executor or chunk size) are stepped as one array; at each
-        step those inside the sampler's window are ranked by their sampler's detect logit, then by their state
-        (:func:`pemviz.core.rng.ranking_key`), and given the points of a randomly shifted golden-ratio lattice
-        (:func:`pemviz.core.detectors.step_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008).
-        Each rollout still follows its sampler exactly, so every estimate keeps its expectation; the batch's
-        estimate varies less (~40 % less variance at the default sampler's last stages on the braking job).
-        The rollouts of a batch are no longer independent: an interval computed as if they were is
-        conservative. ``ams`` draws its particles and continuations i.i.d.
+    seed: seeds the rollouts, the fits, tie-breaking and the proposal's initial weights, each its own stream.
+    uniforms: how a batch draws its detections, one of :data:`UNIFORMS`: ``iid``, one U(0, 1) per rollout and step
+        (the paper); ``array-rqmc``, each fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts stepped as one
+        array, ranked by detect logit and given the points of a shifted golden-ratio lattice
+        (:func:`pemviz.core.detectors.step_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008):
+        unbiased, less variance, and an interval computed as if the rollouts were independent is conservative.
     scenario: what is simulated, one of :data:`SCENARIOS`.
-    scenario_params: ``(name, value)`` pairs setting the scenario's parameters (``pemviz run --param
-        NAME=VALUE``): scalar fields of its dataclass, each name once, each value of its field's type (float, int,
-        bool) and in the dataclass's range (:mod:`pemviz.scenarios.parameters`; units in the names: ``_m``
-        metres, ``_mps`` m/s, ``_s`` seconds); ``()``: the scenario's defaults. The braking scenario's crash gap
-        is also ``margin``: give it once.
+    scenario_params: ``(name, value)`` pairs of the scenario's parameters (``--param NAME=VALUE``), checked by
+        :mod:`pemviz.scenarios.parameters` (units in the names: ``_m``, ``_mps``, ``_s``); ``()``: its defaults.
     sim: the braking scenario's back-end, one of :data:`SIMULATORS`.
-    margin: None or the braking scenario's crash gap in metres (``BrakingParams.crash_gap_m``, default 2): a
-        failure is the gap dropping below it; 0: below 0 m (the severity curve's last point,
-        :mod:`pemviz.core.severity`).
-    weights_until_failure: importance weights (estimate and CE fit) stop at the step where the failure
-        happens: later actions change nothing, like the last action already left out.
+    margin: None or the braking scenario's crash gap in metres (``BrakingParams.crash_gap_m``, default 2).
+    weights_until_failure: importance weights (estimate and CE fit) stop at the step where the failure happens.
         perception: the PEM and its re-weightings (:class:`Perception`).
         execution: where the rollouts are simulated (:class:`Execution`).
         stop: the stop rule (:class:`StopRule`).
         ams: splitting's settings (:class:`pemviz.methods.ams.AmsSettings`).
-        fallback: the retry and plain Monte Carlo after the stages of a method whose record has a
-            :attr:`~pemviz.methods.Method.then` (:class:`pemviz.settings.FallbackSettings`).
-        method_settings: the method's own settings, an instance of its :attr:`pemviz.methods.Method.settings` (the
-            adaptive method's :class:`pemviz.methods.adaptive.CrossEntropySettings`, the state method's
-            :class:`pemviz.methods.state.StateSettings`, a method of one's own's; None: made from its defaults; for a
-            method without them, None).
-    """
+        fallback: the retry and plain Monte Carlo after a method's stages (:class:`pemviz.settings.FallbackSettings`).
+        method_settings: an instance of the method's :attr:`pemviz.methods.Method.settings` (None: its defaults; for a
+            method without them, None)."""
 
     method: str = DEFAULT_METHOD
     n_per_stage: int = 100
@@ -205,16 +153,13 @@ class ExperimentConfig:
 
     @classmethod
     def of(cls, **settings: Any) -> ExperimentConfig:
-        """A config from settings by their flat names (:data:`pemviz.settings.SETTINGS`: ``n_stages=3``,
-        ``executor="ray"``), groups (``stop=StopRule(...)``, ``method_settings=...``) or both (a flat name then
-        changes its group's value), and the method's own settings by their names (``state_share=0.2`` with
-        ``method="state"``), validated. Another built-in method's own setting at its default is left out (every run
-        records them: :meth:`flat`), as are the cross-entropy sampler's given to a method that does not run it.
+        """A config from settings by their flat names (``n_stages=3``), groups (``stop=StopRule(...)``) or both (a flat
+        name then changes its group's value), and the method's own settings by their names, validated. Another built-in
+        method's own setting at its default is left out, as are the cross-entropy sampler's for a method without it.
 
         Raises:
             ConfigError: a setting out of range or against another, or another built-in method's own setting changed;
-                TypeError: a name that is no setting.
-        """
+                TypeError: a name that is no setting."""
         method = method_or_none(settings.get("method", DEFAULT_METHOD))  # None: refused when the config is checked
         kind = method.settings_class() if method else None  # the method's own settings class, or None
         mine = _names(kind)
@@ -247,8 +192,7 @@ class ExperimentConfig:
         settings (:attr:`method_settings`).
 
         Raises:
-            AttributeError: not a setting (of this run's method).
-        """
+            AttributeError: not a setting (of this run's method)."""
         if name in CROSS_ENTROPY:
             return getattr(self.adaptive, name)
         group = GROUP_OF.get(name)
@@ -257,10 +201,8 @@ class ExperimentConfig:
         return getattr(self if group is None else getattr(self, group), name)
 
     def flat(self) -> dict[str, Any]:
-        """Every setting by its flat name, in the order runs record them (:data:`pemviz.settings.RECORDED`: the
-        table's, the built-in methods' own, this run's where they are its method's, else their defaults), then a
-        method of one's own's settings (what result documents, rollout files and ``runs.jsonl`` record as a run's
-        ``config``)."""
+        """Every setting by its flat name, in the order runs record them (:data:`pemviz.settings.RECORDED`), then a
+        plugin method's settings: a run's recorded ``config``."""
         own = {} if self.method_settings is None else dataclasses.asdict(self.method_settings)
         values = {**{name: self.value(name) for name in SETTINGS}, **OWN_DEFAULTS, **own}
         return {**{name: values[name] for name in RECORDED}, **own}
@@ -352,15 +294,13 @@ class ExperimentConfig:
 
     @property
     def adaptive(self) -> CrossEntropySettings:
-        """The cross-entropy sampler's settings: the method's own (:attr:`method_settings`) where it runs the sampler
-        (the adaptive and state methods), else their defaults."""
+        """The cross-entropy sampler's settings: the method's own where it runs the sampler, else their defaults."""
         own = self.method_settings
         return own if isinstance(own, CrossEntropySettings) else CROSS_ENTROPY_DEFAULTS
 
     @property
     def method_record(self) -> Method:
-        """The registry's record of :attr:`method` (the config checked that it is registered): what the engine, the
-        estimators and the sinks ask about the method, never its name."""
+        """The registry's record of :attr:`method` (checked registered in ``__post_init__``)."""
         method = method_or_none(self.method)
         assert method is not None, self.method  # checked in __post_init__: a registered name
         return method
@@ -371,24 +311,22 @@ class ExperimentConfig:
 
     @property
     def over_odd(self) -> bool:
-        """Whether a scenario parameter is drawn per rollout (``NAME~DISTRIBUTION``): a run over an operating design
-        domain."""
+        """Whether a scenario parameter is drawn per rollout (``NAME~DISTRIBUTION``): a run over an ODD."""
         from pemviz.scenarios.odd import is_odd
 
         return any(isinstance(pair, tuple) and is_odd(pair[-1]) for pair in self.scenario_params)
 
     @property
     def stop_rule(self) -> str | None:
-        """``rel_error`` or ``require`` when the run adds final batches until a precision target or a decision
-        (:class:`pemviz.estimators.precision.PrecisionTarget`), else None."""
+        """``rel_error`` or ``require`` when the run adds final batches until a precision target or a decision, else
+        None."""
         stop = self.stop
         return "rel_error" if stop.rel_error is not None else "require" if stop.require is not None else None
 
     @property
     def most_simulations(self) -> int | None:
-        """The most simulations of the whole run (its stages, their added batches, a retry and plain Monte Carlo
-        after them): ``max_sims``, else :data:`~pemviz.settings.DEFAULT_MAX_SIMS` with a stop rule, else None (the
-        planned budget, and the fallback's own cap, :func:`pemviz.settings.plain_fallback_most`)."""
+        """The most simulations of the whole run: ``max_sims``, else :data:`~pemviz.settings.DEFAULT_MAX_SIMS` with a
+        stop rule, else None (the planned budget)."""
         from pemviz.settings import DEFAULT_MAX_SIMS
 
         if self.stop.max_sims is not None:
@@ -397,9 +335,8 @@ class ExperimentConfig:
 
     @property
     def n_simulations(self) -> int:
-        """Rollouts the experiment will simulate, pretraining included: those of the plan its method states
-        (:meth:`pemviz.methods.Method.run_plan`; an open-ended plan, e.g. splitting's, the N initial
-        particles; the run reports the rollout-equivalents its continuations or look-aheads add)."""
+        """Rollouts the experiment will simulate, pretraining included (:meth:`pemviz.methods.Method.run_plan`; an
+        open-ended plan, e.g. splitting's: the N initial particles)."""
         planned = self.method_record.run_plan(self).n_simulations
         return int(planned) if planned is not None else self.n_per_stage
 
@@ -407,13 +344,10 @@ class ExperimentConfig:
 GROUPS: dict[str, type] = {
     f.name: type(f.default) for f in dataclasses.fields(ExperimentConfig) if dataclasses.is_dataclass(f.default)
 }
-"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes: the run's own three,
-splitting's settings (a dataclass in the method's home) and the fallback's (:class:`pemviz.settings.FallbackSettings`);
-a method's own settings, the cross-entropy sampler's included, are its :attr:`ExperimentConfig.method_settings`."""
+"""The :class:`ExperimentConfig` fields that hold a group of settings, and their classes."""
 
 GROUP_OF: dict[str, str] = {f.name: g for g, cls in GROUPS.items() for f in dataclasses.fields(cls)}
-"""A setting's name (:data:`pemviz.settings.SETTINGS`) -> the :class:`ExperimentConfig` field of the group holding it;
-a setting not here is a field of the config itself."""
+"""A setting's name -> the :class:`ExperimentConfig` field of the group holding it (absent: a field of the config)."""
 
 
 def _names(settings: type | None) -> tuple[str, ...]:
@@ -423,12 +357,10 @@ def _names(settings: type | None) -> tuple[str, ...]:
 
 def default_of(name: str) -> Any:
     """The default value of the setting ``name`` (a flat name of :data:`pemviz.settings.SETTINGS`), read from the
-    dataclasses (no config is made: a command line's help and flags need the defaults before a run, and a config's
-    checks read the scenario registry).
+    dataclasses without making a config.
 
     Raises:
-        KeyError: not a setting.
-    """
+        KeyError: not a setting."""
     cls = CrossEntropySettings if name in CROSS_ENTROPY else GROUPS.get(GROUP_OF.get(name, ""), ExperimentConfig)
     for f in dataclasses.fields(cls):
         if f.name == name:

@@ -1,10 +1,6 @@
-"""The runs of the conformance kit (:mod:`pemviz.testing`): an experiment driven by the engine, with its files.
-
-:func:`run_engine` runs a config on a problem through :class:`pemviz.engine.experiment.Experiment` and keeps every
-stage's and the final estimate (a :class:`KitRun`); :func:`run_with_files` adds a rollout file and a recording, each
-sink behind a :class:`GuardedListener` whose errors are kept for the check that owns it; :class:`files_folder` gives
-their folder. Importing this module imports no simulator, PEM, recording library or torch.
-"""
+"""The runs of the conformance kit (:mod:`pemviz.testing`): an experiment driven by the engine (:func:`run_engine`),
+with its rollout file and recording (:func:`run_with_files`), each sink's errors kept for the check that owns it.
+Importing this module imports no simulator, PEM, recording library or torch."""
 
 from __future__ import annotations
 

@@ -49,8 +49,7 @@ def register_envs() -> None:
 class BasicAgentController:
     """The braking scenario's ego controller as a policy ``obs [3] -> acceleration [1]`` (m/s^2):
     :func:`pemviz.scenarios.braking.simulator.ego_acceleration` on what it observes. Call :meth:`reset` with each
-    episode.
-    """
+    episode."""
 
     def __init__(self, params: Any = None) -> None:
         from pemviz.scenarios.braking.simulator import BrakingParams
@@ -82,8 +81,7 @@ class BrakingEnv(gym.Env):
             observation [M, 3] = (gap_m, ego speed, lead speed)); default the PEM itself.
         pem: the target PEM (name or path, :func:`pemviz.pem.load_pem`; default the shipped one), or a
             :class:`pemviz.pem.PEM`; gives ``info["log_p"]``.
-        params: the scenario's constants (:class:`pemviz.scenarios.braking.simulator.BrakingParams`).
-    """
+        params: the scenario's constants (:class:`pemviz.scenarios.braking.simulator.BrakingParams`)."""
 
     metadata: dict[str, Any] = {"render_modes": []}
     observation_space: gym.spaces.Box
@@ -154,8 +152,7 @@ class BrakingEnv(gym.Env):
         """Apply the acceleration command (m/s^2) for dt seconds, then draw the next detection.
 
         Raises:
-            RuntimeError: stepping after the episode ended (call ``reset``).
-        """
+            RuntimeError: stepping after the episode ended (call ``reset``)."""
         sim, p = self.sim, self.params
         if sim.done:
             raise RuntimeError(f"{ENV_ID}: episode over after {p.n_steps} steps; call reset()")

@@ -1,7 +1,6 @@
 """What the scenario and method registries share: a reference to an object by its import path, resolved when first
 used (as Gymnasium's ``entry_point``), and plugins loaded from modules an environment variable names and from entry
-points, each failure one line naming the plugin.
-"""
+points, each failure one line naming the plugin."""
 
 from __future__ import annotations
 
@@ -22,8 +21,7 @@ def resolve(ref: Ref) -> Any:
 
     Raises:
         ValueError: a text that is not ``module:name``.
-        ImportError, AttributeError: no such module or name.
-    """
+        ImportError, AttributeError: no such module or name."""
     if not isinstance(ref, str):
         return ref
     module, sep, attr = ref.partition(":")
@@ -45,8 +43,7 @@ def load_plugins(
     Raises:
         ``error``: one line, ``{kind} plugin <which>: <exception type>: <message>``, for the first plugin that cannot
             be imported or that raised while registering; for a module named by ``variable`` that is nowhere to
-            import from (:func:`import_here`), what to set instead of the exception.
-    """
+            import from (:func:`import_here`), what to set instead of the exception."""
 
     def load(what: str, action: Callable[[], object]) -> None:
         try:
@@ -73,8 +70,7 @@ def check_record(kind: str, name: object, description: object) -> None:
     """A registry record's name and description (``kind``: ``Method``, ``Scenario``).
 
     Raises:
-        ValueError: an empty name, a name with spaces around it, or a description of several lines.
-    """
+        ValueError: an empty name, a name with spaces around it, or a description of several lines."""
     if not isinstance(name, str) or not name.strip() or name != name.strip():
         raise ValueError(f"{kind}: name must be a non-empty text without surrounding spaces, got {name!r}")
     if not isinstance(description, str) or "\n" in description:
@@ -92,8 +88,7 @@ def import_here(module: str, variable: str) -> None:
     Raises:
         ModuleNotFoundError: a module ``module`` imports is missing (its own message).
         PluginNotFound: ``module`` itself is neither in the current folder nor on the Python path; the message says what
-            to set.
-    """
+            to set."""
     try:
         importlib.import_module(module)
         return
@@ -130,8 +125,7 @@ class Plugins:
         variable, group, kind, error: as :func:`load_plugins` takes them.
         record: the registry's record type (an entry point may give one, or a callable that registers some).
         registry: name -> record, the registry itself (a record already there is not registered again).
-        register: registers one record.
-    """
+        register: registers one record."""
 
     def __init__(
         self,
@@ -176,8 +170,7 @@ class Plugins:
 
         Raises:
             KeyError: no record of that name (the message lists the registered ones); ``error``: a plugin that cannot
-                be loaded.
-        """
+                be loaded."""
         self.load()
         if name not in self.registry:
             raise KeyError(f"no {self.kind} named {name!r}; registered: {', '.join(self.registry)}")

@@ -1,7 +1,6 @@
 """Named sampler settings (presets), each applied on top of :class:`pemviz.config.ExperimentConfig`'s defaults:
 the recommended sampler, the paper's, the authors' code's, a quick one and the default before its mixture over
-rollouts. Read by ``pemviz run --preset``, the panel's preset dropdown, ``validate`` and ``tables``.
-"""
+rollouts. Read by ``pemviz run --preset``, the panel's preset dropdown, ``validate`` and ``tables``."""
 
 from __future__ import annotations
 
@@ -49,13 +48,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "weights": "recomputed",
         "final_estimate": "last-stage",
     },
-    "quick": {
-        "n_stages": 8,
-        "ce_epochs": 200,
-        "pretrain_rollouts": 50,
-        "pretrain_epochs": 200,
-        "learning_rate": 2e-2,
-    },
+    "quick": {"n_stages": 8, "ce_epochs": 200, "pretrain_rollouts": 50, "pretrain_epochs": 200, "learning_rate": 2e-2},
     "state-ce-step": {
         "target_share": 0.0,
         "plain_share": 0.0,
@@ -74,15 +67,10 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 """Named settings, each applied on top of the defaults.
 
-``state-ce`` (the default): cross-entropy on a proposal over the whole observed state, only where the detector can
-matter, weights up to the failure raised to 1.2 (Renyi order 1.2) once the threshold reaches the failure level and
-to 1 in the last fit, a capped pretraining, a 20 % per-step defensive mixture and a mixture over whole rollouts (45
-% from the uncapped proposal, 10 % from the target once the failure level is reached), every fit on every failure
-since, Array-RQMC detections, stages pooled by j^2 n_j, short warm-started Adam fits. Median relative error <=
-0.0035 on toys from 1e-3 to 1e-100 at 2,100 simulations (docs/validation.md). ``state-ce-step``: the default before
-the mixture over rollouts. ``paper``: the sampler as published (biased low on the braking job in practice: so
-right-skewed that 1,200 simulations almost never see the weights that matter). ``authors-code``: how the authors'
-public code ran it (alpha 0.5, 1000 epochs, weights recomputed through the gradient, the last stage's batch as the
+``state-ce`` (the default): cross-entropy on a proposal over the whole observed state, weights up to the failure, a
+defensive mixture per step and over whole rollouts, Array-RQMC detections, stages pooled by j^2 n_j (its accuracy:
+docs/validation.md). ``state-ce-step``: without the mixture over rollouts. ``paper``: the sampler as published.
+``authors-code``: how the authors' public code ran it (alpha 0.5, 1000 epochs, the last stage's batch as the
 estimate). ``quick``: the default with fewer, larger Adam steps."""
 
 PRESET_HELP: dict[str, str] = {

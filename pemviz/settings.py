@@ -1,15 +1,9 @@
-"""The settings table: what each :class:`pemviz.config.ExperimentConfig` field is, in one place.
+"""The settings table: what each :class:`pemviz.config.ExperimentConfig` setting is, in one place.
 
-Each field's symbol, words, allowed range, unit, help, command-line flag and owner (the estimator that reads it) is a
-:class:`Setting` in :data:`SETTINGS`: the config's checks (:mod:`pemviz.config`), the command line
-(:mod:`pemviz.commands`), the panel's form (:mod:`pemviz.app.form`) and the estimators (:func:`settings_of`) all read it
-here. The allowed values of the choices (:data:`METRICS`, ...) and the numeric limits (:data:`MAX_SEED`, ...) live
-beside it; the cross-entropy sampler's rows are the fields of its settings
-(:class:`pemviz.methods.adaptive.CrossEntropySettings`, each made by :func:`pemviz.methods.setting`; the adaptive and
-state methods' :attr:`pemviz.methods.Method.settings`), with its choices and limits beside them; the retry's and plain
-Monte Carlo's after any method's stages are the fields of :class:`FallbackSettings` here, with the retry's N
-(:meth:`FallbackSettings.retry_n`) and plain Monte Carlo's cap (:func:`plain_fallback_most`).
-"""
+Each setting's symbol, words, range, unit, help, flag and owner is a :class:`Setting` in :data:`SETTINGS`, read by the
+config's checks, the command line, the panel's form and the estimators (:func:`settings_of`); the allowed choices and
+limits live beside it. The cross-entropy sampler's rows are the fields of
+:class:`pemviz.methods.adaptive.CrossEntropySettings`; the fallback's those of :class:`FallbackSettings` here."""
 
 from __future__ import annotations
 
@@ -39,24 +33,18 @@ DEFAULT_SCENARIO = "braking"
 """The scenario a run estimates when none is named (``--scenario``)."""
 
 SCENARIOS = (DEFAULT_SCENARIO, "cut-in", "cut-in-rare")
-"""What a run estimates (:func:`pemviz.scenarios.problems.problem_for`): ``braking``, the paper's scenario (one lead
-car, a closed-form answer); ``cut-in``, a car cutting in on a 3-lane highway with several cars, detections and
-measurement errors, at the moderate rarity setting (about 9e-5); ``cut-in-rare``, the same at about 1e-7
-(:mod:`pemviz.scenarios.cut_in`)."""
+"""What a run estimates (:func:`pemviz.scenarios.problems.problem_for`): ``braking``, the paper's scenario; ``cut-in``,
+a car cutting in on a 3-lane highway (about 9e-5); ``cut-in-rare``, the same at about 1e-7."""
 
 
 REGISTERED_SCENARIOS: list[str] = []
-"""The scenarios registered in this process besides :data:`SCENARIOS` (:func:`pemviz.scenarios.registry.register` adds
-each name, ``unregister`` removes it): the built-in toys ``toy`` and ``crowd`` once the registry is imported, and the
-plugins' scenarios once they are loaded (:func:`pemviz.scenarios.registry.load_plugins`; the commands load them before
-they read a config). The settings sit below the registry: they read this list and never import it."""
+"""The scenarios registered in this process besides :data:`SCENARIOS` (written by
+:func:`pemviz.scenarios.registry.register`): the settings read this list and never import the registry."""
 
 
 SCENARIO_COST_FACTORS: dict[str, float] = {}
-"""Scenario name -> how many times the cost model's reference rollout step one of its rollout steps costs
-(:attr:`pemviz.scenarios.registry.Scenario.cost_factor`, which :func:`pemviz.scenarios.registry.register` writes here
-for every scenario it registers and ``unregister`` removes): what :func:`pemviz.engine.cost.stage_cost` scales a
-scenario's simulation seconds by, reading this table and never the registry (1 for a name not here)."""
+"""Scenario name -> how many reference rollout steps one of its rollout steps costs (written by
+:func:`pemviz.scenarios.registry.register`, read by :func:`pemviz.engine.cost.stage_cost`; 1 for a name not here)."""
 
 SCENARIO_COST_PARTS: dict[str, dict[str, float]] = {}
 """Scenario name -> the other parts of a run's cost its scene declares (:attr:`pemviz.scenarios.registry.Scenario.
@@ -70,10 +58,8 @@ def scenario_names() -> tuple[str, ...]:
 
 
 EXECUTORS = ("local", "serial", "ray")
-"""Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``local`` in worker processes on this
-machine (every usable core, or ``workers``), ``serial`` in this process, ``ray`` as Ray tasks on a local or remote
-cluster; the same seed gives the same rollouts and estimate, bit for
-bit (:mod:`pemviz.engine.executors`)."""
+"""Where rollouts are simulated (:func:`pemviz.engine.executors.get_executor`): ``local`` worker processes, ``serial``
+in this process, ``ray`` on a Ray cluster; the same seed gives the same rollouts and estimate, bit for bit."""
 
 UNIFORMS = ("array-rqmc", "iid")
 """How a batch's rollouts draw their detections (:class:`~pemviz.config.ExperimentConfig` ``uniforms``)."""
@@ -101,23 +87,17 @@ RETRY_MOST_N = 10_000
 @dataclass(frozen=True)
 class FallbackSettings:
     """The retry and plain Monte Carlo after a method's stages where their weights back no interval (a verdict other
-    than ``reliable``): :attr:`pemviz.config.ExperimentConfig.fallback` of a run, read by
-    :class:`pemviz.estimators.fallback.PlainFallback` whatever the method (the one its record's
-    :attr:`~pemviz.methods.Method.then` names: the adaptive and state methods'). Each field, made by :func:`setting`,
-    carries its row of :data:`SETTINGS` (owner :data:`FALLBACK`).
+    than ``reliable``), read by :class:`pemviz.estimators.fallback.PlainFallback` whatever the method. Each field, made
+    by :func:`setting`, carries its row of :data:`SETTINGS` (owner :data:`FALLBACK`).
 
     Attributes:
-    plain_fallback: plain Monte Carlo rollouts after the stages, at most this many times their simulations (the
-        default 500; :func:`plain_fallback_most`), never above :data:`PLAIN_FALLBACK_MOST` nor what the run's cap of
-        simulations leaves (``max_sims``; with a stop rule, by default 1,000,000 in all), to the run's precision
-        target (``rel_error``, else a 20 % interval) or requirement; the run's answer is then plain Monte Carlo's
-        where it saw a failure (:mod:`pemviz.estimators.fallback`). 0: none (the ``paper`` preset's). Not over an
-        operating design domain.
-    retry_factor: before that plain Monte Carlo, the stages once more, with N this many times as large
-        (:meth:`retry_n`; the default 4: 5,100 simulations after the default 2,100), from a stream of their own; their
-        answer is the run's where their weights back an interval. 0 or 1: no retry. Only with ``plain_fallback`` > 0
-        and no precision target or requirement.
-    """
+    plain_fallback: plain Monte Carlo rollouts after the stages, at most this many times their simulations
+        (:func:`plain_fallback_most`; capped by :data:`PLAIN_FALLBACK_MOST` and ``max_sims``), to the run's precision
+        target or requirement; the run's answer is then plain Monte Carlo's where it saw a failure. 0: none. Not over
+        an operating design domain.
+    retry_factor: before that plain Monte Carlo, the stages once more with N this many times as large
+        (:meth:`retry_n`), from a stream of their own. 0 or 1: no retry. Only with ``plain_fallback`` > 0 and no stop
+        rule."""
 
     plain_fallback: int = setting(
         500,
@@ -141,10 +121,8 @@ class FallbackSettings:
     )
 
     def retry_n(self, n: int, stop_rule: str | None = None) -> int | None:
-        """N of the retry of stages of ``n`` rollouts (:class:`pemviz.estimators.fallback.PlainFallback`): ``n`` times
-        ``retry_factor``, at most :data:`RETRY_MOST_N`; None where the run has none (``retry_factor`` < 2,
-        ``plain_fallback`` = 0, a ``stop_rule``, the run's precision target or requirement:
-        :attr:`pemviz.config.ExperimentConfig.stop_rule`, or ``n`` at :data:`RETRY_MOST_N` already)."""
+        """N of the retry of stages of ``n`` rollouts: ``n`` times ``retry_factor``, at most :data:`RETRY_MOST_N`; None
+        where the run has none (``retry_factor`` < 2, ``plain_fallback`` = 0, a stop rule, or ``n`` at the most)."""
         factor, n = int(self.retry_factor), int(n)
         if factor < 2 or self.plain_fallback <= 0 or stop_rule is not None or n >= RETRY_MOST_N:
             return None
@@ -157,11 +135,9 @@ simulations below it: a large run of the stages gets no larger fallback)."""
 
 
 def plain_fallback_most(ratio: int, spent: int, max_sims: int | None = None) -> int:
-    """The most plain rollouts the fallback (:class:`pemviz.estimators.fallback.PlainFallback`) draws after stages that
-    simulated ``spent`` rollout-equivalents: ``ratio`` (``plain_fallback``) times ``spent`` (at least 1), at most
-    :data:`PLAIN_FALLBACK_MOST` and what the run's cap ``max_sims`` leaves
-    (:attr:`pemviz.config.ExperimentConfig.most_simulations`); 0 when ``ratio`` <= 0 or nothing is left.
-    """
+    """The most plain rollouts the fallback draws after stages that simulated ``spent`` rollout-equivalents: ``ratio``
+    times ``spent`` (at least 1), at most :data:`PLAIN_FALLBACK_MOST` and what ``max_sims`` leaves; 0 when ``ratio``
+    <= 0 or nothing is left."""
     if ratio <= 0:
         return 0
     most = min(int(ratio) * max(1, int(spent)), PLAIN_FALLBACK_MOST)
@@ -172,39 +148,28 @@ def plain_fallback_most(ratio: int, spent: int, max_sims: int | None = None) -> 
 
 @dataclass(frozen=True)
 class Setting:
-    """What one :class:`~pemviz.config.ExperimentConfig` field is, in the one place every reader takes it from: the
-    config's own check and its :class:`~pemviz.config.ConfigError` messages, the command line's flags
-    (:mod:`pemviz.commands`), the panel's form and its hints and the run labels (:mod:`pemviz.app.form`), and the
-    estimators that read it (:func:`settings_of`).
+    """What one :class:`~pemviz.config.ExperimentConfig` setting is, in the one place every reader takes it from: the
+    config's checks, the command line's flags, the panel's form and the estimators (:func:`settings_of`).
 
     Attributes:
-        name: the :class:`~pemviz.config.ExperimentConfig` field.
-        words: what it is, as a noun in plain words with its symbol (``"the smoothing alpha"``); error messages say
-            ``<words> must be <allowed>``.
-        help: what it does, one line, no measured figures (the flag's help and the panel's hint, after the range).
-        kind: ``int``, ``real``, ``choice``, ``method`` (the built-in :attr:`choices` or a name the method registry
-            has registered in this process: :func:`pemviz.methods.registered_names`), ``scenario`` (the same for the
-            scenario registry: :func:`scenario_names`), ``bool``,
-            ``text``, ``pem`` (a shipped PEM name or a file, checked
-            where it is loaded: the config does no I/O) or ``params`` (``(name, value)`` pairs of the scenario's
-            parameters, :mod:`pemviz.scenarios.parameters`, checked against the scenario by the config).
+        name: the setting's flat name.
+        words: what it is, a noun with its symbol (``"the smoothing alpha"``): ``<words> must be <allowed>``.
+        help: what it does, one line, no measured figures (the flag's help and the panel's hint).
+        kind: ``int``, ``real``, ``choice``, ``method`` (a registered method), ``scenario`` (a registered scenario),
+            ``bool``, ``text``, ``pem`` (a shipped PEM name or a file, checked where loaded) or ``params`` (the
+            scenario's parameters, :mod:`pemviz.scenarios.parameters`).
         symbol: the paper's symbol (``alpha``, ``sigma``, ``K``, ``N``, ``N_e``; ``k`` of AMS), or None.
-        short: the name in the panel and the run labels when it is neither the symbol nor the field's words.
+        short: the name in the panel and the run labels when it is neither the symbol nor the words.
         unit: the unit of a physical quantity (``""``: a count, a probability or a name).
         lo, hi, lo_open, hi_open: the allowed range of a number; ``lo_open`` / ``hi_open`` exclude the end.
-        hi_words: how the upper end is written (``2^64 - 1`` rather than its 20 digits).
+        hi_words: how the upper end is written (``2^64 - 1``).
         text_words: what a ``text`` setting takes, in words (``a Ray address``).
         optional: None is allowed too.
         choices: the allowed values of a ``choice``.
-        choice_help: (value, what it does) for each choice: the rest of the help, and the panel dropdown's hint.
+        choice_help: (value, what it does) for each choice.
         flags: the command-line flags, the first the one error messages name (empty: no flag).
-        panel: where the panel's form shows it (:data:`PANEL_PLACES`: ``main``, or ``advanced``, the folder; empty:
-            not shown); the form's fields are the rows that say so, in the table's order (:mod:`pemviz.app.form`).
-        owner: who reads it: :data:`RUN` (every method), :data:`FALLBACK` (the fallback after any method's stages:
-            :class:`pemviz.estimators.fallback.PlainFallback`) or the method whose estimator reads it (``adaptive``:
-            :class:`pemviz.estimators.cross_entropy.CrossEntropy`; ``ams``:
-            :class:`pemviz.estimators.ams.AdaptiveMultilevelSplitting`).
-    """
+        panel: where the panel's form shows it (:data:`PANEL_PLACES`; empty: not shown).
+        owner: who reads it: :data:`RUN`, :data:`FALLBACK` or the method whose estimator reads it."""
 
     name: str
     words: str
@@ -322,8 +287,7 @@ class Setting:
 
         Raises:
             ValueError: empty, not a number, not finite, or not whole where it must be; the message says what
-                to type, in :attr:`allowed`'s words.
-        """
+                to type, in :attr:`allowed`'s words."""
         raw = str(text).strip()
         if self.optional and raw.lower() == "none":  # what the messages say to type for "no value"
             return None
@@ -357,10 +321,8 @@ def _rows(cls: type, owner: str, skip: frozenset[str] = frozenset()) -> dict[str
 
 
 def _settings(*settings: Setting | str) -> tuple[dict[str, Setting], dict[str, Setting]]:
-    """The table: the run's and splitting's rows, and the cross-entropy sampler's and the fallback's, each named where
-    the runs have always recorded it (result documents, rollout files, ``runs.jsonl``: the keys keep their order),
-    taken from its field of :class:`~pemviz.methods.adaptive.CrossEntropySettings` or :class:`FallbackSettings`; then
-    the fields not named here (settings added there), which follow every other row."""
+    """The table: the run's and splitting's rows, then the cross-entropy sampler's and the fallback's, in the order runs
+    have always recorded them; fields added to their settings follow every other row."""
     own = {**_rows(CrossEntropySettings, CROSS_ENTROPY_METHOD), **_rows(FallbackSettings, FALLBACK)}
     table = {s.name: s for s in (own.pop(row) if isinstance(row, str) else row for row in settings)}
     return table, own
@@ -495,10 +457,8 @@ OWN_DEFAULTS: dict[str, Any] = {
 """The built-in methods' own settings but the table's (the state method's) at their defaults, by name: what a run of
 another method records for them (every run has recorded them since they were the config's)."""
 RECORDED: tuple[str, ...] = (*_NAMED, *OWN_DEFAULTS, *_ADDED)
-"""The keys a run records its settings by (:meth:`pemviz.config.ExperimentConfig.flat`: result documents, rollout
-files, ``runs.jsonl``), in order: the table's rows where runs have always recorded them, the built-in methods' own
-settings (:data:`OWN_DEFAULTS`), then the rows added to the cross-entropy sampler's settings since; a method of one's
-own's follow."""
+"""The keys a run records its settings by (:meth:`pemviz.config.ExperimentConfig.flat`), in order: the table's rows,
+the built-in methods' own settings (:data:`OWN_DEFAULTS`), then rows added to the cross-entropy sampler's settings."""
 
 
 class ConfigError(ValueError):
@@ -506,8 +466,7 @@ class ConfigError(ValueError):
 
     Attributes:
         field: the :class:`~pemviz.config.ExperimentConfig` attribute (or the method's setting) at fault (None when not
-            one field).
-    """
+            one field)."""
 
     def __init__(self, message: str, field: str | None = None) -> None:
         super().__init__(message)
@@ -521,8 +480,7 @@ def rows_of(cls: type, owner: str) -> dict[str, Setting]:
     sampler's are rows of :data:`SETTINGS`).
 
     Raises:
-        TypeError: a field without a row (not made by :func:`setting`), or a name the settings table already has.
-    """
+        TypeError: a field without a row (not made by :func:`setting`), or a name the settings table already has."""
     skip = CROSS_ENTROPY if issubclass(cls, CrossEntropySettings) else frozenset()
     for f in dataclasses.fields(cls):
         if f.name not in skip and (ROW not in f.metadata or f.name in SETTINGS):
@@ -536,8 +494,7 @@ def check_settings(settings: object, owner: str = "") -> None:
 
     Raises:
         ConfigError: the first that is not, in one line (the config's words: ``coin_share (eps) = 2.0 is invalid: the
-            coin's share eps must be a number in (0, 1)``); TypeError: as :func:`rows_of`.
-    """
+            coin's share eps must be a number in (0, 1)``); TypeError: as :func:`rows_of`."""
     for s in rows_of(type(settings), owner).values():
         value = getattr(settings, s.name)
         if not s.accepts(value):
@@ -570,9 +527,8 @@ def _is_int(x: object) -> bool:
 
 def setting_of(config: object, name: str, default: object = None) -> Any:
     """The setting ``name`` (a flat name of :data:`SETTINGS`) of ``config``: an
-    :class:`~pemviz.config.ExperimentConfig`'s :meth:`~pemviz.config.ExperimentConfig.value`, else (None, an object
-    that stands for a config) its attribute ``name`` or ``default``. For the layers below the config (a scenario's
-    factory), which do not import it."""
+    :class:`~pemviz.config.ExperimentConfig`'s :meth:`~pemviz.config.ExperimentConfig.value`, else its attribute
+    ``name`` or ``default``: for the layers below the config, which do not import it."""
     value = getattr(config, "value", None)
     if callable(value) and name in SETTINGS:
         return value(name)

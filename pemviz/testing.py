@@ -9,8 +9,7 @@ method, the way pemviz's own tests do::
 
 Each returns a :class:`Report` and raises :class:`ConformanceError` (an AssertionError naming the subject, the check
 and what was wrong) at the first failing check. Each takes seconds; files go to a temporary folder (``folder=``
-keeps them). Importing this module imports no simulator, PEM, recording library or torch.
-"""
+keeps them). Importing this module imports no simulator, PEM, recording library or torch."""
 
 from __future__ import annotations
 
@@ -71,8 +70,7 @@ class Report:
         subject: ``scenario braking``, ``estimator adaptive``.
         passed: the checks that passed, in the order they ran.
         skipped: ``(check, reason)`` of those that do not apply (a scenario without a single simulator, a method
-            without importance weights).
-    """
+            without importance weights)."""
 
     subject: str
     passed: tuple[str, ...]
@@ -144,7 +142,7 @@ def _check_files(checks: _Checks, run: KitRun, problem: Any = None) -> None:
             f"{REESTIMATE_RTOL:g}",
         )
         checks.require(
-            again.verdict == own.verdict, name, f"re-estimated verdict {again.verdict!r}, the run's " f"{own.verdict!r}"
+            again.verdict == own.verdict, name, f"re-estimated verdict {again.verdict!r}, the run's {own.verdict!r}"
         )
         checks.passed.append(name)
     name = "recording"
@@ -302,7 +300,7 @@ def check_scenario(
         checks.require(
             p is not None and p < 0.0,
             name,
-            f"the record says it has an exact answer, the problem's " f"exact_log_p is {p!r}",
+            f"the record says it has an exact answer, the problem's exact_log_p is {p!r}",
         )
     checks.passed.append(name)
 
@@ -377,9 +375,7 @@ def check_scenario(
             )
             diff = _first_difference(lockstep, twin)
             checks.require(
-                diff is None,
-                name,
-                f"rollouts drawn by {label}: the single simulator, then the " f"batched twin: {diff}",
+                diff is None, name, f"rollouts drawn by {label}: the single simulator, then the batched twin: {diff}"
             )
         checks.passed.append(name)
 
@@ -412,7 +408,7 @@ def _check_drawing(checks: _Checks, sc: Any, built: Any, problem: Any, batches: 
         checks.require(pickle.loads(pickle.dumps(drawing)) == drawing, "drawing", "not itself after pickling")
     except pickle.PicklingError as exc:
         raise checks.fail(
-            "drawing", f"it cannot be pickled ({exc}); the recording runs in a process " "of its own"
+            "drawing", f"it cannot be pickled ({exc}); the recording runs in a process of its own"
         ) from None
     for label, batch in batches.items():
         failed = np.asarray(problem.failed(batch), dtype=bool)

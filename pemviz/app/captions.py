@@ -1,6 +1,5 @@
 """Charts with a short title (at most :data:`MAX_TITLE` characters) and their explanation (what is ringed, off
-scale, left out; units and abbreviations) in a caption below them, shown and hidden with them.
-"""
+scale, left out; units and abbreviations) in a caption below them, shown and hidden with them."""
 
 from __future__ import annotations
 

@@ -1,7 +1,5 @@
-"""uPlot figures of what the sampler really did, the charts of *Live* (viser's ``add_uplot``): q(detect) of each
-stage's sampler over the states its rollouts visited, per gap bin, beside the PEM's
-(:mod:`pemviz.core.proposal_view`), and the log10 mu_hat chart with its interval and the exact answer. Ranges come
-from :func:`pemviz.app.plots.robust_range`; the *Explain* charts are :mod:`pemviz.app.explain_charts`'.
+"""uPlot figures of what the sampler really did, the charts of *Live*: q(detect) of each stage's sampler per gap bin
+beside the PEM's (:mod:`pemviz.core.proposal_view`), and the log10 mu_hat chart with its interval and the exact answer.
 """
 
 from __future__ import annotations
@@ -17,27 +15,11 @@ import viser.uplot as up
 from pemviz.app.captions import add_chart, set_chart, show_chart
 from pemviz.app.html import GREY as GREY_BOX
 from pemviz.app.html import box
-from pemviz.app.plots import (
-    LEGEND,
-    _ring,
-    axes,
-    off_scale_series,
-    robust_range,
-    run_colour,
-    run_series,
-    stage_values,
-)
+from pemviz.app.plots import LEGEND, _ring, axes, off_scale_series, robust_range, run_colour, run_series, stage_values
 from pemviz.app.runs import PanelRun
 from pemviz.core.proposal_view import ProposalView
 from pemviz.engine.events import RolloutsSampled
-from pemviz.sinks.colours import (
-    BLACK,
-    GREY,
-    css,
-    hex_colour,
-    stage_rgb,
-    stage_span,
-)
+from pemviz.sinks.colours import BLACK, GREY, css, hex_colour, stage_rgb, stage_span
 
 PROB, LOG_ODDS = "prob", "log_odds"
 LOG_ODDS_SPAN = 12.0
@@ -167,15 +149,10 @@ def fill_marginal_plots(
     plots: dict[str, viser.GuiUplotHandle], record: PanelRun, note: viser.GuiHtmlHandle | None = None
 ) -> None:
     """Each stage's mean q(detect) and median log-odds of a miss (nats) over its visited states, per bin of the view's
-    axis (:attr:`pemviz.app.runs.PanelRun.proposal_axis`), the PEM's at the newest stage's states, and the newest
-    stage's 10-90 % spread as a band; without a view both charts are hidden and ``note`` says why
-    (:func:`marginal_note`).
-
-    Bins with fewer than :data:`MIN_BIN_STATES` states are left out of the lines (the newest stage's drawn as hollow
-    rings, counted in the title); bins crowded with standing states (:func:`standing_bins`) are ringed in grey,
-    their count and share in the title (a real value, e.g. a stopped car behind a stopped object, where the sampler
-    does not steer). The log-odds range is :func:`pemviz.app.plots.robust_range` of the medians, at most -12..12
-    nats."""
+    axis, the PEM's at the newest stage's states, and the newest stage's 10-90 % spread as a band; without a view both
+    charts are hidden and ``note`` says why. Bins with fewer than :data:`MIN_BIN_STATES` states are left out of the
+    lines; bins crowded with standing states (:func:`standing_bins`) are ringed in grey. The log-odds range is at most
+    -12..12 nats."""
     stages = _view_stages(record)
     if note is not None:
         note.content = marginal_note(record)
@@ -292,11 +269,9 @@ def fill_marginal_plots(
 
 
 def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
-    """The log10 mu_hat chart (log10 probability) with each run's 95 % interval per stage as a band and the exact
-    answer as a black line, drawn over :func:`pemviz.app.plots.fill_stage_plot`'s chart. The y range is
-    :func:`pemviz.app.plots.robust_range` (:data:`MU_HAT_RULE`) of the stages with a failure, widened to the exact
-    answer; a stage without failures (upper bound 0) is drawn at the top edge, ringed and counted.
-    """
+    """The log10 mu_hat chart with each run's 95 % interval per stage as a band and the exact answer as a black line.
+    The y range is :func:`pemviz.app.plots.robust_range` (:data:`MU_HAT_RULE`) of the stages with a failure, widened
+    to the exact answer; a stage without failures is drawn at the top edge, ringed and counted."""
     if not runs:
         return
     _, _, shown, x, ys = stage_values("log10_mu_hat", runs)
@@ -332,10 +307,7 @@ def fill_mu_hat_plot(plot: viser.GuiUplotHandle, runs: list[PanelRun]) -> None:
     known = exact is not None and math.isfinite(exact)
     exact10 = exact / ln10 if exact is not None else math.nan  # log10 of the exact answer, drawn where known
     rng = robust_range(
-        np.concatenate(lines),
-        np.concatenate(matters),
-        **MU_HAT_RULE,
-        at_least=(exact10, exact10) if known else None,
+        np.concatenate(lines), np.concatenate(matters), **MU_HAT_RULE, at_least=(exact10, exact10) if known else None
     )
     data = [x, *(rng.drawn(y) for y in lines)]
     if known:

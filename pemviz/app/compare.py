@@ -1,10 +1,5 @@
-"""The *Compare* tab's chart and table: every kept run's final estimate side by side, and the settings that differ.
-
-The chart (viser's ``add_uplot``, y: log10 of a probability) puts each kept run at its own x position: its mu_hat as
-a dot in its colour (:func:`pemviz.app.plots.run_colour`), its 95 % interval as an error bar, and the exact answer
-(black) or plain Monte Carlo reference (grey, dashed) across it. A run without failure shows its upper bound where
-its rollouts give one; otherwise the note says why nothing is drawn. Both scales are set from the finite values
-drawn. The table lists the result rows and only the settings that differ between the kept runs."""
+"""The *Compare* tab's chart and table: every kept run's final estimate side by side (mu_hat, its 95 % interval, the
+exact answer or reference, on a log10 axis), and the settings that differ between the kept runs."""
 
 from __future__ import annotations
 

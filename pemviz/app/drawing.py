@@ -1,10 +1,6 @@
 """What the panel asks of a scenario's drawing object (:attr:`pemviz.core.problem_view.ProblemView.drawing`): the
-hooks of :class:`PanelDrawing`, returning plain data (:mod:`pemviz.scenarios.panel_data`) that the panel renders, so
-it names no scenario. A :class:`~pemviz.scenarios.panel_data.LaneScene` is drawn as the ego and one object ahead
-(:class:`LanePanel`), an :class:`~pemviz.scenarios.panel_data.ObjectsScene` as several objects around the ego
-(:class:`ObjectsPanel`); a toy draws no scene. Before any rollout, the idle scene of the chosen scenario
-(:func:`scenario_drawing`).
-"""
+hooks of :class:`PanelDrawing`, returning plain data (:mod:`pemviz.scenarios.panel_data`), so the panel names no
+scenario: a lane scene (:class:`LanePanel`) or several objects around the ego (:class:`ObjectsPanel`)."""
 
 from __future__ import annotations
 

@@ -26,12 +26,7 @@ from pemviz.settings import SETTINGS, SIMULATORS
 class ExperimentTab:
     """The *Experiment* tab: owns the form's fields (:attr:`fields`: text, :attr:`choices`: dropdowns, :attr:`preset`)
     and their error lines, the scenario's parameters (:attr:`params`) and the form as last checked (:attr:`parsed`);
-    whoever builds it is told of each change.
-
-    Args:
-        client: the viser client the tab draws into.
-        app: the server (the form's first values and preset).
-    """
+    whoever builds it is told of each change."""
 
     def __init__(self, client: viser.ClientHandle, app: PanelHost) -> None:
         self.client, self.app = client, app
@@ -131,8 +126,7 @@ class ExperimentTab:
 
     def echo(self) -> None:
         """Send every field's value as the server has it back to the browser, so the form shows what runs (viser's
-        client throttles GUI updates at 50 ms and can drop a value typed just before Run).
-        """
+        client throttles GUI updates at 50 ms and can drop a value typed just before Run)."""
         with self.client.atomic():
             for handle in (
                 *self.fields.values(),

@@ -1,9 +1,5 @@
-"""uPlot figures of *Explain* (viser's ``add_uplot``): what the system under test did along the rollout explained: a
-lane scene's brake command, applied brake and acceleration (:func:`fill_controller_plot`); for several objects with
-a story, car 0's gap ahead and lateral offset against the tracker's estimate and the ACC's acceleration
-(:func:`fill_object_plots`). Ranges come from :func:`pemviz.app.plots.robust_range` (:data:`CONTROLLER_RULE`,
-:data:`TRACK_RULE`).
-"""
+"""uPlot figures of *Explain*: what the system under test did along the rollout explained (a lane scene's brake and
+acceleration; for several objects, car 0's gap, lateral offset, track and the ACC's acceleration)."""
 
 from __future__ import annotations
 
@@ -42,9 +38,7 @@ def controller_plot(gui: viser.GuiApi, order: float | None = None) -> viser.GuiU
 
 def fill_controller_plot(plot: viser.GuiUplotHandle, ex: LaneExplanation, step: int, title: str) -> None:
     """The ego's acceleration (m/s^2), and as rows of dots above it the steps at which the emergency brake was
-    commanded and applied; a marker at ``step``. The y range is :func:`pemviz.app.plots.robust_range`
-    (:data:`CONTROLLER_RULE`) over the steps before contact (``ex.contact``), so the contact step, where the
-    simulator stops the ego within one step, is drawn at the edge, ringed, with its value in the title.
+    commanded and applied; a marker at ``step``. The contact step is drawn at the edge, ringed, its value in the title.
     """
     c = ex.controller
     t = c.time_s
@@ -218,11 +212,9 @@ def _fill_track_chart(
 
 
 def fill_object_plots(plots: dict[str, viser.GuiUplotHandle], ox: Any, step: int, title: str) -> None:
-    """Draw object 0 of ``ox`` (:class:`pemviz.app.objects_view.ObjectsExplanation` with a story, e.g. the car that
-    cuts in) in the charts of :func:`object_plots`, with a marker at ``step``: its gap ahead (truth, track,
-    measurements, misses, contact line and failure step), its lateral offset from the ego's lane centre with the
-    lane's edges, and the ACC's acceleration with the steps it followed car 0 and car 0 overlapped the ego's lane.
-    The y ranges are :func:`pemviz.app.plots.robust_range`'s (:data:`TRACK_RULE`, :data:`CONTROLLER_RULE`)."""
+    """Draw object 0 of ``ox`` (an :class:`pemviz.app.objects_view.ObjectsExplanation` with a story) in the charts of
+    :func:`object_plots`, with a marker at ``step``: its gap ahead, its lateral offset with the lane's edges, and the
+    ACC's acceleration."""
     st = ox.story
     t = np.asarray(ox.time_s, dtype=np.float64)
     i = int(np.clip(step, 0, t.size - 1))

@@ -1,7 +1,4 @@
-"""The *Explain* tab of a :class:`pemviz.app.session.Session`: the rollout shown in the 3D scene, step by step: for
-a lane scene (:class:`pemviz.app.drawing.LanePanel`) its severity, story, strip charts, controller and decisive
-misses; for several objects (:class:`pemviz.app.drawing.ObjectsPanel`) the decisive errors, every object's events,
-the tracker and controller charts and the scene from above."""
+"""The *Explain* tab of a :class:`pemviz.app.session.Session`: the rollout shown in the 3D scene, step by step."""
 
 from __future__ import annotations
 
@@ -41,13 +38,7 @@ def _proposal_html(ox: ObjectsExplanation, traj: Trajectory, t: int) -> str:
 class ExplainTab:
     """The *Explain* tab: owns its charts and HTML and the explanation of the rollout shown, :attr:`explanation` (a
     lane scene) or :attr:`objects_ex` (a scene of several objects); the 3D scene (:class:`pemviz.app.scene_view
-    .SceneView`) chooses the rollout and the step.
-
-    Args:
-        client: the viser client the tab draws into.
-        strip_title: the first strip chart's title before a rollout is shown (the idle scene's
-            :attr:`pemviz.scenarios.panel_data.LaneScene.strip_title`).
-    """
+    .SceneView`) chooses the rollout and the step."""
 
     def __init__(self, client: viser.ClientHandle, strip_title: str = "distance and speeds") -> None:
         self.client, self.strip_title = client, strip_title

@@ -1,13 +1,7 @@
 """The panel's experiment form: what was typed, parsed exactly, with every error in plain words.
 
-Numbers are typed into text fields and parsed here, so the form never rounds, rescales or silently
-keeps an earlier value: ``12.5`` in N is an error (N counts rollouts), ``1e-3`` in alpha is 0.001, an
-empty field is an error. :func:`parse_form` returns the config and, per field, the reason it is
-refused, all at once; a scenario's parameters are parsed by their own kind (:func:`parse_params`) and only those
-changed from the scenario's defaults go into the run's ``scenario_params``; a method's own settings are parsed by their
-rows (:func:`parse_own`) and go into the config by their names, as their flags do. :func:`run_cost` says what a run will
-take before it starts (the model of :mod:`pemviz.engine.cost`), and :func:`run_label` names a run by the settings
-that differ from the defaults. No viser here.
+Numbers are typed into text fields and parsed here, never rounded or rescaled (``12.5`` in N is an error, ``1e-3`` in
+alpha is 0.001). :func:`parse_form` returns the config and, per field, the reason it is refused, all at once. No viser.
 """
 
 from __future__ import annotations
@@ -50,8 +44,7 @@ def parse_number(field: Setting, text: str) -> tuple[float | int | None, str]:
     """``(value, "")`` for a valid entry, ``(None, reason)`` otherwise; the reason names the field in words.
 
     Parsed by :meth:`pemviz.settings.Setting.parse` (as the command line's flags are), then checked against the
-    setting's range. Nothing is rounded or clipped.
-    """
+    setting's range. Nothing is rounded or clipped."""
     if field.optional and str(text).strip() == "":  # an optional setting left empty: its default (None)
         return None, ""
     try:
@@ -97,8 +90,7 @@ def parse_own(method: str, texts: Mapping[str, str]) -> tuple[dict[str, Any], di
         texts: setting name -> the text typed into its field.
     Returns:
         ``(values, errors)``: name -> value of each valid field (the config takes them by name,
-        :meth:`pemviz.config.ExperimentConfig.of`), and name -> one line of each refused one.
-    """
+        :meth:`pemviz.config.ExperimentConfig.of`), and name -> one line of each refused one."""
     rows = {s.name: s for s in own_rows(method)}
     values: dict[str, Any] = {}
     errors: dict[str, str] = {}
@@ -145,21 +137,16 @@ def format_param(p: Parameter, value: Value) -> str:
 
 
 def parse_params(scenario: str, texts: Mapping[str, str]) -> tuple[tuple[tuple[str, PairValue], ...], dict[str, str]]:
-    """The changed parameters of ``scenario`` and the errors of its parameter fields.
-
-    Each text is parsed by its parameter's kind (:meth:`pemviz.scenarios.parameters.Parameter.parse`); a value equal
-    to the scenario's default is left out, any other is checked on its own by the scenario
-    (:meth:`pemviz.scenarios.registry.Scenario.build_params`: its range), then the changed ones together.
+    """The changed parameters of ``scenario`` and the errors of its parameter fields: each text parsed by its
+    parameter's kind, a value equal to the default left out, the others checked alone, then together.
 
     Args:
         scenario: a registered scenario's name.
         texts: parameter name -> the text typed into its field.
     Returns:
-        ``(pairs, errors)``: the ``(name, value)`` pairs that differ from the defaults, in the order of ``texts``
-        (the run's ``scenario_params``), and the errors, by :func:`param_key` of the field (one line each), or under
-        ``""`` for values each valid alone but refused together. An unknown scenario gives no pairs and no errors
-        (the config refuses it).
-    """
+        ``(pairs, errors)``: the ``(name, value)`` pairs that differ from the defaults, in the order of ``texts``, and
+        the errors by :func:`param_key` of the field, or under ``""`` for values refused together. An unknown scenario
+        gives no pairs and no errors (the config refuses it)."""
     try:
         found = get(scenario)
     except KeyError:
@@ -232,8 +219,7 @@ def parse_form(
             ``scenario_params`` are the changed ones (``()``: none changed). None: ``base``'s are kept.
         own: the chosen method's own settings' fields, name -> the text typed (:func:`parse_own`): each goes into the
             config by its name, as its flag on ``pemviz run`` does; errors by the setting's name. None or ``{}``:
-            ``base``'s settings if it is of that method, else the method's defaults.
-    """
+            ``base``'s settings if it is of that method, else the method's defaults."""
     errors: dict[str, str] = {}
     values: dict[str, Any] = {}
     for key, text in texts.items():
@@ -264,11 +250,8 @@ _HORIZONS: dict[tuple[Any, ...], tuple[int, float, Any, Any]] = {}
 
 
 def horizon(cfg: ExperimentConfig) -> tuple[int, float]:
-    """T, the steps of a rollout of ``cfg``'s problem, and its look-ahead's seconds a rollout
-    (:attr:`pemviz.core.problems.Problem.n_steps`, :attr:`~pemviz.core.problems.Problem.look_ahead_s`), as the run's
-    clock reads them: the problem built once per scene, parameters, PEM, crash gap and simulator
-    (:func:`pemviz.scenarios.registry.problem_for`); (:data:`pemviz.engine.cost.N_STEPS`, 0) where it cannot be
-    built (the run then says why)."""
+    """T, the steps of a rollout of ``cfg``'s problem, and its look-ahead's seconds a rollout, the problem built once
+    per scene; (:data:`pemviz.engine.cost.N_STEPS`, 0) where it cannot be built (the run then says why)."""
     return _horizon(cfg)[:2]
 
 
@@ -296,13 +279,10 @@ def _horizon(cfg: ExperimentConfig) -> tuple[int, float, Any, Any]:
 
 
 def run_cost(cfg: ExperimentConfig, n_steps: int | None = None, slowdown: float | None = None) -> RunCost:
-    """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of the plan its estimator states,
-    :func:`pemviz.estimators.run_plan`, on its problem's :func:`horizon`, or ``n_steps`` steps, no look-ahead and no
-    problem): simulations, memory of the largest batch, expected seconds as planned and with what may follow on its
-    scene (whatever the scene with ``n_steps``), on this machine as loaded now (times ``slowdown``; None:
-    :func:`pemviz.engine.resources.load_slowdown` of a pilot of the problem's rollouts,
-    :func:`pemviz.engine.cost.pilot_speed`, as the console's first progress line says them,
-    :class:`pemviz.sinks.StageClock`; about 0.3-0.7 s, read again after :data:`LOAD_FRESH_S`)."""
+    """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of its plan on its problem's :func:`horizon`,
+    or ``n_steps`` steps): simulations, memory of the largest batch, expected seconds as planned and with what may
+    follow, on this machine as loaded now (times ``slowdown``; None: :func:`pemviz.engine.resources.load_slowdown` of a
+    pilot, read again after :data:`LOAD_FRESH_S`)."""
     from pemviz.engine.experiment import stream_above  # the engine and the estimators import torch: only when asked
     from pemviz.estimators import run_plan
 

@@ -1,8 +1,7 @@
 """*Explain a failure* for a scene of several objects (e.g. the cut-in): every object at every step, detected,
 missed or unseen, where each detected one was measured inside the noise PEM's error ellipse, and which errors
 decided the failure (:func:`pemviz.core.counterfactuals.counterfactuals`). Plain functions of a rollout returning
-HTML with inline SVG; no viser.
-"""
+HTML with inline SVG; no viser."""
 
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
 """The viser server of ``pemviz serve``: one :class:`pemviz.app.session.Session` per browser client (its own form,
 runs, Stop, plots and 3D scene; a client that leaves has its run stopped). The server holds what the sessions share:
 the recordings folder, the scenario's constants, run numbers, a warm-up run and one player thread that steps every
-session's playback and status line.
-"""
+session's playback and status line."""
 
 from __future__ import annotations
 
@@ -33,8 +32,7 @@ def idle_drawing(scenario: str) -> LanePanel:
     then shows its chosen scenario's idle scene.
 
     Raises:
-        ValueError: no registered scenario draws a lane scene.
-    """
+        ValueError: no registered scenario draws a lane scene."""
     for name in (scenario, *registry.registered()):
         drawing = lane_panel(scenario_drawing(name))
         if drawing is not None:
@@ -116,8 +114,7 @@ class PanelApp:
         """Block until a client not in ``known`` (client ids) has its session built; return it.
 
         Raises:
-            TimeoutError: none within ``timeout`` seconds.
-        """
+            TimeoutError: none within ``timeout`` seconds."""
         end = time.monotonic() + timeout
         with self._session_added:
             while True:
@@ -197,8 +194,7 @@ def serve(
     """Run the panel until Ctrl-C (what ``pemviz serve`` does), its form starting at ``preset`` and ``pem``.
 
     Raises:
-        ValueError: an unknown ``preset``.
-    """
+        ValueError: an unknown ``preset``."""
     app = PanelApp(host, port, recordings_dir=recordings_dir, preset=preset, pem=pem)
     try:
         if on_ready is not None:

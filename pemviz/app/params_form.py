@@ -25,12 +25,7 @@ Field = tuple[str, str, str, str]
 class ChoiceFolder:
     """The fields of one value of a choice inside a folder (:attr:`fields`, their error lines, :attr:`shown`),
     rebuilt by :meth:`show`; a subclass gives :meth:`fields_of`, :meth:`empty` (an empty line hides the folder) and
-    :meth:`error_key`.
-
-    Args:
-        client: the viser client the folder draws into.
-        config0: the panel's starting config (its values are the first texts of the value it is of).
-    """
+    :meth:`error_key`."""
 
     title = ""
     """The folder's label."""
@@ -109,8 +104,7 @@ class ChoiceFolder:
 class ScenarioParamsForm(ChoiceFolder):
     """The folder *scenario parameters* (collapsed at first): a field per parameter of the chosen scenario, labelled
     with its name and unit, first showing the starting config's value or the scenario's default; only the fields
-    changed from the defaults go into the run (:func:`pemviz.app.form.parse_params`).
-    """
+    changed from the defaults go into the run (:func:`pemviz.app.form.parse_params`)."""
 
     title = "scenario parameters"
 

@@ -1,8 +1,7 @@
 """uPlot figures of the panel (viser's ``add_uplot``): proposal curves, per-stage values, the strip chart. Every
 figure names its axes, keeps its legend to the series' names and sets its ranges from the data that exists; values
 far from the rest are drawn at the edge, ringed and counted in the caption (:func:`robust_range`,
-:mod:`pemviz.app.captions`). Colours come from :mod:`pemviz.sinks.colours`.
-"""
+:mod:`pemviz.app.captions`). Colours come from :mod:`pemviz.sinks.colours`."""
 
 from __future__ import annotations
 
@@ -74,8 +73,7 @@ class AxisRange:
         lo, hi: the range, in the chart's unit (lo < hi).
         n_below, n_above: finite values below ``lo`` / above ``hi``: off scale, drawn at that edge.
         lowest, highest: the smallest and largest finite value of all (nan without one), to name an off-scale
-            extreme.
-    """
+            extreme."""
 
     lo: float
     hi: float
@@ -189,11 +187,7 @@ class RangeRules(TypedDict, total=False):
     min_pad: float
 
 
-STAGE_RULES: dict[str, RangeRules] = {
-    "log10_mu_hat": {"min_gap": 3.0, "min_pad": 0.05},
-    "gamma": {},
-    "nll": {},
-}
+STAGE_RULES: dict[str, RangeRules] = {"log10_mu_hat": {"min_gap": 3.0, "min_pad": 0.05}, "gamma": {}, "nll": {}}
 """:func:`robust_range` settings of the per-stage charts. log10 mu_hat: a stage more than 3 orders of magnitude (and
 twice the others' spread) from the others is off scale, at least 0.05 (log10 probability) of room each side;
 gamma and NLL keep every value (their fall over the stages is what they show)."""
@@ -338,8 +332,7 @@ def run_series(r: PanelRun) -> up.Series:
 
 def fill_stage_plot(plot: viser.GuiUplotHandle, key: str, runs: list[PanelRun]) -> None:
     """One series per run over the stages finished so far. ``gamma``'s unit depends on the metric, so only runs with
-    the newest run's metric are drawn (the caption counts the others); the y range is :func:`stage_range`'s.
-    """
+    the newest run's metric are drawn (the caption counts the others); the y range is :func:`stage_range`'s."""
     if not runs:
         return
     title, caption, shown, x, ys = stage_values(key, runs)

@@ -1,10 +1,5 @@
-"""The plots panel (left) of a :class:`pemviz.app.session.Session`: *Live* (what each stage's sampler did over the
-states its rollouts visited, for a state proposal also over the feature that moved it most
-(:mod:`pemviz.app.feature_chart`), per-stage values of every kept run, mu_hat with its interval and the exact answer),
-*Explain* (:class:`pemviz.app.explain_tab.ExplainTab`) and *Compare* (each kept run's final estimate with its 95 %
-interval on a log10 chart beside the exact answer or reference, the settings that differ between the kept runs, and
-their reference-state proposal curves) and *ODD* (where p over an operating design domain comes from:
-:class:`pemviz.app.odd_tab.OddTab`)."""
+"""The plots panel (left) of a :class:`pemviz.app.session.Session`: *Live*, *Explain*
+(:class:`pemviz.app.explain_tab.ExplainTab`), *Compare* and *ODD* (:class:`pemviz.app.odd_tab.OddTab`)."""
 
 from __future__ import annotations
 
@@ -20,12 +15,7 @@ from pemviz.core.estimate import format_probability
 
 class PlotsPanel:
     """The plots panel: owns the panel, its *Live* and *Compare* charts and HTML and its *ODD* tab; its *Explain* tab
-    is the :class:`pemviz.app.explain_tab.ExplainTab` it is given.
-
-    Args:
-        client: the viser client the panel draws into.
-        explain: the *Explain* tab, built in the panel's middle tab.
-    """
+    is the :class:`pemviz.app.explain_tab.ExplainTab` it is given."""
 
     def __init__(self, client: viser.ClientHandle, explain: ExplainTab) -> None:
         self.client, self.explain = client, explain

@@ -72,13 +72,7 @@ def groups_html(pop: Population | None) -> str:
 class RolloutsTab:
     """The *Rollouts* tab: owns its list, order, filter and table, the run it lists (:attr:`listed`, the one chosen
     under *Runs*), its rollouts' labels and severities; a chosen rollout goes to the :class:`pemviz.app.scene_view
-    .SceneView` it is given.
-
-    Args:
-        client: the viser client the tab draws into.
-        lock: the session's lock.
-        scene: the 3D scene that shows the chosen rollout.
-    """
+    .SceneView` it is given."""
 
     def __init__(self, client: viser.ClientHandle, lock: threading.RLock, scene: SceneView) -> None:
         self.client, self.lock, self.scene = client, lock, scene

@@ -1,7 +1,5 @@
-"""Run control of a :class:`pemviz.app.session.Session`: Run / Stop, the cost of the run, the status line (stage,
-elapsed time, the time left in the stage and in the whole run), the progress bars, the accuracy of the final estimate
-and the form's errors. The experiment runs in a worker thread (:class:`pemviz.engine.experiment.Experiment`); its
-events reach the panel through a :class:`RunListener`, and Stop reaches it through the cancel token."""
+"""Run control of a :class:`pemviz.app.session.Session`: Run / Stop, the cost, the status line, the progress bars and
+the form's errors; the experiment runs in a worker thread, its events reach the panel through a :class:`RunListener`."""
 
 from __future__ import annotations
 
@@ -32,22 +30,8 @@ from pemviz.sinks import Sink
 
 
 class RunControl:
-    """Starting, stopping and following a run: owns the buttons and lines above the tabs (Run, Stop, Run anyway, the
-    cost, the status line, the progress bars, the accuracy, the form's errors), the newest run (:attr:`record`, the
-    one the live plots, status and rollouts show), its worker thread and cancel token. A new run is kept under *Runs*,
-    listed under *Rollouts* and cleared from the scene; its events refresh them (:class:`RunListener`).
-
-    Args:
-        client: the viser client the controls draw into.
-        app: the server (run numbers, the warm-up).
-        lock: the session's lock.
-        form: the *Experiment* tab, read at Run.
-        runs_tab: the *Runs* tab, which keeps each new run.
-        rollouts_tab: the *Rollouts* tab, which lists it.
-        scene: the 3D scene, cleared for it.
-        explain: the *Explain* tab.
-        plots_panel: the plots panel, refreshed as it goes.
-    """
+    """Starting, stopping and following a run: owns the buttons and lines above the tabs, the newest run
+    (:attr:`record`), its worker thread and cancel token; the run's events refresh the tabs (:class:`RunListener`)."""
 
     def __init__(
         self,
@@ -106,8 +90,7 @@ class RunControl:
         """Start a run with the form's values; returns why it was refused instead.
 
         A run whose cost is above the limits (:meth:`pemviz.engine.cost.RunCost.needs_confirm`) starts only
-        ``confirmed`` (the *Run anyway* button).
-        """
+        ``confirmed`` (the *Run anyway* button)."""
         with self.lock:
             if self.running:
                 return "a run is going: press Stop first"

@@ -1,10 +1,6 @@
-"""What the viser panel knows about a run, built from the engine's events; no viser here.
-
-:class:`PanelRun` is an engine listener that keeps the run's plan, problem view, stage results, proposal curves,
-final estimate, least-robust rollouts (:class:`Trajectory`), event log and most likely failure. :func:`keep_runs`
-decides which runs stay for comparison, :func:`object_proposal_view` bins one object's detections by its distance
-ahead, and :func:`export_path` / :func:`export_run` write a run into ``recordings/`` without letting a name from the
-browser escape that folder."""
+"""What the viser panel knows about a run, built from the engine's events (:class:`PanelRun`), which runs stay for
+comparison (:func:`keep_runs`), and a run's export into ``recordings/`` without letting a name from the browser escape
+that folder. No viser here."""
 
 from __future__ import annotations
 
@@ -64,9 +60,8 @@ N_TRAJECTORIES = 20
 """Least-robust rollouts listed per run."""
 
 MAX_VIEW_ROLLOUTS = 1000
-"""At most this many rollouts of a stage (evenly spaced) make its proposal view of a scene of several objects: the
-detectors are asked again for each state (a batch keeps only each step's sum over objects), the 100,000 states of
-1,000 rollouts of five objects in about 0.2 s on one core."""
+"""At most this many rollouts of a stage (evenly spaced) make its proposal view of a scene of several objects, whose
+detectors are asked again for each state (1,000 rollouts of five objects: about 0.2 s on one core)."""
 
 
 DEFAULT_AXIS = ViewAxis("gap d (m), 0.5 m bins", "the object", None, "below", np.linspace(0.0, 13.0, 27), "gap (m)")
@@ -78,12 +73,9 @@ def object_proposal_view(
     event: RolloutsSampled, axis: ViewAxis, max_rollouts: int = MAX_VIEW_ROLLOUTS
 ) -> ProposalView | None:
     """q(detect) of the sampler and p(detect) of the PEM for the object ``axis.view_object`` over the states a batch
-    of several objects visited where it is visible (``axis.visible_column``), binned by its distance ahead
-    (``axis.distance_column``, metres; ``axis.edges``), as :func:`pemviz.core.proposal_view.proposal_view`; the
-    detectors are asked for the object's logits (:func:`pemviz.core.proposal_view.object_detect_probabilities`,
-    while ``event.sampler`` is the one that drew the batch) on at most ``max_rollouts`` rollouts. None for a batch
-    of one object a step, without the axis' columns or both detectors, or without a visible state.
-    """
+    of several objects visited where it is visible, binned by its distance ahead (metres; ``axis.edges``), as
+    :func:`pemviz.core.proposal_view.proposal_view`, on at most ``max_rollouts`` rollouts. None for a batch of one
+    object a step, without the axis' columns or both detectors, or without a visible state."""
     batch = event.batch
     names = tuple(batch.object_names or ())
     obj, edges_m = axis.view_object, np.asarray(axis.edges, dtype=np.float64)
@@ -126,8 +118,7 @@ _EXPORT_NAME_OK = re.compile(r"[^A-Za-z0-9._-]")
 
 def keep_runs(runs: list[PanelRun], new: PanelRun, max_runs: int = MAX_RUNS) -> list[PanelRun]:
     """The runs kept once ``new`` starts: at most ``max_runs``, oldest first; pinned and running runs stay, then
-    unpinned stopped or failed runs are dropped first, then unpinned finished ones.
-    """
+    unpinned stopped or failed runs are dropped first, then unpinned finished ones."""
     kept = list(runs) + [new]
     for statuses in (("cancelled", "failed"), ("finished",)):
         for r in list(kept):
@@ -221,8 +212,7 @@ class Trajectory:
         """float64 [T] the observation ``name`` of the rollout.
 
         Raises:
-            ValueError: the rollout has no such observation.
-        """
+            ValueError: the rollout has no such observation."""
         names = tuple(self.batch.observation_names)
         if name not in names:
             raise ValueError(f"the rollout has no observation {name!r} ({', '.join(names)})")
@@ -268,8 +258,7 @@ def least_robust(
     kept: list[Trajectory], event: RolloutsSampled, n: int = N_TRAJECTORIES, features: FeaturesFn | None = None
 ) -> list[Trajectory]:
     """Merge a stage's rollouts into the kept list: the ``n`` least robust, least first, ties the earlier stage /
-    lower index first (``features``: as :func:`trajectory`).
-    """
+    lower index first (``features``: as :func:`trajectory`)."""
     if n <= 0 or event.batch.n == 0:
         return list(kept)
     r = np.asarray(event.robustness, dtype=np.float64)
@@ -284,8 +273,7 @@ class Population:
 
     Attributes:
         grouping: the failures, where each lies in the kept batches, their groups.
-        rollouts: per rank, the failure as a :class:`Trajectory`, or None where its stage kept only a sample.
-    """
+        rollouts: per rank, the failure as a :class:`Trajectory`, or None where its stage kept only a sample."""
 
     grouping: FailureGrouping
     rollouts: tuple[Trajectory | None, ...]
@@ -329,8 +317,7 @@ def population_of(
 
 class PanelRun(Sink):
     """One run as the panel shows it; an engine listener (call it with each event), thread-safe: readers take
-    :attr:`lock` or copy the (replaced, never mutated) lists.
-    """
+    :attr:`lock` or copy the (replaced, never mutated) lists."""
 
     def __init__(self, run_id: int, config: ExperimentConfig) -> None:
         self.run_id = run_id
@@ -507,8 +494,7 @@ def sanitize_export_name(name: str) -> str:
     dots are stripped, and ``.rrd`` is appended unless present.
 
     Raises:
-        ValueError: nothing usable is left (e.g. ``''``, ``'..'``, ``'/'``).
-    """
+        ValueError: nothing usable is left (e.g. ``''``, ``'..'``, ``'/'``)."""
     base = str(name).replace("\\", "/").split("/")[-1].strip()
     base = _EXPORT_NAME_OK.sub("_", base).lstrip(".")
     if base.lower().endswith(".rrd"):
@@ -525,8 +511,7 @@ def export_path(recordings_dir: str | os.PathLike, name: str) -> Path:
     """``recordings_dir / sanitize_export_name(name)``, checked to lie inside ``recordings_dir``.
 
     Raises:
-        ValueError: an unusable name, or a path that would leave ``recordings_dir``.
-    """
+        ValueError: an unusable name, or a path that would leave ``recordings_dir``."""
     root = Path(recordings_dir).resolve()
     path = root / sanitize_export_name(name)
     if path.resolve().parent != root:  # e.g. a symlink planted under the name
@@ -538,8 +523,7 @@ def export_run(record: PanelRun, path: Path) -> Path:
     """Replay a run's events into a rerun recording at ``path`` (written to a temp file, then moved).
 
     Returns:
-        ``path``. Nothing is left at ``path`` (or beside it) if writing fails.
-    """
+        ``path``. Nothing is left at ``path`` (or beside it) if writing fails."""
     with record.lock:
         events = list(record.events)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -23,15 +23,7 @@ from pemviz.app.runs import PanelRun, export_path, export_run, keep_runs
 class RunsTab:
     """The *Runs* tab: owns the kept runs (:attr:`runs`, oldest first), its table, the run chosen (which *Rollouts*
     lists, through the :class:`pemviz.app.rollouts_tab.RolloutsTab` it is given), pin / unpin and the export of a
-    run; refreshing it refreshes the *Compare* tab's estimates (:class:`pemviz.app.plots_panel.PlotsPanel`).
-
-    Args:
-        client: the viser client the tab draws into.
-        app: the server (the recordings folder).
-        lock: the session's lock.
-        rollouts_tab: the *Rollouts* tab, which lists the run chosen here.
-        plots_panel: the plots panel, whose *Compare* tab shows the kept runs.
-    """
+    run; refreshing it refreshes the *Compare* tab's estimates (:class:`pemviz.app.plots_panel.PlotsPanel`)."""
 
     def __init__(
         self,
@@ -87,8 +79,7 @@ class RunsTab:
         """Write a kept run to ``recordings_dir / <sanitised name>.rrd``.
 
         Raises:
-            ValueError: the run is not kept or has no events, or an unusable name.
-        """
+            ValueError: the run is not kept or has no events, or an unusable name."""
         record = self.kept_run(run_id)
         if not record.events:
             raise ValueError(f"{record.short_label} has nothing to export yet")

@@ -1,7 +1,4 @@
-"""Where the 3D scene of :mod:`pemviz.app.scene_view` puts things, and the nodes it makes once: the camera's framing
-(:func:`camera_pose`, :func:`framing_distance`), the cars' height and labels, the lane scene's road, zones and ruler
-(:func:`add_lane_nodes`, :func:`ruler_segments`) and the floor of a scene of several objects (:func:`floor_lines`).
-No state of its own."""
+"""Where the 3D scene of :mod:`pemviz.app.scene_view` puts things, and the nodes it makes once. No state of its own."""
 
 from __future__ import annotations
 
@@ -99,8 +96,7 @@ def add_lane_nodes(
     and its label.
 
     Returns:
-        (every node made, in the order made; the object's box; the ruler; the ruler's label).
-    """
+        (every node made, in the order made; the object's box; the ruler; the ruler's label)."""
     road_len, x0, lane = 240.0, -60.0, 4.0
     road = scene.add_box(
         "/road",

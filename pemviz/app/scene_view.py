@@ -1,8 +1,5 @@
-"""The 3D scene of a :class:`pemviz.app.session.Session`: the chosen rollout's cars, played step by step in sync
-with *Explain*, as its drawing object gives them (:mod:`pemviz.app.drawing`). A lane scene shows the ego and the
-object ahead, the sensor's zones, a ruler, the detections as a trail and a gate where the margin was breached; a
-scene of several objects every car seen from the ego. Before any rollout: the idle scene of the chosen scenario.
-Layout: :mod:`pemviz.app.scene_layout`."""
+"""The 3D scene of a :class:`pemviz.app.session.Session`: the chosen rollout's cars, played step by step in sync with
+*Explain*, as its drawing object gives them; before any rollout, the idle scene of the chosen scenario."""
 
 from __future__ import annotations
 
@@ -56,12 +53,6 @@ def _plural(labels: list[str]) -> str:
 class SceneView:
     """The 3D scene and its playback (step slider, Play, follow cars, caption under *Rollouts*), the rollout shown and
     whether it plays; the :class:`pemviz.app.explain_tab.ExplainTab` it is given follows it.
-
-    Args:
-        client: the viser client the scene draws into.
-        drawing: the lane scene's drawing object drawn first (a :class:`pemviz.app.drawing.LanePanel`).
-        lock: the session's lock (GUI callbacks run in a thread pool, the run in a worker thread).
-        explain: the *Explain* tab that follows the rollout shown.
 
     Raises:
         ValueError: ``drawing`` draws no lane scene."""

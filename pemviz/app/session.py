@@ -1,10 +1,6 @@
-"""One browser client's panel: its own form, runs, Stop, plots, rollout explanation and 3D scene.
-
-A :class:`Session` is made for each client that connects and builds everything in that client's own ``client.gui`` /
-``client.scene``, so two tabs never share a form, a run or a Stop button. Its parts each own their state; the
-experiment runs in a worker thread of :class:`pemviz.app.run_control.RunControl`. The control panel (right) holds
-Run / Stop, the cost, the status line and the tabs *Experiment*, *Rollouts* and *Runs*; the plots panel (left)
-*Live*, *Explain* and *Compare* (docs/panel.md)."""
+"""One browser client's panel: its own form, runs, Stop, plots, rollout explanation and 3D scene, built in that
+client's own ``client.gui`` / ``client.scene``, so two tabs never share a form, a run or a Stop button
+(docs/panel.md)."""
 
 from __future__ import annotations
 
@@ -27,17 +23,9 @@ __all__ = ["PanelHost", "Session"]
 
 
 class Session:
-    """The panel of one browser client: builds and wires its parts, each owning its state and GUI handles:
-    :attr:`control` (:class:`~pemviz.app.run_control.RunControl`), :attr:`form`
-    (:class:`~pemviz.app.experiment_tab.ExperimentTab`), :attr:`rollouts_tab`
-    (:class:`~pemviz.app.rollouts_tab.RolloutsTab`), :attr:`runs_tab` (:class:`~pemviz.app.runs_tab.RunsTab`),
-    :attr:`scene` (:class:`~pemviz.app.scene_view.SceneView`), :attr:`explain`
-    (:class:`~pemviz.app.explain_tab.ExplainTab`) and :attr:`plots_panel`
-    (:class:`~pemviz.app.plots_panel.PlotsPanel`).
-
-    Args:
-        app: the server (recordings folder, scenario constants, warm-up).
-        client: the viser client this session draws into."""
+    """The panel of one browser client: builds and wires its parts (:attr:`control`, :attr:`form`,
+    :attr:`rollouts_tab`, :attr:`runs_tab`, :attr:`scene`, :attr:`explain`, :attr:`plots_panel`), each owning its
+    state and GUI handles."""
 
     def __init__(self, app: PanelHost, client: viser.ClientHandle) -> None:
         self.app = app

@@ -1,7 +1,6 @@
 """Sub-commands of the ``pemviz`` command line; each module exposes ``register(subparsers)``. This module holds what
 they share (:class:`UsageError`, :class:`Terminated`, the output folder check, the argument helpers) and imports no
-command; the studies' shared part is :mod:`pemviz.commands.study`.
-"""
+command; the studies' shared part is :mod:`pemviz.commands.study`."""
 
 from __future__ import annotations
 
@@ -61,8 +60,7 @@ def output_folder(path: str | Path, flag: str = "--out") -> Path:
     resume from it).
 
     Raises:
-        UsageError: ``path`` is a file, or the folder cannot be created or written.
-    """
+        UsageError: ``path`` is a file, or the folder cannot be created or written."""
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise UsageError(f"{flag} {out}: exists and is not a folder")
@@ -93,8 +91,7 @@ def split_choices(
     may say why a name outside ``allowed`` is not one (None: the list of those allowed says it).
 
     Raises:
-        UsageError: an empty list or a name outside ``allowed``.
-    """
+        UsageError: an empty list or a name outside ``allowed``."""
     items = tuple(x.strip() for x in text.split(",") if x.strip())
     allowed = tuple(allowed)
     for x in items:
@@ -112,10 +109,8 @@ SHOWN_DEFAULTS = {
     "ray_address": "a local one",
     "chunk_rollouts": "8192, and only stages above 20000 rollouts stream",
 }
-"""What a setting's None stands for, as the flags' help says it: the shipped default PEM
-(:data:`pemviz.pem.recipes.DEFAULT_PEM_NAME`, whose module imports torch; a test keeps the two equal), a local Ray
-cluster, the engine's chunks (:data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE`,
-:data:`pemviz.engine.experiment.STREAM_ABOVE`; a test keeps them equal)."""
+"""What a setting's None stands for, as the flags' help says it (tests keep these equal to
+:data:`pemviz.pem.recipes.DEFAULT_PEM_NAME`, :data:`pemviz.core.lockstep.DEFAULT_CHUNK_SIZE` and ``STREAM_ABOVE``)."""
 
 
 def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str, default: Any = None) -> None:
@@ -123,8 +118,7 @@ def add_setting(p: argparse.ArgumentParser | argparse._ArgumentGroup, name: str,
     :data:`pemviz.settings.SETTINGS`; the help says the default config's value, or what None stands for:
     :data:`SHOWN_DEFAULTS`).
 
-    ``default`` is what the flag gives when absent (None: leave the field to the preset / the default config).
-    """
+    ``default`` is what the flag gives when absent (None: leave the field to the preset / the default config)."""
     shown = default_of(name)
     add_row(p, SETTINGS[name], SHOWN_DEFAULTS.get(name, shown) if shown is None else shown, default)
 
@@ -186,8 +180,7 @@ def pem_argument(value: str | None, flag: str = "--pem") -> str | None:
     file, returned as given (None: the shipped default).
 
     Raises:
-        UsageError: neither; the message lists the shipped PEMs (:func:`pemviz.pem.store.resolve_pem`).
-    """
+        UsageError: neither; the message lists the shipped PEMs (:func:`pemviz.pem.store.resolve_pem`)."""
     from pemviz.pem import resolve_pem  # torch: imported when a command runs, not for --help
 
     try:

@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=f"Download the salient files from {data.ORIGIN_BASE_URL} into the user cache "
         f"({data.user_cache_dir()}) or --dest, checking each SHA-256; a bad download writes nothing.",
     )
-    f.add_argument("--dest", default=None, metavar="DIR", help="target folder (default: the user cache)")
+    f.add_argument("--dest", metavar="DIR", help="target folder (default: the user cache)")
     f.add_argument(
         "--base-url",
         default=data.ORIGIN_BASE_URL,
@@ -48,8 +48,7 @@ def fetch_main(args: argparse.Namespace) -> int:
         The exit status: 0, or 1 after one error line when a download or its check fails (nothing written).
 
     Raises:
-        UsageError: ``--base-url`` is not an http(s):// or file:// URL.
-    """
+        UsageError: ``--base-url`` is not an http(s):// or file:// URL."""
     if not args.base_url.startswith(("http://", "https://", "file://")):
         raise UsageError(f"--base-url {args.base_url!r}: must be an http(s):// or file:// URL")
     try:
@@ -70,8 +69,7 @@ def where_main(args: argparse.Namespace) -> int:
     """``pemviz data where``: print the data folder found and each file's SHA-256 check.
 
     Returns:
-        The exit status: 0, or 1 when no data folder is found or a file does not match its SHA-256.
-    """
+        The exit status: 0, or 1 when no data folder is found or a file does not match its SHA-256."""
     try:
         folder = data.find_data_dir()
     except data.DataNotFoundError as exc:

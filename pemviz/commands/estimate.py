@@ -1,10 +1,6 @@
-"""``pemviz estimate ROLLOUTS.parquet``: the failure probability from logged rollouts, and a recording.
-
-The rollouts come from anywhere in the format of :mod:`pemviz.io.rollout_format`. log p and log q of every action
-come from the file's columns, or are recomputed from a PEM (``--pem``) and what sampled the rollouts
-(``--proposal``); without options, columns where present, else what the sidecar names. Weights follow the sidecar's
-convention (``--weights`` overrides; :mod:`pemviz.core.weights`) and pooling, and the mean importance weight checks
-``log q``. Everything is checked before the recording is created: bad input writes nothing.
+"""``pemviz estimate ROLLOUTS.parquet``: the failure probability from logged rollouts (:mod:`pemviz.io.rollout_format`),
+and a recording. log p and log q come from the file's columns, or are recomputed from a PEM (``--pem``) and what
+sampled the rollouts (``--proposal``). Everything is checked before the recording is created: bad input writes nothing.
 """
 
 from __future__ import annotations
@@ -60,7 +56,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     lp = p.add_mutually_exclusive_group()
     lp.add_argument(
         "--pem",
-        default=None,
         metavar="NAME|PATH",
         help=f"recompute log p from this PEM, {SETTINGS['pem'].allowed} (default: the log_p column, else "
         "the sidecar's PEM)",
@@ -69,7 +64,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     lq = p.add_mutually_exclusive_group()
     lq.add_argument(
         "--proposal",
-        default=None,
         metavar="CKPT|pem|naive50|mixed50",
         help="recompute log q from a proposal checkpoint or a named sampler "
         "(default: the log_q column, else the sidecar's proposal)",
@@ -84,7 +78,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--weights",
-        default=None,
         choices=CONVENTIONS,
         help="importance weights: to-failure = prod p/q over the steps before the failure step (pemviz's "
         "sampler); full = over every step but the last (the paper's eq. 6); both unbiased. Default: "
@@ -95,17 +88,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--json",
         dest="json_path",
-        default=None,
         metavar="PATH.json",
         help="write the estimate as one JSON document (log mu_hat in full float64; the estimate's fields as in "
         "pemviz run --json, and each stage's; format: pemviz.io.result.estimate_document)",
     )
     rec = p.add_argument_group("recording (rerun)")
     rec.add_argument(
-        "--save",
-        default=None,
-        metavar="PATH.rrd",
-        help="write the recording here (default recordings/estimate-<name>-<time>.rrd)",
+        "--save", metavar="PATH.rrd", help="write the recording here (default recordings/estimate-<name>-<time>.rrd)"
     )
     rec.add_argument("--no-record", action="store_true", help="write no recording")
     rec.add_argument(
@@ -124,8 +113,7 @@ def log_probabilities(data: Any, args: argparse.Namespace) -> tuple[np.ndarray, 
 
     Raises:
         UsageError: a column asked for or needed is absent and nothing names how to recompute it.
-        FileNotFoundError / ValueError: a PEM or proposal that cannot be loaded.
-    """
+        FileNotFoundError / ValueError: a PEM or proposal that cannot be loaded."""
     meta, base = data.meta, (data.path.parent if data.path else Path("."))
     pem_ref = args.pem or meta.pem
     pem_cache: dict[str, Any] = {}
@@ -252,14 +240,14 @@ def summary_lines(
     ]
     for row in result.stages:
         lines.append(
-            f"{'-' if row.stage is None else row.stage:>7} {row.kind or '-':>8} " f"{estimate_cells(row.estimate)}"
+            f"{'-' if row.stage is None else row.stage:>7} {row.kind or '-':>8} {estimate_cells(row.estimate)}"
         )
     if result.pooled:
         which = ", ".join(map(str, result.pooled))
         lines.append(f"{'final':>7} {'':>8} {estimate_cells(e)}   <- stages {which} pooled ({result.rule})")
     elif len(result.stages) > 1:
         lines.append(
-            f"{'final':>7} {'':>8} {estimate_cells(e)}   <- every rollout alike " "(the sidecar gives no pooling)"
+            f"{'final':>7} {'':>8} {estimate_cells(e)}   <- every rollout alike (the sidecar gives no pooling)"
         )
     nll = "-" if math.isnan(e.nll_mean) else f"{e.nll_mean:.4f}"
     lines.append(
@@ -281,8 +269,7 @@ def check_plausible(e: Any, q_src: str) -> None:
     at 1, :func:`pemviz.core.estimate.estimate`).
 
     Raises:
-        UsageError: one line naming the proposal and the numbers.
-    """
+        UsageError: one line naming the proposal and the numbers."""
     if e.log_mean_weight > math.log(1000.0):
         raise UsageError(
             f"mu_hat = {format_probability(e.log_mu_hat)} with mean importance weight "
@@ -300,8 +287,7 @@ def pem_spread_lines(
 
     Raises:
         UsageError: a file of several objects or with measurement errors (its rows are not in it), a PEM without a
-            shipped ensemble, or a PEM that cannot be read.
-    """
+            shipped ensemble, or a PEM that cannot be read."""
     from pemviz.core.detectors import PEMDetector
     from pemviz.core.reweight import Alternative, PemSpread, ShiftedDetector
     from pemviz.pem.ensemble import ensemble_for, load_ensemble
@@ -359,8 +345,7 @@ def write_recording(path: Path, data: Any, result: Any, lines: list[str], *, ove
     under a unique temporary name and moved to ``PATH`` once complete (:func:`pemviz.core.files.atomic_write`).
 
     Raises:
-        OSError: the file could not be written (nothing is left); OutputExists: ``PATH`` exists, no ``overwrite``.
-    """
+        OSError: the file could not be written (nothing is left); OutputExists: ``PATH`` exists, no ``overwrite``."""
     import rerun as rr  # only when a recording is asked for
 
     def log(stream: rr.RecordingStream) -> None:
@@ -417,8 +402,7 @@ def main(args: argparse.Namespace) -> int:
         The exit status, 0.
 
     Raises:
-        UsageError: a bad metric, PEM or output path, or a run weighed with a look-ahead this version cannot rebuild.
-    """
+        UsageError: a bad metric, PEM or output path, or a run weighed with a look-ahead this version cannot rebuild."""
     if not SETTINGS["metric"].accepts(args.metric):
         raise UsageError(f"--metric {args.metric!r}: use {SETTINGS['metric'].allowed}")
     pem_argument(args.pem)

@@ -20,14 +20,7 @@ from pemviz.pem.noise import nll, noise_training_data
 from pemviz.pem.recipes import NOISE_RECIPES, PEM_RECIPES
 from pemviz.pem.store import load_reference_pem, noise_pem_path, pem_path, save_noise_pem
 from pemviz.studies import noise_eval
-from pemviz.studies.pem_eval import (
-    MODEL_NAMES,
-    EvalConfig,
-    evaluate_pems,
-    format_csv,
-    format_markdown,
-    summary_lines,
-)
+from pemviz.studies.pem_eval import MODEL_NAMES, EvalConfig, evaluate_pems, format_csv, format_markdown, summary_lines
 from pemviz.studies.pem_eval_recording import write_recording
 
 NOISE_CSV = "pem-noise-eval.csv"
@@ -62,25 +55,19 @@ def _add_train(actions: argparse._SubParsersAction) -> None:
         "cross-validated; hetero-t: the noise PEM of range and lateral errors)",
     )
     t.add_argument(
-        "--epochs",
-        type=int,
-        default=None,
-        help="epochs for ml-nn and hetero-t, trees for gbt (default: the model's, 300, 300, 100)",
+        "--epochs", type=int, help="epochs for ml-nn and hetero-t, trees for gbt (default: the model's, 300, 300, 100)"
     )
-    t.add_argument("--seed", type=int, default=None, help="seed (default: the model's shipped seed)")
+    t.add_argument("--seed", type=int, help="seed (default: the model's shipped seed)")
     t.add_argument(
         "--ensemble",
         type=int,
-        default=None,
         metavar="M",
         help="train M bootstrap refits of a detection PEM instead (its epistemic uncertainty, for pemviz "
         "run --pem-uncertainty) and write pemviz/assets/ensemble_<model>.pt (or --out; beside a PEM file "
         "X.pt, pemviz looks for X.ensemble.pt)",
     )
-    t.add_argument(
-        "--out", default=None, metavar="PATH", help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)"
-    )
-    t.add_argument("--data-dir", default=None, metavar="DIR", help="folder with the salient files (default: searched)")
+    t.add_argument("--out", metavar="PATH", help="weights file (default: the shipped pemviz/assets/pem_<model>.pt)")
+    t.add_argument("--data-dir", metavar="DIR", help="folder with the salient files (default: searched)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=train_main)
 
@@ -98,26 +85,24 @@ def _add_eval(actions: argparse._SubParsersAction) -> None:
     )
     e.add_argument(
         "--models",
-        default=None,
         help=f"comma-separated subset of {','.join(MODEL_NAMES)} (detection) and "
         f"{','.join(noise_eval.NOISE_MODEL_NAMES)} (noise); default all",
     )
-    e.add_argument("--folds", default=None, help="comma-separated fold numbers 0..4 (default all)")
+    e.add_argument("--folds", help="comma-separated fold numbers 0..4 (default all)")
     e.add_argument(
         "--quick",
         action="store_true",
         help="CI size: fold 0 only, 20 ML-NN epochs, 60 trees, 200 B-NN steps, 100 B-NN samples, 15 noise epochs",
     )
-    e.add_argument("--epochs", type=int, default=None, help="ML-NN epochs per fold (default 300)")
-    e.add_argument("--noise-epochs", type=int, default=None, help="noise PEM epochs per fold (default 100)")
-    e.add_argument("--trees", type=int, default=None, help="boosted trees per fold (default 300)")
-    e.add_argument("--bnn-steps", type=int, default=None, help="B-NN SVI steps per fold (default 2000)")
-    e.add_argument("--bnn-samples", type=int, default=None, help="B-NN posterior samples (default 800)")
+    e.add_argument("--epochs", type=int, help="ML-NN epochs per fold (default 300)")
+    e.add_argument("--noise-epochs", type=int, help="noise PEM epochs per fold (default 100)")
+    e.add_argument("--trees", type=int, help="boosted trees per fold (default 300)")
+    e.add_argument("--bnn-steps", type=int, help="B-NN SVI steps per fold (default 2000)")
+    e.add_argument("--bnn-samples", type=int, help="B-NN posterior samples (default 800)")
     e.add_argument("--seed", type=int, default=0, help="seed of every model (default 0)")
     e.add_argument(
         "--ensemble",
         type=int,
-        default=None,
         metavar="M",
         help="also cross-validate M bootstrap members of the ML-NN (as pemviz pem train --ensemble M builds "
         "them) beside the nominal one, on the same folds (pem-eval-ensemble.md)",
@@ -130,9 +115,9 @@ def _add_eval(actions: argparse._SubParsersAction) -> None:
         help=f"folder for pem-eval.md, pem-eval.csv, {NOISE_CSV} and pem-eval.rrd, created if needed "
         "(default recordings)",
     )
-    e.add_argument("--save", default=None, metavar="PATH", help="recording path (default <out>/pem-eval.rrd)")
+    e.add_argument("--save", metavar="PATH", help="recording path (default <out>/pem-eval.rrd)")
     e.add_argument("--no-record", action="store_true", help="write no rerun recording")
-    e.add_argument("--data-dir", default=None, metavar="DIR", help="folder with the salient files (default: searched)")
+    e.add_argument("--data-dir", metavar="DIR", help="folder with the salient files (default: searched)")
     e.set_defaults(func=eval_main)
 
 
@@ -152,8 +137,7 @@ def train_main(args: argparse.Namespace) -> int:
         The exit status: 0, or 1 after one error line when the salient data cannot be read.
 
     Raises:
-        UsageError: an unknown model, ``--epochs`` < 1, a bad ``--ensemble`` or output path.
-    """
+        UsageError: an unknown model, ``--epochs`` < 1, a bad ``--ensemble`` or output path."""
     if args.model not in PEM_RECIPES and args.model not in NOISE_RECIPES:
         raise UsageError(f"--model {args.model!r}: use one of {', '.join([*PEM_RECIPES, *NOISE_RECIPES])}")
     if args.epochs is not None and args.epochs < 1:
@@ -188,7 +172,7 @@ def train_main(args: argparse.Namespace) -> int:
     }
     if ensemble is not None:
         metadata["command"] = (
-            f"pemviz pem train --model {recipe.name} --ensemble {ensemble} --seed {seed} " f"--epochs {epochs}"
+            f"pemviz pem train --model {recipe.name} --ensemble {ensemble} --seed {seed} --epochs {epochs}"
         )
         _train_ensemble(
             recipe, data, ensemble, seed=seed, epochs=epochs, out=out, progress=not args.no_progress, metadata=metadata
@@ -320,8 +304,7 @@ def eval_main(args: argparse.Namespace) -> int:
         The exit status: 0, or 1 after one error line when the salient data cannot be read.
 
     Raises:
-        UsageError: a bad model list, fold list, ``--ensemble``, ``--jobs`` or output path.
-    """
+        UsageError: a bad model list, fold list, ``--ensemble``, ``--jobs`` or output path."""
     config, noise_config = eval_config_from_args(args)
     if getattr(args, "ensemble", None) is not None and (args.ensemble < 2 or args.jobs < 1):
         raise UsageError(f"--ensemble {args.ensemble} --jobs {args.jobs}: give M >= 2 members and at least 1 job")

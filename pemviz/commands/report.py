@@ -1,7 +1,6 @@
 """``pemviz report RUN``: a safety-case report of a run, one self-contained HTML page and its Markdown twin, from
 the run's result document (:mod:`pemviz.sinks.report`): ``--json RESULT.json``, or the ``run.result.json`` a
-recording run writes beside ``run.rrd``. ``pemviz run --report PAGE.html`` writes the same page at the end of a run.
-"""
+recording run writes beside ``run.rrd``. ``pemviz run --report PAGE.html`` writes the same page at the end of a run."""
 
 from __future__ import annotations
 
@@ -31,10 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "report", DESCRIPTION)
     p.add_argument("result", metavar="RUN", help="the run's result document (pemviz run --json), or its recording")
     p.add_argument(
-        "--out",
-        default=None,
-        metavar="PAGE.html",
-        help="where the page goes (default: RUN.html beside the source; its twin PAGE.md)",
+        "--out", metavar="PAGE.html", help="where the page goes (default: RUN.html beside the source; its twin PAGE.md)"
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing page and its twin")
     p.set_defaults(func=main)
@@ -44,8 +40,7 @@ def read_result(path: Path) -> dict:
     """The result document at ``path``.
 
     Raises:
-        UsageError: not a readable JSON file, or not a pemviz result document (one line saying what it is).
-    """
+        UsageError: not a readable JSON file, or not a pemviz result document (one line saying what it is)."""
     if not path.exists():
         raise UsageError(f"{path}: no such file")
     if path.is_dir():
@@ -88,8 +83,7 @@ def main(args: argparse.Namespace) -> int:
 
     Raises:
         UsageError: a page or twin that cannot be written (or exists without ``--overwrite``), or a result document
-            that lacks a field.
-    """
+            that lacks a field."""
     src = Path(args.result)
     doc = read_result(src)
     name = src.name[: -len(RESULT_BESIDE_SUFFIX)] if src.name.endswith(RESULT_BESIDE_SUFFIX) else src.stem

@@ -11,15 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pemviz import commands
-from pemviz.commands import (
-    COMMANDS,
-    UsageError,
-    add_row,
-    add_setting,
-    interrupted,
-    pem_argument,
-    setting_error,
-)
+from pemviz.commands import COMMANDS, UsageError, add_row, add_setting, interrupted, pem_argument, setting_error
 from pemviz.commands.run_outputs import RunOutputs, plan_outputs
 from pemviz.commands.run_recording import (
     add_recording_args,
@@ -88,7 +80,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_setting(p, "method")
     p.add_argument(
         "--preset",
-        default=None,
         help=f"sampler settings, one of {', '.join(PRESETS)} (default {DEFAULT_PRESET}): {preset_help()}. A preset "
         "sets some of the values below; a flag given here overrides it.",
     )
@@ -98,7 +89,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--save-rollouts",
         dest="save_rollouts",
-        default=None,
         metavar="PATH.parquet",
         help="write the rollouts of every stage the estimate uses, each with its stage, sampler component and the "
         "log density it was weighed with, for `pemviz estimate` to reproduce the estimate "
@@ -114,7 +104,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--json",
         dest="json_path",
-        default=None,
         metavar="PATH.json",
         help="write the result as one JSON document: estimate, interval, verdict, requirement outcome, "
         "settings, seed, version, the recording's path (format: pemviz.io.result; schema: the user "
@@ -123,7 +112,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--junit",
         dest="junit_path",
-        default=None,
         metavar="PATH.xml",
         help="with --require: write the requirement as a JUnit XML test case (passed, failure when "
         "violated, error when undecided) for CI dashboards",
@@ -131,7 +119,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--report",
         dest="report_path",
-        default=None,
         metavar="PATH.html",
         help="write a safety-case report: one self-contained HTML page (and PATH.md, its Markdown twin) "
         "with the estimate, verdict, severity, scenario, PEM, settings and the sha256 of the inputs",
@@ -210,8 +197,7 @@ def scenario_params(
     Raises:
         ConfigError: an unknown scenario, a text that is not NAME=VALUE, a name that is not one of the scenario's
             parameters (the message lists them), a value not of its type or outside the dataclass's range, a name
-            given twice; one line.
-    """
+            given twice; one line."""
     from pemviz.scenarios.parameters import ParameterError, parse_assignments
     from pemviz.settings import SETTINGS
 
@@ -300,8 +286,7 @@ def write_results(
     (:func:`plan_outputs`).
 
     Raises:
-        OSError, pemviz.core.files.OutputExists: a file that could not be written (nothing partial is left).
-    """
+        OSError, pemviz.core.files.OutputExists: a file that could not be written (nothing partial is left)."""
     from pemviz.io.result import result_beside, write_junit, write_result_json
 
     json_path, junit_path, report_path = outputs.result_files
@@ -328,8 +313,7 @@ def main(args: argparse.Namespace) -> int:
         The exit status of the run (:func:`_run_experiment`).
 
     Raises:
-        UsageError: a bad setting, PEM or output path, or ``--executor ray`` without Ray.
-    """
+        UsageError: a bad setting, PEM or output path, or ``--executor ray`` without Ray."""
     if commands.AS_PROGRAM:  # scipy.special, which the PEM's modules import, without numpy's unused submodules
         from pemviz.sinks.process import import_scipy_special_lean
 

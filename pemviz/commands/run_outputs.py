@@ -1,8 +1,5 @@
-"""The files a ``pemviz run`` will write, planned once from its arguments before any work: :func:`plan_outputs`
-checks every path (an existing file without ``--overwrite``, an unwritable folder, a wrong suffix, two outputs
-naming one file) and returns the :class:`RunOutputs` the sinks and result writer take their paths from. Nothing is
-created here.
-"""
+"""The files a ``pemviz run`` will write, planned and checked once from its arguments before any work
+(:func:`plan_outputs`); nothing is created here."""
 
 from __future__ import annotations
 
@@ -27,8 +24,7 @@ class RunOutputs:
         recording: the ``.rrd`` recording when it goes to a file (``--save``, or the default under ``recordings/``).
         rollouts: the rollout file (``--save-rollouts``; its sidecar and proposal checkpoint beside it).
         json, junit, report: ``--json``, ``--junit`` and ``--report`` (the report's Markdown twin beside it).
-        overwrite: ``--overwrite``: existing files may be replaced.
-    """
+        overwrite: ``--overwrite``: existing files may be replaced."""
 
     recording: Path | None = None
     rollouts: Path | None = None
@@ -119,16 +115,13 @@ def plan_outputs(
         report = _checked(lambda: check_report_paths(report, "--report", overwrite=overwrite))
     if args.junit_path is not None and cfg.stop.require is None:
         raise UsageError(
-            "--junit writes a requirement as a test case: give one with --require, e.g. " "--require 'p < 1e-9'"
+            "--junit writes a requirement as a test case: give one with --require, e.g. --require 'p < 1e-9'"
         )
     found = {
         flag: None
         if value is None
         else _checked(lambda v=value, s=suffix, f=flag: check_output_path(v, s, f, overwrite=overwrite))
-        for flag, value, suffix in (
-            ("--json", args.json_path, ".json"),
-            ("--junit", args.junit_path, ".xml"),
-        )
+        for flag, value, suffix in (("--json", args.json_path, ".json"), ("--junit", args.junit_path, ".xml"))
     }
     outputs = RunOutputs(recording, rollouts, found["--json"], found["--junit"], report, overwrite)
     check_distinct(outputs)
@@ -140,8 +133,7 @@ def check_distinct(outputs: RunOutputs) -> None:
     ``b.rollouts.json``, with ``--json b.rollouts.json``): the second would replace the first at the end of the run.
 
     Raises:
-        UsageError: naming both flags and the file.
-    """
+        UsageError: naming both flags and the file."""
     seen: dict[Path, str] = {}
     for flag, path in outputs.named():
         key = Path(os.path.abspath(path))

@@ -1,8 +1,5 @@
-"""Where ``pemviz run`` sends its recording: rerun's script flags (``--save``, ``--serve``, ``--connect``,
-``--stdout``, ``--headless``) with ``--no-record`` (:func:`add_recording_args`), the target asked for
-(:func:`recording_target`), the viewer check of ``--connect`` (:func:`probe_viewer`), ``--serve``'s sink
-(:func:`serve`) and the default name (:func:`default_recording_path`). Only :func:`serve` imports rerun.
-"""
+"""Where ``pemviz run`` sends its recording: rerun's script flags with ``--no-record``, the target asked for, the viewer
+check of ``--connect`` and the default name. Only :func:`serve` imports rerun."""
 
 from __future__ import annotations
 
@@ -33,7 +30,6 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
     )
     rec.add_argument(
         "--save",
-        default=None,
         metavar="PATH.rrd",
         help="write the recording to this file "
         "(default recordings/<scenario>-<method>-<preset>-<metric>-<sim>-seed<seed>-<time>.rrd)",
@@ -51,7 +47,7 @@ def add_recording_args(p: argparse.ArgumentParser) -> None:
         metavar="URL",
         help=f"stream to a running rerun viewer (default URL {DEFAULT_VIEWER_URL}; or give it with --url)",
     )
-    rec.add_argument("--url", default=None, help="the viewer for --connect, e.g. rerun+http://127.0.0.1:9876/proxy")
+    rec.add_argument("--url", help="the viewer for --connect, e.g. rerun+http://127.0.0.1:9876/proxy")
     rec.add_argument("--headless", action="store_true", help="open no browser (with --serve)")
     rec.add_argument("--grpc-port", dest="grpc_port", type=int, default=9876, help="--serve: gRPC port (default 9876)")
     rec.add_argument(
@@ -64,8 +60,7 @@ def recording_target(args: argparse.Namespace) -> str:
     """Which one of save / serve / connect / stdout / none the flags ask for (default: save).
 
     Raises:
-        UsageError: two of them at once, a port without --serve, or a bad port.
-    """
+        UsageError: two of them at once, a port without --serve, or a bad port."""
     if isinstance(args.connect, str):  # --connect URL
         if args.url is not None and args.url != args.connect:
             raise UsageError(f"--connect {args.connect} and --url {args.url}: give the viewer URL once")
@@ -100,8 +95,7 @@ def probe_viewer(url: str | None, timeout_s: float = CONNECT_TIMEOUT_S) -> str:
         The URL.
 
     Raises:
-        UsageError: not a ``rerun+http(s)://HOST:PORT/...`` URL, or nothing answers within ``timeout_s``.
-    """
+        UsageError: not a ``rerun+http(s)://HOST:PORT/...`` URL, or nothing answers within ``timeout_s``."""
     url = url or DEFAULT_VIEWER_URL
     scheme: str | None
     host: str | None

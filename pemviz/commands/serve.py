@@ -43,8 +43,7 @@ def check_host(host: str) -> bool:
         True for a loopback-only address (127.0.0.0/8, ::1, ``localhost``); False for any other (``0.0.0.0``,
         ``''`` and ``::`` bind every interface).
     Raises:
-        UsageError: the name does not resolve or is not an address of this machine.
-    """
+        UsageError: the name does not resolve or is not an address of this machine."""
     if host in ("", "0.0.0.0", "::"):
         return False
     try:
@@ -71,8 +70,7 @@ def main(args: argparse.Namespace) -> int:
         The exit status, 0.
 
     Raises:
-        UsageError: an unknown preset, a port outside 0..65535, or a bad PEM.
-    """
+        UsageError: an unknown preset, a port outside 0..65535, or a bad PEM."""
     if args.preset not in PRESETS:
         raise UsageError(f"--preset {args.preset!r} is invalid: use one of {', '.join(PRESETS)}")
     if not 0 <= args.port <= 65535:

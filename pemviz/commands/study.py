@@ -1,7 +1,6 @@
 """What the study commands ``validate`` and ``tables`` share: sampler sizes, ``--jobs`` and ``--out``
 (:func:`add_study_arguments`), the config fields (:func:`base_fields`), progress lines (:func:`say`), runs resumed
-from the output folder (:func:`run_study`) and report files (:func:`write_study`).
-"""
+from the output folder (:func:`run_study`) and report files (:func:`write_study`)."""
 
 from __future__ import annotations
 
@@ -55,8 +54,7 @@ def presets_of(text: str, flag: str) -> tuple[str, ...]:
     """The presets of ``--FLAG text`` (:func:`add_presets`) in the order given; ``()`` for ``''``.
 
     Raises:
-        UsageError: a name that is not a preset.
-    """
+        UsageError: a name that is not a preset."""
     from pemviz.presets import PRESETS
 
     return split_choices(text, PRESETS, flag) if text.strip() else ()
@@ -91,8 +89,7 @@ def base_fields(args: argparse.Namespace) -> dict[str, Any]:
     :func:`pemviz.commands.pem_argument`).
 
     Raises:
-        UsageError: a value outside its setting's range, or a ``--pem`` that is neither shipped nor a file.
-    """
+        UsageError: a value outside its setting's range, or a ``--pem`` that is neither shipped nor a file."""
     fields = {k: getattr(args, k) for k in SAMPLER_SETTINGS if getattr(args, k, None) is not None}
     try:
         ExperimentConfig.of(**fields)

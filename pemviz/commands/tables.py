@@ -1,10 +1,5 @@
-"""``pemviz tables``: the paper's Tables II and III with repetitions, honest error bars and the exact answer.
-
-Table II: MC_100, MC_10000, naive-50_100, naive-50_1000 and adaptive_100 (the paper's settings), plus other presets
-(``--extra``); Table III: the adaptive sampler with each robustness metric. Every row: R repetitions (seeds 0..R-1),
-mu_hat as mean +- std/sqrt(R), failures, NLL, ESS, the exact p_fail and the ratio. Writes ``tables.md``,
-``tables.csv`` and ``tables.rrd`` (every repetition's proposal curves and the paper's Fig. 4) into ``--out``; the
-work is :mod:`pemviz.studies.paper_tables`'s and :mod:`pemviz.studies.validation`'s."""
+"""``pemviz tables``: the paper's Tables II and III with repetitions, honest error bars and the exact answer, into
+``tables.md``, ``tables.csv`` and ``tables.rrd``; the work is :mod:`pemviz.studies.paper_tables`'s."""
 
 from __future__ import annotations
 

@@ -1,11 +1,5 @@
-"""``pemviz validate``: the sampler and the baselines against exact failure probabilities.
-
-Every method runs on every problem of :data:`pemviz.scenarios.problems.PROBLEMS` (exact answers:
-:mod:`pemviz.scenarios.braking.truth` and the closed forms) for several seeds at the adaptive sampler's simulation
-budget, with no plain Monte Carlo after it; the table reports per problem and method the truth, the median and
-spread of mu_hat, the median relative error, the seeds within a factor 2, failures, ESS, simulations and wall time
-(:mod:`pemviz.studies.validation`).
-"""
+"""``pemviz validate``: the sampler and the baselines against exact failure probabilities, several seeds each at equal
+simulation budgets (:mod:`pemviz.studies.validation`)."""
 
 from __future__ import annotations
 
@@ -83,8 +77,7 @@ def main(args: argparse.Namespace) -> int:
 
     Raises:
         UsageError: an unknown problem, preset or baseline, nothing to run, ``--seeds`` or ``--jobs`` < 1, or an output
-            folder that cannot be used.
-    """
+            folder that cannot be used."""
     problems = split_choices(args.problems, validation_problems(), "problems", _without_exact)
     presets = presets_of(args.presets, "presets")
     from pemviz.methods import BUILTIN_METHODS, method_names

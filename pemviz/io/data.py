@@ -44,7 +44,6 @@ __all__ = [
     "load_salient_data",
     "load_salient_inputs",
     "load_salient_label_table",
-    "load_salient_labels",
     "sha256_file",
     "user_cache_dir",
 ]
@@ -116,8 +115,7 @@ def find_data_dir(required: Iterable[str] = (INPUTS_FILE, LABELS_FILE)) -> Path:
 
     Raises:
         DataNotFoundError: no folder holds them; the message lists every place searched, why each failed,
-            and the fetch command.
-    """
+            and the fetch command."""
     required = tuple(required)
     reasons: list[str] = []
     for i, (what, folder) in enumerate(candidate_data_dirs(), start=1):
@@ -248,8 +246,7 @@ def _parse_table(path: Path, n_columns: int) -> np.ndarray:
     """Parse a whitespace table with one optional ``#`` header line into float64 ``[N, n_columns]``.
 
     Raises:
-        DataFormatError: wrong column count, a non-number, NaN or infinity; names file and line (1-based).
-    """
+        DataFormatError: wrong column count, a non-number, NaN or infinity; names file and line (1-based)."""
     rows: list[list[float]] = []
     with open(path, encoding="utf-8") as fh:
         for line_no, line in enumerate(fh, start=1):
@@ -276,19 +273,8 @@ def load_salient_inputs(path: str | os.PathLike[str]) -> np.ndarray:
 
     Raises:
         DataFormatError: wrong column count, non-number or NaN (names file and line).
-        FileNotFoundError: ``path`` does not exist.
-    """
+        FileNotFoundError: ``path`` does not exist."""
     return _parse_table(Path(path), len(INPUT_COLUMNS))
-
-
-def load_salient_labels(path: str | os.PathLike[str]) -> np.ndarray:
-    """Detection labels (column 0 of the label file), float64 ``[N]`` with values in {0, 1}.
-
-    Raises:
-        DataFormatError: see :func:`load_salient_label_table`.
-        FileNotFoundError: ``path`` does not exist.
-    """
-    return np.ascontiguousarray(load_salient_label_table(path)[:, 0])
 
 
 def load_salient_label_table(path: str | os.PathLike[str]) -> np.ndarray:
@@ -300,8 +286,7 @@ def load_salient_label_table(path: str | os.PathLike[str]) -> np.ndarray:
     Raises:
         DataFormatError: wrong column count (9 expected), non-number, NaN, a label not in {0, 1}, or a detected row
             whose detected or ground-truth box has a width or height <= 0 (names file and line).
-        FileNotFoundError: ``path`` does not exist.
-    """
+        FileNotFoundError: ``path`` does not exist."""
     path = Path(path)
     table = _parse_table(path, len(LABEL_COLUMNS))
     detected = table[:, 0]
@@ -358,8 +343,7 @@ def load_salient_data(
 
     Raises:
         DataNotFoundError: ``data_dir`` is None and the files are in no searched place.
-        DataFormatError: a malformed file, or inputs and labels of different lengths.
-    """
+        DataFormatError: a malformed file, or inputs and labels of different lengths."""
     names = (INPUTS_FILE_ALL, LABELS_FILE_ALL) if with_misc_unknown else (INPUTS_FILE, LABELS_FILE)
     folder = find_data_dir(names) if data_dir is None else Path(data_dir)
     inputs_path, labels_path = folder / names[0], folder / names[1]

@@ -1,6 +1,5 @@
 """Writing files safely: never a half-written file, and bad output paths refused before any work; built on the
-atomic write and tagged checkpoints of :mod:`pemviz.core.files`.
-"""
+atomic write and tagged checkpoints of :mod:`pemviz.core.files`."""
 
 from __future__ import annotations
 
@@ -40,8 +39,7 @@ def commit_files(pairs: list[tuple[str, Path]], *, overwrite: bool) -> None:
     when a later one exists, so a refused unit leaves nothing.
 
     Raises:
-        OutputExists: ``overwrite`` is False and a target exists.
-    """
+        OutputExists: ``overwrite`` is False and a target exists."""
     done: list[Path] = []
     with deferred_signals():  # Ctrl-C / SIGTERM wait the few renames out: the unit is never half moved
         try:
@@ -96,8 +94,7 @@ def write_rrd(
     through :func:`atomic_write` (rerun's own file sink stalls its writer thread on a write error).
 
     Raises:
-        OSError: the file could not be written (nothing is left); OutputExists: see :func:`atomic_write`.
-    """
+        OSError: the file could not be written (nothing is left); OutputExists: see :func:`atomic_write`."""
     import rerun as rr  # ~1.3 s to import: pemviz.io.data imports this module and needs neither rerun nor torch
 
     stream = rr.RecordingStream(app_id)
@@ -188,8 +185,7 @@ def check_output_folder(folder: str | os.PathLike[str], names: tuple[str, ...], 
     folder may be missing, and files of those names are replaced (never a folder or special file).
 
     Raises:
-        ValueError: not a folder, no parent folder, not writable, a name too long, or a name taken by a folder.
-    """
+        ValueError: not a folder, no parent folder, not writable, a name too long, or a name taken by a folder."""
     out = Path(folder)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{what} {out}: exists and is not a folder")
@@ -212,8 +208,7 @@ def check_free_name(path: Path, what: str, *, overwrite: bool = False, kind: str
     """Refuse a companion file (a sidecar, a checkpoint) that exists and may not be replaced.
 
     Raises:
-        OutputExists / ValueError: as :func:`check_output_path` for an existing file.
-    """
+        OutputExists / ValueError: as :func:`check_output_path` for an existing file."""
     if not os.path.lexists(path):
         return
     if path.is_symlink() or not path.is_file():

@@ -1,12 +1,8 @@
-"""A run's result as files a CI job reads: one JSON document (``pemviz run --json``; ``pemviz estimate --json``'s holds
-the same ``estimate`` object, :func:`estimate_document`) and a JUnit XML test case for a requirement (``pemviz run
---junit``).
-
-The JSON document (``pemviz-result``, :data:`RESULT_VERSION`) holds the estimate with its interval, ESS, k-hat and
-verdict, the exact answer or reference, the requirement's outcome, the settings, seed, version and recording, and
-the failures by share, group and severity. Probabilities are given as numbers and as natural logs; a non-finite
-value is ``null``. Its JSON Schema is in the user guide ("pemviz in CI"). The JUnit file holds one test case named
-after the requirement: passed when met, ``<failure>`` when violated, ``<error type="undecided">`` when undecided."""
+"""A run's result as files a CI job reads: one JSON document (``pemviz run --json``, ``pemviz-result``,
+:data:`RESULT_VERSION`; ``pemviz estimate --json`` holds the same ``estimate`` object) and a JUnit XML test case for a
+requirement (``--junit``: passed when met, ``<failure>`` when violated, ``<error type="undecided">`` when undecided).
+Probabilities are given as numbers and as natural logs; a non-finite value is ``null``; the JSON Schema is in the user
+guide ("pemviz in CI")."""
 
 from __future__ import annotations
 
@@ -287,8 +283,7 @@ def write_result_json(path: str | os.PathLike[str], doc: dict[str, Any], *, over
     """Write ``doc`` (:func:`result_document`) atomically as JSON.
 
     Raises:
-        OSError: the file could not be written (nothing is left); OutputExists: ``path`` exists, no ``overwrite``.
-    """
+        OSError: the file could not be written (nothing is left); OutputExists: ``path`` exists, no ``overwrite``."""
     text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
 
     def write(tmp: str) -> None:
@@ -301,8 +296,7 @@ def junit_xml(doc: dict[str, Any], console: str = "") -> bytes:
     """One JUnit test suite with one test case, the requirement of ``doc`` (:func:`result_document`).
 
     Raises:
-        ValueError: ``doc`` has no requirement.
-    """
+        ValueError: ``doc`` has no requirement."""
     req = doc.get("requirement")
     if req is None:
         raise ValueError("a JUnit test case needs a requirement (--require)")
@@ -335,8 +329,7 @@ def write_junit(
     """Write :func:`junit_xml` atomically.
 
     Raises:
-        ValueError: ``doc`` has no requirement; OSError, OutputExists: as :func:`write_result_json`.
-    """
+        ValueError: ``doc`` has no requirement; OSError, OutputExists: as :func:`write_result_json`."""
     data = junit_xml(doc, console)
 
     def write(tmp: str) -> None:

@@ -1,8 +1,5 @@
-"""Failure-probability estimates from logged rollouts (a file of :mod:`pemviz.io.rollout_format`): ``pemviz
-estimate``. log p and log q of every action come from the file's columns or are recomputed under a PEM
-(:func:`pem_log_prob`) and the detector that sampled (:func:`sampler_detector`, or a checkpoint);
-:func:`estimate_rollouts` forms mu_hat as the engine does (Innes & Ramamoorthy 2022, eq. 6).
-"""
+"""Failure-probability estimates from logged rollouts (``pemviz estimate``): log p and log q from the file's columns or
+recomputed, and mu_hat formed as the engine does (:func:`estimate_rollouts`; Innes & Ramamoorthy 2022, eq. 6)."""
 
 from __future__ import annotations
 
@@ -51,8 +48,7 @@ def detector_log_prob(data: RolloutData, detector: Detector) -> np.ndarray:
     rollouts at a time, as :func:`pemviz.core.lockstep.simulate` asks.
 
     Raises:
-        ValueError: a file of several objects or with measurement errors (their rows are not in it).
-    """
+        ValueError: a file of several objects or with measurement errors (their rows are not in it)."""
     _one_object(data)
     out = np.empty((data.n, data.n_steps))
     for t in range(data.n_steps):
@@ -66,8 +62,7 @@ def pem_log_prob(data: RolloutData, pem: Any) -> np.ndarray:
     or they are exactly the braking gap's mapping.
 
     Raises:
-        ValueError: a file of several objects or with measurement errors (their rows are not in it).
-    """
+        ValueError: a file of several objects or with measurement errors (their rows are not in it)."""
     _one_object(data)
     gap = data.signal("gap_m")
     if data.salient is None or np.array_equal(data.salient, braking_salient(gap)):
@@ -81,8 +76,7 @@ def sampler_detector(name: str, pem: Any, window_m: float = 10.0) -> Detector:
     (50 % inside ``window_m``, the PEM outside; the baselines of Innes & Ramamoorthy 2022).
 
     Raises:
-        ValueError: an unknown name.
-    """
+        ValueError: an unknown name."""
     target = PEMDetector(pem)
     if name == "pem":
         return target
@@ -118,8 +112,7 @@ class RolloutEstimate:
         stages: one row per stage in the file (one row with stage None without a stage column).
         pooled: the stages the estimate pools with the sidecar's rule (empty: every rollout alike).
         rule: the sidecar's pooling rule (``every rollout alike`` without one).
-        check: the mean importance weight over all N rollouts (:func:`pemviz.core.weights.mean_weight`).
-    """
+        check: the mean importance weight over all N rollouts (:func:`pemviz.core.weights.mean_weight`)."""
 
     estimate: Estimate
     robustness: np.ndarray
@@ -143,8 +136,7 @@ def file_problem(meta: RolloutMeta, name: str = "rollout file") -> Problem:
     ranges, with the engine's robustness and failure, and no simulator or target.
 
     Raises:
-        RolloutFormatError: the sidecar's formula is not valid STL.
-    """
+        RolloutFormatError: the sidecar's formula is not valid STL."""
     formula = parse_formula(meta.formula, lambda why: RolloutFormatError(f"{name}: {why}"))
     return Problem(
         name,
@@ -169,11 +161,8 @@ def estimate_rollouts(
     look_ahead: LookAheadFn | None = None,
 ) -> RolloutEstimate:
     """mu_hat from logged rollouts (Innes & Ramamoorthy 2022, eq. 6), per stage and pooled as the sidecar says, through
-    the engine's code (:func:`file_problem`, :func:`pemviz.estimators.base.log_weight`,
-    :func:`pemviz.core.estimate.estimate`, :func:`pemviz.estimators.pooling.pool`): ``log w_i = sum_{t < k_i} log p
-    - log q`` with k_i = T - 1 (``"full"``) or the failure step (``"to-failure"``; :mod:`pemviz.core.weights`); the
-    NLL sums log p before the failure.
-
+    the engine's code: ``log w_i = sum_{t < k_i} log p - log q`` with k_i = T - 1 (``"full"``) or the failure step
+    (``"to-failure"``; :mod:`pemviz.core.weights`).
     Args:
         data: the rollout file read (:func:`pemviz.io.rollouts.read_rollouts`).
         log_p: float64 [N, T] each action's log-probability under the PEM (nats).
@@ -246,8 +235,7 @@ def _check_choices(metric: str, failure: str, weights: str) -> None:
     """:func:`estimate_rollouts`' metric, failure event and weight convention, each one of those known.
 
     Raises:
-        ValueError: an unknown one.
-    """
+        ValueError: an unknown one."""
     if metric not in METRICS:
         raise ValueError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
     if failure not in ("crash", "metric"):
@@ -263,8 +251,7 @@ def _check_finite(
     run).
 
     Raises:
-        RolloutFormatError: one beyond float64, naming the rollout.
-    """
+        RolloutFormatError: one beyond float64, naming the rollout."""
     k = data.n_steps - 1
     for name, x in (("importance log-weight sum(log_p - log_q)", log_w), ("sum of log_p", log_p_total)):
         bad = np.isnan(x) | (x == np.inf)  # -inf: an action the PEM cannot take, weight 0 (as in the run)

@@ -1,22 +1,11 @@
 """The logged-rollout file format: a Parquet table, one row per step, and a JSON sidecar (spec, dt, units).
 
-pemviz estimates from rollouts produced anywhere (CARLA, a user's simulator, ``pemviz run --save-rollouts``):
-:func:`pemviz.io.rollout_writer.write_rollouts` / :func:`pemviz.io.rollouts.read_rollouts`, ``pemviz estimate`` on
-the command line. Both validate with the same code, so a file pemviz writes is one pemviz reads. This module holds
-the format's constants and its sidecar (:class:`RolloutMeta`); :mod:`pemviz.io.rollouts` the table;
-:mod:`pemviz.io.rollout_sidecars` the sidecars of the braking scenario's and of any problem's rollouts.
-
-The format (version 3; versions 1 and 2 are read too), its columns and sidecar fields are documented in
-docs/own-simulator.md, "Logged rollout files": ``NAME.parquet`` holds one row per (rollout, step), a rollout's rows
-contiguous with steps 0..T-1 in order and the same T for all; ``NAME.rollouts.json`` (or ``NAME.json`` for an older
-file) holds the STL ``formula`` (failure = classic robustness < 0, Innes & Ramamoorthy 2022), ``dt_s`` and the
-optional fields of :class:`RolloutMeta`. Floats must be finite; log-probabilities are in nats and <= 0 unless they
-include measurement errors' densities; ``log_p`` may be -inf (weight 0), ``log_q`` stays finite.
-
-Importance weights use at most the first T - 1 steps (the last action affects nothing; Innes & Ramamoorthy 2022,
-Algorithm 1), as the engine does, so an estimate from a file written by ``pemviz run`` equals the run's to float64
-rounding. Bad input raises :class:`RolloutFormatError`: one message naming the file, the column, and the rollout and
-step where the problem is. Writers write to a temporary file and ``os.replace`` it: no half file."""
+pemviz estimates from rollouts produced anywhere (CARLA, a user's simulator, ``pemviz run --save-rollouts``); the writer
+(:mod:`pemviz.io.rollout_writer`) and the reader (:mod:`pemviz.io.rollouts`) validate with the same code. This module
+holds the format's constants and its sidecar (:class:`RolloutMeta`). The format (version 3; 1 and 2 are read too) is
+documented in docs/own-simulator.md, "Logged rollout files". Importance weights use at most the first T - 1 steps
+(Innes & Ramamoorthy 2022, Algorithm 1), as the engine does. Bad input raises :class:`RolloutFormatError` naming the
+file, the column, and the rollout and step."""
 
 from __future__ import annotations
 
@@ -88,8 +77,7 @@ class RolloutMeta:
         objects: M, the objects perceived at each step.
         noise: the names of a detected object's measurement-error components (metres); empty: none.
         odd_parameters: the columns of the parameters drawn per rollout from an ODD; empty: none.
-        version: the file's format version (:data:`READ_VERSIONS`).
-    """
+        version: the file's format version (:data:`READ_VERSIONS`)."""
 
     formula: str
     dt_s: float
@@ -172,8 +160,7 @@ class RolloutMeta:
         """Parse and check a sidecar object.
 
         Raises:
-            RolloutFormatError: not an object, wrong format tag or version, a missing or invalid field.
-        """
+            RolloutFormatError: not an object, wrong format tag or version, a missing or invalid field."""
 
         def bad(msg: str) -> RolloutFormatError:
             return RolloutFormatError(f"{where}: {msg}")
@@ -250,8 +237,7 @@ def parse_formula(formula: str, bad: Callable[[str], Exception]) -> Any:
 
     Raises:
         ``bad(message)``: not valid STL, the message in one line (``formula 'G[0,99](d >= ' is not valid STL: ...
-            at column 12``).
-    """
+            at column 12``)."""
     try:
         return stl.parse(formula)
     except ValueError as exc:
@@ -425,8 +411,7 @@ def check_stage_counts(meta: RolloutMeta, counts: Mapping[int, list[int]], error
     sidecar's ``stages`` (each stage listed, its n and its components' n) and ``pooling`` (each pooled stage held).
 
     Raises:
-        what ``error(message)`` returns (a :class:`RolloutFormatError` naming the file).
-    """
+        what ``error(message)`` returns (a :class:`RolloutFormatError` naming the file)."""
     for k, held in sorted(counts.items()):
         info = meta.stage_info(k)
         if meta.stages and info is None:
@@ -450,8 +435,7 @@ def read_sidecar(path: str | os.PathLike[str]) -> RolloutMeta:
     :func:`existing_sidecar`).
 
     Raises:
-        RolloutFormatError: no sidecar, not JSON, or an invalid field.
-    """
+        RolloutFormatError: no sidecar, not JSON, or an invalid field."""
     side = existing_sidecar(path)
     if not side.is_file():
         raise RolloutFormatError(

@@ -1,7 +1,6 @@
 """The sidecars (:class:`pemviz.io.rollout_format.RolloutMeta`) of a scene's rollout files: the braking scenario's
 (:func:`braking_meta`) and any other problem's (:func:`problem_meta`); :func:`pemviz.io.run_rollouts.run_meta`
-chooses.
-"""
+chooses."""
 
 from __future__ import annotations
 
@@ -46,8 +45,7 @@ def braking_meta(
 ) -> RolloutMeta:
     """The sidecar of braking-scenario rollouts (Innes & Ramamoorthy 2022): dt 0.05 s, signals d / v / vl, units.
 
-    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.scenarios.braking.problem.braking_formula`.
-    """
+    ``formula`` defaults to ``G[0,T-1](d >= 2)`` of :func:`pemviz.scenarios.braking.problem.braking_formula`."""
     p = BrakingParams()
     return RolloutMeta(
         formula=formula or str(braking_formula(p)),
@@ -73,8 +71,7 @@ def problem_meta(
 ) -> RolloutMeta:
     """The sidecar of a problem's rollouts: its formula, signals, signal ranges, units and step (``dt_s = 1`` with
     ``dt_s_unknown`` in the provenance where the problem knows none: only a failure's impact speed reads it); the
-    writer fills in objects and errors.
-    """
+    writer fills in objects and errors."""
     provenance = dict(provenance or {})
     if problem.dt_s is None:
         provenance["dt_s_unknown"] = f"{problem.name} gave no step: dt_s = 1 stands for one step"

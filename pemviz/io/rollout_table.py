@@ -1,12 +1,7 @@
-"""A rollout file's Parquet table checked against the format and read into numpy (:class:`RolloutData`), and its
-optional columns: the severity (:data:`SEVERITY_COLUMNS`) and the braking lead's salient variables
-(:func:`braking_salient`).
-
-The reader (:func:`pemviz.io.rollouts.read_rollouts`) and the writer (:mod:`pemviz.io.rollout_writer`) validate with
-the same checks; bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError` naming the file, the column,
-the rollout and the step. The format is :mod:`pemviz.io.rollout_format`'s. The severity columns, ``min_distance_m``
-(metres, finite) and ``impact_speed_mps`` (m/s, > 0, null without contact), come both or neither, the same on all of
-a rollout's rows (:func:`pemviz.core.severity.rollout_severity`); estimates do not read them."""
+"""A rollout file's Parquet table checked against the format and read into numpy (:class:`RolloutData`), with the same
+checks for the reader and the writer, and its optional columns: the severity (:data:`SEVERITY_COLUMNS`: min distance in
+metres, impact speed in m/s, null without contact; both or neither, not read by estimates) and the braking lead's
+salient variables (:func:`braking_salient`)."""
 
 from __future__ import annotations
 
@@ -19,12 +14,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pemviz.core.rollouts import RolloutBatch
-from pemviz.io.rollout_format import (
-    SALIENT_COLUMNS,
-    RolloutFormatError,
-    RolloutMeta,
-    check_stage_counts,
-)
+from pemviz.io.rollout_format import SALIENT_COLUMNS, RolloutFormatError, RolloutMeta, check_stage_counts
 from pemviz.pem import braking_salient_inputs
 from pemviz.pem.encoding import INPUT_COLUMNS
 
@@ -36,8 +26,7 @@ contact)."""
 def braking_salient(gap_m: np.ndarray) -> np.ndarray:
     """The PEM's salient variables of the lead at each gap, float64 [N, T, 11] for gaps [N, T] (metres).
 
-    :func:`pemviz.pem.braking_salient_inputs` row by row (the lead's KITTI salient variables at each gap).
-    """
+    :func:`pemviz.pem.braking_salient_inputs` row by row (the lead's KITTI salient variables at each gap)."""
     gap = np.asarray(gap_m, dtype=np.float64)
     return braking_salient_inputs(gap).reshape(*gap.shape, len(INPUT_COLUMNS))
 
@@ -80,16 +69,14 @@ class RolloutData(RolloutBatch):
         """:meth:`pemviz.core.rollouts.RolloutBatch.log_weight` of the file's columns, float64 [N] (nats).
 
         Raises:
-            ValueError: the file has no ``log_p`` or no ``log_q`` column.
-        """
+            ValueError: the file has no ``log_p`` or no ``log_q`` column."""
         return self.to_batch().log_weight(n_factors)
 
     def to_batch(self, log_p: np.ndarray | None = None, log_q: np.ndarray | None = None) -> RolloutBatch:
         """A :class:`RolloutBatch` with the given (default: the file's) log-probabilities [N, T].
 
         Raises:
-            ValueError: a log-probability that is neither given nor in the file.
-        """
+            ValueError: a log-probability that is neither given nor in the file."""
         log_p = self.log_p if log_p is None else log_p
         log_q = self.log_q if log_q is None else log_q
         if log_p is None or log_q is None:
@@ -221,8 +208,7 @@ class _Table:
                 NaN and +inf are still refused.
         Raises:
             RolloutFormatError: a wrong type, a null, a value that is not allowed, in one line naming the column,
-                rollout and step.
-        """
+                rollout and step."""
         col = self.table.column(name)
         if not (pa.types.is_floating(col.type) or pa.types.is_integer(col.type)):
             raise self._type_error(name, "numbers (float64)", located=True)
@@ -280,7 +266,7 @@ class _Table:
         if len(present) != len(SEVERITY_COLUMNS):
             absent = [c for c in SEVERITY_COLUMNS if c not in names]
             raise self.error(
-                f"severity columns incomplete: {present[0]!r} without {absent[0]!r} (give both or " "neither)"
+                f"severity columns incomplete: {present[0]!r} without {absent[0]!r} (give both or neither)"
             )
         dist = self.floats(SEVERITY_COLUMNS[0])
         col = self.table.column(SEVERITY_COLUMNS[1])

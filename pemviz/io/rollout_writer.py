@@ -3,8 +3,7 @@ checkpoint ``NAME.proposal.pt``) chunk by chunk (:class:`RolloutWriter`) or at o
 of a batch (:func:`rollouts_table`) and the check of a path before any work (:func:`check_rollouts_path`).
 
 Every chunk is checked as :func:`pemviz.io.rollouts.read_rollouts` checks a file (:mod:`pemviz.io.rollout_table`)
-before it is written. Writers write to temporary files and move them into place, sidecar last: no half file.
-"""
+before it is written. Writers write to temporary files and move them into place, sidecar last: no half file."""
 
 from __future__ import annotations
 
@@ -42,8 +41,7 @@ def check_rollouts_path(path: str | os.PathLike[str], *, overwrite: bool = False
 
     Raises:
         ValueError: not ``.parquet``, a directory, a folder that does not exist / is not writable, a name too
-            long, or an existing file (:class:`pemviz.core.files.OutputExists` without ``overwrite``).
-    """
+            long, or an existing file (:class:`pemviz.core.files.OutputExists` without ``overwrite``)."""
     p = check_output_path(path, ".parquet", what, overwrite=overwrite)
     check_output_path(proposal_path(p), ".pt", f"{what} checkpoint", overwrite=overwrite)
     check_free_name(sidecar_path(p), f"{what} sidecar", overwrite=overwrite)
@@ -181,8 +179,7 @@ class RolloutWriter:
             severity: as :func:`rollouts_table` (for every chunk or for none).
         Raises:
             ValueError: wrong shapes, a batch unlike the earlier ones, or a :class:`RolloutFormatError` (NaN, a
-                positive log-probability ...) naming the rollout and step; nothing of this chunk is written.
-        """
+                positive log-probability ...) naming the rollout and step; nothing of this chunk is written."""
         names = tuple(batch.observation_names)
         objects = (batch.n_objects, tuple(batch.noise_names) if batch.noise is not None else ())
         if self._shape is not None and self._shape != (batch.n_steps, names, *objects):
@@ -247,8 +244,7 @@ class RolloutWriter:
             ValueError: no rollouts were appended, or none of ``keep_stages``; the sidecar's ``stages`` or
                 ``pooling`` do not match the table (a :class:`RolloutFormatError`).
             OutputExists: a file of the unit appeared meanwhile (without ``overwrite``).
-            OSError: the folder is not writable, the disk is full (nothing is left behind).
-        """
+            OSError: the folder is not writable, the disk is full (nothing is left behind)."""
         try:
             if self._writer is None:
                 raise ValueError(f"{self.path}: no rollouts to write")

@@ -1,8 +1,5 @@
-"""Logged rollouts on disk: read and validate a rollout file (:func:`read_rollouts`); writing is
-:mod:`pemviz.io.rollout_writer`'s, the format :mod:`pemviz.io.rollout_format`'s and the table's checks
-:mod:`pemviz.io.rollout_table`'s. Bad input raises :class:`~pemviz.io.rollout_format.RolloutFormatError` naming the
-file, the column, the rollout and the step.
-"""
+"""Logged rollouts on disk: read and validate a rollout file (:func:`read_rollouts`). Bad input raises
+:class:`~pemviz.io.rollout_format.RolloutFormatError` naming the file, the column, the rollout and the step."""
 
 from __future__ import annotations
 
@@ -25,8 +22,7 @@ def check_not_a_recording(path: Path) -> None:
     """Refuse a rerun recording given where a rollout file is expected, saying how to write a rollout file.
 
     Raises:
-        RolloutFormatError: ``path`` ends in ``.rrd`` or starts with :data:`RECORDING_MAGIC`.
-    """
+        RolloutFormatError: ``path`` ends in ``.rrd`` or starts with :data:`RECORDING_MAGIC`."""
     try:
         with open(path, "rb") as f:
             head = f.read(len(RECORDING_MAGIC))
@@ -50,8 +46,7 @@ def check_parquet_magic(path: Path) -> None:
     file without a sidecar.
 
     Raises:
-        RolloutFormatError: the first four bytes are not ``PAR1``.
-    """
+        RolloutFormatError: the first four bytes are not ``PAR1``."""
     try:
         with open(path, "rb") as f:
             head = f.read(4)
@@ -74,8 +69,7 @@ def read_rollouts(path: str | os.PathLike[str]) -> RolloutData:
     Raises:
         FileNotFoundError: no such file.
         RolloutFormatError: the sidecar or the table breaks the format (module docstring); the message
-            names the column and the rollout and step.
-    """
+            names the column and the rollout and step."""
     p = Path(path)
     if p.is_dir():
         raise RolloutFormatError(f"{p}: a folder, not a rollout file; give the NAME.parquet that {WRITTEN_BY} writes")

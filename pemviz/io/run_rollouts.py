@@ -1,8 +1,5 @@
 """What a run's rollout file holds beyond the rollouts, by the run's problem (what
-:class:`pemviz.sinks.rollouts.RolloutSink` writes): the sidecar (:func:`pemviz.io.rollout_sidecars.braking_meta` for
-the braking scenario, with the lead's salient variables, :func:`pemviz.io.rollout_table.braking_salient`; else
-:func:`pemviz.io.rollout_sidecars.problem_meta`) and the severity columns.
-"""
+:class:`pemviz.sinks.rollouts.RolloutSink` writes): the sidecar, the braking lead's salient variables, the severity."""
 
 from __future__ import annotations
 
@@ -41,8 +38,7 @@ def run_meta(
     :func:`~pemviz.io.rollout_sidecars.problem_meta`).
 
     Raises:
-        ValueError: a problem other than the braking one that does not know its step (``dt_s`` None).
-    """
+        ValueError: a problem other than the braking one that does not know its step (``dt_s`` None)."""
     if braking_file(problem):
         return braking_meta(formula, pem=pem, proposal=proposal, provenance=provenance)
     return problem_meta(problem, formula, pem=pem, proposal=proposal, provenance=provenance)
@@ -53,8 +49,7 @@ def run_salient(problem: Problem, batch: RolloutBatch) -> np.ndarray | None:
     each gap for a braking file (:func:`pemviz.io.rollout_table.braking_salient`), else None.
 
     Raises:
-        KeyError: a braking file's rollouts without a ``gap_m`` column.
-    """
+        KeyError: a braking file's rollouts without a ``gap_m`` column."""
     return braking_salient(batch.signal("gap_m")) if braking_file(problem) else None
 
 

@@ -1,7 +1,6 @@
 """Sinks: listeners of the engine's events (console table, rerun recording, rollout file, viser panel), which never
 drive it. :class:`Sink` is their base (one method per event of :mod:`pemviz.engine.events`); :class:`StageClock` is
-the clock the console and the panel predict time left from.
-"""
+the clock the console and the panel predict time left from."""
 
 from __future__ import annotations
 
@@ -85,21 +84,15 @@ class StageClock(Sink):
     """The wall clock of a run as its events arrive, and the time its stages and the whole run have left (``now``:
     seconds, default ``time.perf_counter``).
 
-    Each stage of the plan has a predicted time to simulate and to finish after it
-    (:func:`pemviz.engine.cost.plan_costs`). As stages end the clock measures both and scales what is left by
-    measured / predicted, separately: simulating over every stage, what follows per kind of stage. Before any stage
-    the predictions are scaled by the machine's load (``slowdown()``, default
-    :func:`pemviz.engine.cost.start_reading`: :func:`pemviz.engine.resources.load_slowdown` of :attr:`speed`, a pilot
-    of the scene's rollouts, read as the panel's cost line reads them). What may follow the planned stages
-    (:func:`pemviz.engine.cost.follow_on`) gives the upper end, :meth:`run_most_s`; plain Monte Carlo's remaining
-    rollouts are those its precision target needs at the failure rate seen so far
-    (:func:`pemviz.engine.cost.mc_rollouts`), at most the cap.
+    Each stage has a predicted time (:func:`pemviz.engine.cost.plan_costs`); as stages end the clock scales what is
+    left by measured / predicted, simulating and what follows per kind of stage separately, and before any stage by the
+    machine's load (``slowdown()``, default :func:`pemviz.engine.cost.start_reading`). :meth:`run_most_s` adds what may
+    follow the planned stages (:func:`pemviz.engine.cost.follow_on`).
 
     Attributes:
         t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were
             sampled (None before).
-        simulate_scale: measured / predicted seconds of simulating so far (:attr:`load` before any);
-            :meth:`after_scale` the same of what follows, per kind of stage.
+        simulate_scale: measured / predicted seconds of simulating so far (:attr:`load` before any).
         done: the finished stages' results.
         follow: what may follow the planned stages (None: nothing)."""
 

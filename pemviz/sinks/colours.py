@@ -2,8 +2,7 @@
 rerun: :func:`rgba`): a detection green and a miss orange everywhere; a failure and the failure threshold red; the
 sampler window yellow; the object the ego reacts to blue-grey; an idle car neutral grey; stages from blue (early) to
 orange (late). The panel's text uses :data:`BLUE`, :data:`GREEN`, :data:`AMBER`, :data:`RED` and :data:`GREY`; kept
-runs take :data:`RUN_COLOURS` in turn.
-"""
+runs take :data:`RUN_COLOURS` in turn."""
 
 from __future__ import annotations
 

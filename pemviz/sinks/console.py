@@ -121,22 +121,10 @@ def _round_up(n: float) -> int:
     return int(math.ceil(n / unit) * unit)
 
 
-RATE_SOURCES = ("plain", "probed", "model")
-"""How a plain rollout's seconds were had, as :func:`_rate_text` words them: a plain Monte Carlo run's own, the
-engine's probe after another method's run (:attr:`pemviz.engine.events.FinalEstimate.plain_rollout_s`), or the run's
-own speed scaled by the cost model."""
-
-
-def rate_source(plain: bool, probed: bool) -> str:
-    """The :data:`RATE_SOURCES` entry of a run of a method that is plain Monte Carlo or not (``plain``:
-    :attr:`pemviz.methods.Method.plain`; ``probed``: the engine timed plain rollouts after it)."""
-    return "plain" if plain else "probed" if probed else "model"
-
-
 def _rate_text(s_per: float, source: str) -> str:
     """``this run's 0.2 ms a rollout`` (a plain Monte Carlo run's measured seconds a rollout, ``s_per``), after another
     method ``~0.2 ms a plain rollout (measured here after the run)`` (the engine's probe) or ``~0.2 ms a plain rollout
-    (this run's speed, by the cost model)``: :func:`plain_rollout_seconds`; ``source`` one of :data:`RATE_SOURCES`."""
+    (this run's speed, by the cost model)``; ``source``: ``plain``, ``probed`` or ``model``."""
     rate = f"{s_per * 1e3:.2g} ms" if s_per < 1.0 else f"{s_per:.2g} s"
     if source == "plain":
         return f"this run's {rate} a rollout"
@@ -147,20 +135,16 @@ def _rate_text(s_per: float, source: str) -> str:
 
 MC_CAP_MARGIN = 1.2
 """The ``--max-sims`` named for plain Monte Carlo is this many times the rollouts the normal approximation says a
-20 % interval needs: the exact Clopper-Pearson interval the run stops on is a little wider (e.g. on the cut-in,
-1,108,911 rollouts left its half-width at 0.207)."""
+20 % interval needs: the exact Clopper-Pearson interval the run stops on is a little wider."""
 
 
 def plain_rollout_seconds(
     config: ExperimentConfig, s_per: float | None, n_simulations: int | None = None, n_steps: int | None = None
 ) -> float | None:
-    """Seconds a plain Monte Carlo rollout takes on this machine, from a run of another method: the run's measured
-    seconds ``s_per`` a simulation of its ``n_simulations`` (its reported count: a tilt's look-aheads and splitting's
-    continuations included; None: ``config.n_simulations``), so its wall time, over the cost model's seconds of the
-    run's plan (:func:`pemviz.engine.cost.run_cost`), times the model's seconds of a plain rollout (``stage_cost`` of a
-    large plain batch): the machine's speed is this run's, what each method adds is the model's. None unmeasured;
-    ``s_per`` itself for a plain Monte Carlo run. After a cross-entropy run it
-    over-estimates (its wall time holds costs the model leaves out: e.g. about 4 times on the cut-in)."""
+    """Seconds a plain Monte Carlo rollout takes on this machine, from a run of another method: its measured seconds
+    ``s_per`` a simulation (of ``n_simulations``; None: ``config.n_simulations``) times the cost model's ratio of a
+    plain rollout to the run's plan (:func:`pemviz.engine.cost.run_cost`); an over-estimate after a cross-entropy run
+    (its wall time holds costs the model leaves out). None unmeasured; ``s_per`` itself for a plain Monte Carlo run."""
     if s_per is None or config.method_record.plain:
         return s_per
     from pemviz.estimators import run_plan  # the estimators import torch: only when a run is advised
@@ -179,19 +163,13 @@ class McRoute:
 
     Attributes:
         log_p: the failure probability it is sized for (nats).
-        source: where that comes from: ``the exact answer``, ``the reference``, ``this run's mu_hat`` or ``this run's
-            95 % lower bound``.
-        upper: whether p is the run's own estimate of an importance-sampling run that is not ``reliable``: its
-            heavy-tailed weights make mu_hat usually too low (the rare large weights that carry p are seldom drawn:
-            Vehtari, Simpson, Gelman, Yao, Gabry, "Pareto Smoothed Importance Sampling", JMLR 25(72), 2024, Sec. 3),
-            so :attr:`n` is an upper estimate, and a run with ``--rel-error`` stops earlier where p is larger.
+        source: where that comes from (``the exact answer``, ``the reference``, ``this run's mu_hat`` ...).
+        upper: p is an importance-sampling run's own estimate, not ``reliable``: usually too low (Vehtari et al.,
+            "Pareto Smoothed Importance Sampling", JMLR 25(72), 2024, Sec. 3), so :attr:`n` is an upper estimate.
         n: rollouts for a 20 % interval at ``log_p`` (:func:`mc_rollouts`).
         seconds: their time at the run's measured seconds a simulation (None: not measured).
-        log_floor: with ``upper``, the run's 95 % lower bound of p (``Estimate.log_lower_bound``, nats) where it is
-            below ``log_p``: p is at least this whatever the weights' tail, so :attr:`n_floor` rollouts suffice with
-            95 % confidence even where mu_hat is too high; None: none.
-        n_floor: rollouts for a 20 % interval at ``log_floor`` (:attr:`n` without one).
-    """
+        log_floor: with ``upper``, the run's 95 % lower bound of p (nats) where it is below ``log_p``; None: none.
+        n_floor: rollouts for a 20 % interval at ``log_floor`` (:attr:`n` without one)."""
 
     log_p: float
     source: str
@@ -359,19 +337,11 @@ def next_step(
     """What to do after a run whose verdict is not ``reliable``, in one line (None for a reliable one): the cheapest
     route that would decide it, with its rollouts and its time on this machine.
 
-    Plain Monte Carlo is always considered: its Clopper-Pearson interval holds whatever p, so a run sized for a 20 %
-    interval (:func:`mc_rollouts`, about 96 / p rollouts; p from the exact answer, the reference or the run itself,
-    :func:`mc_route`) decides it. Its time is the rollouts times this run's measured seconds a simulation,
-    ``wall_s`` / ``n_simulations`` (the run's :class:`~pemviz.engine.events.FinalEstimate`); an importance-sampling
-    run's includes its proposal's fits, so for plain rollouts it is an upper estimate. Where it is at most
-    :data:`MC_AFFORDABLE` rollouts and fits ``config.stop.max_time_s`` (seconds, where set) the line names it
-    (``--method mc --rel-error 0.2 --max-sims N``), then the sampler's own route; else it says why not and what is
-    left: more budget for the importance sampler (the verdict says whether to trust it), for splitting, which has no
-    final batch to add to, more particles or the committor's graded score (``--ams-score committor``), or that no
-    route within the time would decide it. Where p is only the run's own estimate of an importance sampler (usually too
-    low) and the count is past the cap, plain Monte Carlo capped at :data:`MC_AFFORDABLE` rollouts (or what fits in
-    ``max_time_s``) is named with the smallest p it resolves: it stops early where p is larger. Every flag it names is
-    one of ``pemviz run``'s.
+    Plain Monte Carlo is always considered: a run sized for a 20 % interval (:func:`mc_rollouts`, about 96 / p
+    rollouts; p from :func:`mc_route`) decides it, timed at this run's seconds a simulation. Where it is at most
+    :data:`MC_AFFORDABLE` rollouts and fits ``config.stop.max_time_s`` the line names it, then the sampler's own route;
+    else it says why not and what is left (more budget, splitting's committor score, or no route within the time).
+    Every flag it names is one of ``pemviz run``'s.
 
     Args:
         e: the run's estimate.
@@ -382,8 +352,7 @@ def next_step(
         wall_s: the run's wall-clock seconds (None: the line gives no times).
         plain_s: a plain rollout's seconds measured here after the run (the engine's probe,
             :attr:`pemviz.engine.events.FinalEstimate.plain_rollout_s`); None: from the run's own speed.
-        committor: whether the scene has a learned committor (:class:`AdviceText`), for splitting's route.
-    """
+        committor: whether the scene has a learned committor (:class:`AdviceText`), for splitting's route."""
     if e.verdict == "reliable" or config is None:
         return None
     # a scene at whose rarity no method shipped answers: that, and the bound
@@ -393,7 +362,7 @@ def next_step(
     method = config.method_record
     s_per = wall_s / n_simulations if n_simulations and wall_s is not None and wall_s > 0 else None
     mc_s = plain_s if plain_s is not None else plain_rollout_seconds(config, s_per, n_simulations)
-    rate = rate_source(method.plain, plain_s is not None)  # how mc_s was had, for the text
+    rate = "plain" if method.plain else "probed" if plain_s is not None else "model"  # how mc_s was had
     max_time = config.stop.max_time_s
     plain = method.plain or (method.weighted and getattr(e, "plain_mc", False))  # or the plain rollouts after it
     route = mc_route(e, plain, exact_log_p, reference, mc_s)
@@ -486,7 +455,7 @@ def _after_mc(
             f"--max-time ({command} --max-time {math.ceil(route.seconds)}), or an importance-sampling method "
             "(--method adaptive), with its verdict"
         )
-    return f"more rollouts: {command} samples until the interval is within {PERCENT} " f"({route.text(s_per, 'plain')})"
+    return f"more rollouts: {command} samples until the interval is within {PERCENT} ({route.text(s_per, 'plain')})"
 
 
 def final_lines(

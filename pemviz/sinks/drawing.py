@@ -1,14 +1,9 @@
-"""What the recording (:mod:`pemviz.sinks.recording`) asks of a scenario's drawing object
-(:attr:`pemviz.core.problem_view.ProblemView.drawing`), on top of the outcome every sink shares
-(:class:`pemviz.core.drawing.Drawing`).
+"""What the recording (:mod:`pemviz.sinks.recording`) asks of a scenario's drawing object, on top of the outcome every
+sink shares (:class:`pemviz.core.drawing.Drawing`).
 
-The hooks return data (words, numbers, arrays, entity names, Markdown), never rerun objects, so the sinks name no
-scene themselves; a hook returns None where the scenario has nothing of that kind to draw. A scenario's package
-implements them (e.g. :class:`pemviz.scenarios.braking.recording.BrakingRecording`). Colours are named by role
-(:data:`ROLES`), mapped onto :mod:`pemviz.sinks.colours`. The shapes returned are those of
-:meth:`RecordingDrawing.scene_lane` and :meth:`RecordingDrawing.explanation`; one hook is optional (read with
-``getattr``): ``contacts(batch, rows)``, bool [k] whether each of the rollouts ``rows`` made contact
-(:func:`pemviz.sinks.rerun_views.contact_share`)."""
+The hooks return data (words, numbers, arrays, Markdown), never rerun objects; None where the scenario has nothing of
+that kind. Colours are named by role (:data:`ROLES`). One hook is optional (read with ``getattr``):
+``contacts(batch, rows)``, bool [k] whether each of the rollouts ``rows`` made contact."""
 
 from __future__ import annotations
 
@@ -43,8 +38,7 @@ class RecordingDrawing(Drawing, Protocol):
             (:meth:`explanation`) and charts the failures' share of contact (e.g. True for the braking scenario,
             False where the scene is drawn from the rollouts' object rows instead).
         object_words: the object the detector looks for, as a sentence names it (e.g. ``the car ahead``), for a
-            rollout of one object.
-    """
+            rollout of one object."""
 
     @property
     def draws_scene(self) -> bool: ...
@@ -62,8 +56,7 @@ class RecordingDrawing(Drawing, Protocol):
             method: one sentence on the run's method (Markdown).
         Returns:
             (the title and the paragraph on the scenario, in Markdown; what the scene adds to the paragraph on how
-            to read the recording, a phrase that starts with `` and``).
-        """
+            to read the recording, a phrase that starts with `` and``)."""
         ...
 
     def outcome_values(self, batch: RolloutBatch, i: int) -> Mapping[str, Any] | None:

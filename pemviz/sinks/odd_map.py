@@ -1,7 +1,5 @@
-"""The map of where p_ODD comes from, printed after the final estimate of a run over an operating design domain: for
-each drawn parameter, its bins with p(failure | bin), the bin's interval and verdict, and its share of p_ODD, then one
-line naming the region that carries most of it (:class:`pemviz.core.odd.OddMap`, which the engine puts in
-:attr:`pemviz.engine.events.FinalEstimate.odd_map`)."""
+"""The map of where p_ODD comes from (:class:`pemviz.core.odd.OddMap`), printed after the final estimate of a run over
+an operating design domain."""
 
 from __future__ import annotations
 

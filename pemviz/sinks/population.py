@@ -1,10 +1,6 @@
 """Groups of the failures of a run's final estimate (:mod:`pemviz.core.population`) for the listeners that show them:
-which rollout of which stage's kept batch each failure is, and the key of the decisive events it shares with others.
-
-Groups: the keys the drawing object gives (``failure_keys``), else the step at which the rollout fails
-(:func:`pemviz.estimators.base.failure_steps`), else one group. Severity: each located failure's min distance and
-impact speed (:func:`pemviz.core.severity.rollout_severity`) weighed by the shares (:func:`failures_severity`). No
-I/O."""
+which rollout of which stage's kept batch each failure is, the key of the decisive events it shares with others (the
+drawing object's ``failure_keys``, else the failure step), and the failures' severity by their shares. No I/O."""
 
 from __future__ import annotations
 
@@ -45,8 +41,7 @@ class FailureGrouping:
         groups: the groups, largest share first (their shares add up to 1).
         basis: what the groups share, in words.
         severity: each failure's min distance and impact speed in the order of ``shares``, and their distribution
-            by share (:func:`failures_severity`); None without the run's problem, or where it has no severity scale.
-    """
+            by share (:func:`failures_severity`); None without the run's problem, or where it has no severity scale."""
 
     shares: FailureShares
     found: tuple[tuple[RolloutsSampled, int] | None, ...]
@@ -101,10 +96,7 @@ def _stages_located(shares: FailureShares, rows: np.ndarray) -> list[tuple[int, 
 
 
 def failures_severity(
-    shares: FailureShares,
-    sampled: Mapping[int, RolloutsSampled],
-    problem: object,
-    rows: np.ndarray | None = None,
+    shares: FailureShares, sampled: Mapping[int, RolloutsSampled], problem: object, rows: np.ndarray | None = None
 ) -> FailureSeverity | None:
     """Each failure's min distance and impact speed (:func:`pemviz.core.severity.rollout_severity`, read from the
     rollout in its stage's batch) and their distribution by share of p.
@@ -119,8 +111,7 @@ def failures_severity(
         The distribution (failures not located are left out of it, their values NaN), or None where ``problem`` is
         None or has no severity scale.
     Raises:
-        ValueError: a rollout in contact at its first step (:func:`pemviz.core.severity.severity_of_signal`).
-    """
+        ValueError: a rollout in contact at its first step (:func:`pemviz.core.severity.severity_of_signal`)."""
     if problem is None or getattr(problem, "severity", None) is None:
         return None
     severe = cast(SeverityProblem, problem)  # a problem with a severity scale, as just checked
@@ -281,8 +272,7 @@ class FailureGroups:
         drawing: the scenario's drawing object (``ProblemView.drawing``), or None.
         problem: the run's :class:`pemviz.core.problems.Problem` (groups by failure step elsewhere), or None.
         keys: group the failures (False: only their severity, without the drawing object's keys, whose cost may
-            grow with the failures).
-    """
+            grow with the failures)."""
 
     def __init__(self, drawing: object = None, problem: object = None, keys: bool = True) -> None:
         self.drawing, self.problem, self.keys = drawing, problem, keys

@@ -1,8 +1,7 @@
 """What the ``pemviz`` program sets in its own process (or its recording process), never when pemviz is imported as
 a library: :func:`settle_pyarrow_without_pandas` (pyarrow need not import pandas to learn there is none) and
 :func:`import_scipy_special_lean` (scipy.special without the numpy submodules its array-API shim would import only
-to copy).
-"""
+to copy)."""
 
 from __future__ import annotations
 
@@ -51,9 +50,7 @@ def settle_pyarrow_without_pandas() -> bool:
 
 UNUSED_NUMPY_SUBMODULES = ("f2py", "testing")
 """numpy's lazily imported submodules that scipy's array-API shim copies at import and pemviz's run never uses (the
-Fortran wrapper generator and the test helpers): about 40 ms of imports on a quiet 2-core machine, 60 ms under load
-(``python -X importtime -c "import scipy.special"``, numpy 2.4, scipy 1.17). ``numpy.ma`` is not one of them:
-``numpy.unique`` imports it."""
+Fortran wrapper generator and the test helpers). ``numpy.ma`` is not one of them: ``numpy.unique`` imports it."""
 
 
 def import_scipy_special_lean() -> bool:
@@ -63,8 +60,7 @@ def import_scipy_special_lean() -> bool:
     scipy.special's array-API shim copies numpy's namespace (``clone_module``,
     ``scipy/_lib/array_api_compat/_internal.py``), importing each lazy submodule it meets; here numpy's ``__all__``
     and ``__dir__`` leave them out during the import, and the shim gets them back as lazily imported names (PEP
-    562). Only the program calls this (:data:`pemviz.commands.AS_PROGRAM`), before any thread starts.
-    """
+    562). Only the program calls this (:data:`pemviz.commands.AS_PROGRAM`), before any thread starts."""
     if "scipy.special" in sys.modules:
         return False
     import numpy as np

@@ -1,22 +1,9 @@
 """Rerun sink: writes an experiment's events into a rerun recording (``.rrd`` file, or a live viewer).
 
-The sink only listens to the engine's events (:mod:`pemviz.engine.events`); it never drives the engine. What it
-knows of the run and the problem comes with :class:`~pemviz.engine.events.RunStarted`: the stages and their names
-from the run's plan, the signals, thresholds and scene from the problem's view. Its look (colours, figures, scene
-lanes) is :mod:`pemviz.sinks.rerun_views`'s, its layout :mod:`pemviz.sinks.rerun_blueprint`'s (three tabs: *Stages*
-on the ``stage`` timeline, *Explain* and *Rollouts* on ``step``), the most likely failure's entities
-:mod:`pemviz.sinks.rerun_explain`'s, the estimate's Markdown :mod:`pemviz.sinks.rerun_text`'s.
-
-Timelines: ``stage`` (0 = pretraining, 1..K = cross-entropy stages, K+1 = final batch,
-:func:`pemviz.core.plan.stage_label`), ``step`` (0..T-1, one simulation step) and ``repetition`` (only when the sink
-is given one). The entity paths and what each holds are listed in docs/recording.md. Per stage the recording holds
-summaries, two histograms, the marginal proposal's bars, at most 500 rollouts' traces in one entity per signal and a
-few featured rollouts, so a run of 10^5 rollouts a stage stays a few MB.
-
-Recording properties (``pemviz``): pemviz and rerun-sdk versions, method, metric, formula, seed, scenario and its
-parameters (``scenario_params``). The file is written when the sink is closed (after the run, Ctrl-C or SIGTERM)
-under a unique temporary name and moved to ``PATH``, so a recording is never half-written, keeps every finished
-stage, and a kill leaves an existing ``PATH`` as it was."""
+The sink only listens to the engine's events. Its look is :mod:`pemviz.sinks.rerun_views`'s,
+its layout :mod:`pemviz.sinks.rerun_blueprint`'s. Timelines ``stage``, ``step`` and ``repetition``; the entity paths
+are listed in docs/recording.md. The file is written when the sink is closed (after the run, Ctrl-C or SIGTERM) under a
+temporary name and moved to ``PATH``: never half-written, and a kill leaves an existing ``PATH`` as it was."""
 
 from __future__ import annotations
 
@@ -90,8 +77,7 @@ class RerunSink(Sink):
             (static figures show the latest repetition).
         problem: the run's :class:`pemviz.core.problems.Problem` (also settable as :attr:`problem` before the run),
             for the failures' severity (``final/failures``' min distance and impact speed,
-            ``final/severity_of_failures``); None: not logged.
-    """
+            ``final/severity_of_failures``); None: not logged."""
 
     def __init__(
         self,
@@ -163,8 +149,7 @@ class RerunSink(Sink):
         """A sink that saves to ``path`` when :meth:`close` commits it: encoded in memory
         (:meth:`rerun.RecordingStream.binary_stream`), written by :meth:`close` to a unique temporary file beside
         ``path`` and moved onto it, so a kill leaves the previous ``path`` untouched and a write error is an
-        ``OSError`` with no file left.
-        """
+        ``OSError`` with no file left."""
         stream = rr.RecordingStream(APP_ID, batcher_config=FILE_BATCHER)
         sink = cls(stream, **kw)
         sink._binary = rr.binary_stream(stream)  # what stream.binary_stream() calls, in words mypy reads
@@ -202,8 +187,7 @@ class RerunSink(Sink):
 
         Raises:
             OSError: the file could not be written (nothing is left; an existing file is untouched).
-            pemviz.core.files.OutputExists: the file appeared meanwhile and ``overwrite`` was not given.
-        """
+            pemviz.core.files.OutputExists: the file appeared meanwhile and ``overwrite`` was not given."""
         if self._closed:
             return None
         self._closed = True
@@ -240,12 +224,6 @@ class RerunSink(Sink):
         self._pending = event
         self._groups(event)
         log_stage_features(self.stream, event, self.problem, self._colour(event.stage))  # while its sampler drew
-
-    def on_stage_finished(self, event: StageFinished) -> None:
-        self._stage_finished(event.result)
-
-    def on_final_estimate(self, event: FinalEstimate) -> None:
-        self._final(event)
 
     def on_run_cancelled(self, event: RunCancelled) -> None:
         self.finished = True
@@ -348,8 +326,8 @@ class RerunSink(Sink):
         self._log_proposal_legend()
 
     # -- stage finished -------------------------------------------------------------------------------
-    def _stage_finished(self, res: StageResult) -> None:
-        s = self.stream
+    def on_stage_finished(self, event: StageFinished) -> None:
+        s, res = self.stream, event.result
         colour = self._colour(res.stage)
         s.set_time("stage", sequence=res.stage)
         if self.repetition is not None:
@@ -506,7 +484,7 @@ class RerunSink(Sink):
         )
 
     # -- final --------------------------------------------------------------------------------------
-    def _final(self, ev: FinalEstimate) -> None:
+    def on_final_estimate(self, ev: FinalEstimate) -> None:
         s = self.stream
         self.finished = True
         s.log("final", rr.AnyValues(**final_values(ev)), static=True)

@@ -1,14 +1,9 @@
 """A rerun recording written by a second process while the run goes on (``pemviz run --save``, the program only).
 
-Importing rerun and logging to it hold the interpreter's lock, so a second process, not a thread, takes them off the
-run's path. :class:`RecordingProcess` is the run's listener: it pickles each event as it arrives and a writer thread
-feeds them to ``python -m pemviz.sinks.recording_process PATH OVERWRITE``, whose :func:`main` hands them in order to
-a :class:`pemviz.sinks.recording.RerunSink` writing ``PATH``. The child rebuilds the run's problem from
-:class:`~pemviz.engine.events.RunStarted`'s config (:func:`pemviz.scenarios.problems.problem_for`).
-
-The sink's promises hold across the two processes: :meth:`RecordingProcess.close` returns when the file is written
-or raises what :meth:`pemviz.sinks.recording.RerunSink.close` raises (or an ``OSError`` with the child's last
-words); Ctrl-C and SIGTERM reach the run only, and the child keeps every finished stage; a run killed outright
+Importing rerun and logging hold the interpreter's lock, so a second process takes them off the run's path.
+:class:`RecordingProcess` pickles each event to ``python -m pemviz.sinks.recording_process PATH OVERWRITE``, whose
+:func:`main` hands them to a :class:`pemviz.sinks.recording.RerunSink`. :meth:`RecordingProcess.close` returns when the
+file is written or raises what the sink's close raises; Ctrl-C and SIGTERM reach the run only; a run killed outright
 leaves no file.
 
 Protocol: pickled ``("event", event)`` messages on the child's standard input, then one ``("close", commit)``; the
@@ -51,8 +46,7 @@ class RecordingProcess(Sink):
         overwrite: replace an existing ``path`` (else :class:`pemviz.core.files.OutputExists` at :meth:`close`).
 
     Raises:
-        OSError: the child process could not be started.
-    """
+        OSError: the child process could not be started."""
 
     def __init__(self, path: str | os.PathLike, *, overwrite: bool = False) -> None:
         self.path = Path(path)
@@ -119,8 +113,7 @@ class RecordingProcess(Sink):
         Raises:
             pemviz.core.files.OutputExists: ``path`` appeared meanwhile and ``overwrite`` was not given.
             OSError: the file could not be written (nothing is left; an existing file is untouched), the child
-                failed (its last line of errors), or it did not finish within :data:`CLOSE_TIMEOUT_S` seconds.
-        """
+                failed (its last line of errors), or it did not finish within :data:`CLOSE_TIMEOUT_S` seconds."""
         if self._closed:
             return None
         self._closed = True
@@ -222,8 +215,7 @@ def _report(**fields: object) -> None:
 def main(argv: list[str] | None = None) -> int:
     """The child: read the run's events from standard input into a file recording; report on standard output.
 
-    ``argv``: ``[PATH, OVERWRITE]`` (``"1"``: replace an existing file). Returns 0 (its outcome is in the report).
-    """
+    ``argv``: ``[PATH, OVERWRITE]`` (``"1"``: replace an existing file). Returns 0 (its outcome is in the report)."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)  # the run decides: it closes the sink, and the child then writes
     path, overwrite = (sys.argv[1:] if argv is None else argv)[:2]

@@ -1,8 +1,5 @@
-"""A safety-case report of one run: one self-contained HTML page (inline styles, an inline SVG severity curve, no
-script) and its Markdown twin, from the run's result document (:func:`pemviz.io.result.result_document`): the
-estimate with its interval, ESS, verdict and exact answer or reference, the severity curve, the scenario, spec and
-PEM, the console's lines, the settings, seed, version, command and every input's sha256.
-"""
+"""A safety-case report of one run: one self-contained HTML page (inline styles and SVG, no script) and its Markdown
+twin, from the run's result document (:func:`pemviz.io.result.result_document`)."""
 
 from __future__ import annotations
 
@@ -472,8 +469,7 @@ def report_html(doc: dict[str, Any]) -> str:
     """The report as one self-contained HTML page (no script, no external resource).
 
     Raises:
-        KeyError: a document without the result's required fields (see the docs page "pemviz in CI").
-    """
+        KeyError: a document without the result's required fields (see the docs page "pemviz in CI")."""
     e = doc["estimate"]
     colour = VERDICT_COLOURS.get(e["verdict"], MUTED)
     body = [
@@ -525,8 +521,7 @@ def check_report_paths(page: str | os.PathLike[str], flag: str, *, overwrite: bo
 
     Raises:
         ValueError: as :func:`pemviz.io.files.check_output_path` for either file (:class:`OutputExists`, naming both,
-            for an existing one).
-    """
+            for an existing one)."""
     from pemviz.core.files import OutputExists
     from pemviz.io.files import check_output_path
 
@@ -552,8 +547,7 @@ def write_report(path: str | os.PathLike[str], doc: dict[str, Any], *, overwrite
     """Write the report (``path``, HTML) and its Markdown twin (:func:`markdown_twin`), each atomically.
 
     Raises:
-        FileExistsError: a file there and not ``overwrite``; OSError: it cannot be written.
-    """
+        FileExistsError: a file there and not ``overwrite``; OSError: it cannot be written."""
     path = Path(path)
     page, text = report_html(doc), report_markdown(doc)
 

@@ -1,11 +1,7 @@
 """The layout of a pemviz recording in rerun's viewer (the blueprint sent with it, :mod:`pemviz.sinks.recording`).
 
-rerun shows one timeline at a time, so the recording opens on ``step`` and every tab has content there. Three tabs,
-one per question: **Stages** (what the sampler learned: the proposal views of :mod:`pemviz.core.proposal_view` and
-:mod:`pemviz.sinks.rerun_features`, the per-stage figures of :mod:`pemviz.sinks.rerun_stage_figures`, the
-histograms), **Explain** (the most likely failure) and **Rollouts** (the kept rollouts and the scene's lanes);
-beside them the estimate, the run's description, the final failures and p(severity | failure). Everything here
-builds blueprint objects and logs nothing."""
+The recording opens on the ``step`` timeline and every tab has content there: **Stages** (what the sampler learned),
+**Explain** (the most likely failure) and **Rollouts** (the kept rollouts and the scene's lanes). Logs nothing."""
 
 from __future__ import annotations
 
@@ -23,9 +19,8 @@ TABS = ("stages", "explain", "rollouts")
 """The blueprint's tabs, in order; :func:`default_blueprint` opens the one it is given (``stages`` by default)."""
 
 TIMELINE = {"stages": "step", "explain": "step", "rollouts": "step"}
-"""The timeline the viewer opens on with each tab: ``step`` for all three, so that every tab has content as opened
-(the Stages tab's figures are static and its bar charts carry ``step`` 0 too: the last stage's on ``step``, each
-stage's on ``stage``). rerun draws every view on one timeline (a view cannot choose its own: rerun-io/rerun#6828)."""
+"""The timeline the viewer opens on with each tab: ``step`` for all three, so that every tab has content as opened;
+rerun draws every view on one timeline (a view cannot choose its own: rerun-io/rerun#6828)."""
 
 EXPLAIN_PATH = "explain"
 """Root of the most likely failure's entities (:mod:`pemviz.sinks.rerun_explain`)."""
@@ -94,11 +89,7 @@ def _stages_tab(view: ProblemView | None, features: bool = False) -> rrb.Contain
         ),
     )
     return rrb.Vertical(
-        proposal,
-        rrb.Grid(*series, grid_columns=4),
-        histograms,
-        row_shares=[1.0, 1.15, 0.6],
-        name=tab_name("stages"),
+        proposal, rrb.Grid(*series, grid_columns=4), histograms, row_shares=[1.0, 1.15, 0.6], name=tab_name("stages")
     )
 
 
@@ -162,7 +153,7 @@ def _explain_tab(view: ProblemView | None) -> rrb.Container:
             rrb.Tabs(
                 rrb.TimeSeriesView(
                     origin=f"{e}/controller",
-                    name="Controller: acceleration (m/s^2), brake commanded, " "brake applied",
+                    name="Controller: acceleration (m/s^2), brake commanded, brake applied",
                     plot_legend=rrb.PlotLegend(corner="LeftBottom"),
                 ),
                 rrb.TimeSeriesView(
@@ -242,8 +233,7 @@ def default_blueprint(
         features: the Stages tab shows the feature view of a state-dependent proposal
             (:mod:`pemviz.sinks.rerun_features`), beside or before the reference-state curve.
     Raises:
-        ValueError: ``tab`` not one of :data:`TABS`.
-    """
+        ValueError: ``tab`` not one of :data:`TABS`."""
     if tab not in TABS:
         raise ValueError(f"default_blueprint: tab must be one of {TABS}, got {tab!r}")
     return rrb.Blueprint(

@@ -1,13 +1,9 @@
 """The recording's *Explain* tab: the most likely failure of a run, logged as entities under ``explain/``.
 
-The most likely failure is the failing rollout with the largest log p under the PEM
-(:meth:`RolloutBatch.log_likelihood <pemviz.core.rollouts.RolloutBatch.log_likelihood>`, T - 1 steps; its parts:
-:func:`pemviz.core.counterfactuals.failure_log_p_parts`) among the rollouts the engine reported, the "most likely
-failure" of adaptive stress testing (Lee et al., "Adaptive Stress Testing", JAIR 69, 2020). For any problem it shows
-p(detect) of the PEM and q(detect) of the sampler along it and its misses
-(:func:`pemviz.core.proposal_view.prob_detect`); where the problem's drawing object explains it
-(:meth:`pemviz.sinks.drawing.RecordingDrawing.explanation`) also its outcome in words, the drawing's series and
-markers, and one lane of its scene. The entities are listed in docs/recording.md."""
+The most likely failure is the failing rollout with the largest log p under the PEM (T - 1 steps) among the rollouts
+the engine reported, the "most likely failure" of adaptive stress testing (Lee et al., "Adaptive Stress Testing", JAIR
+69, 2020): p(detect) of the PEM and q(detect) of the sampler along it, its misses, and where the drawing object
+explains it, its outcome in words and one lane of its scene. The entities are listed in docs/recording.md."""
 
 from __future__ import annotations
 

@@ -1,8 +1,6 @@
-"""The recording's view of what a state-dependent proposal does to a feature (``method = "state"``): per stage,
-q(detect) of the stage's proposal against the PEM's p(detect) over the feature that moved q most
-(:func:`pemviz.core.feature_view.stage_feature_curve`), as a figure like the proposal's q(detect | gap) curve, under
-``feature/`` (``feature/data/q_detect``, ``feature/data/pem``, ``feature/axes``, ``feature/stats``) on ``stage`` and
-on ``step`` 0."""
+"""The recording's view of what a state-dependent proposal does to a feature: per stage, q(detect) of the stage's
+proposal against the PEM's over the feature that moved q most (:func:`pemviz.core.feature_view.stage_feature_curve`),
+under ``feature/``."""
 
 from __future__ import annotations
 

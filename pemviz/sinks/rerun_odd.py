@@ -1,7 +1,5 @@
-"""The map of a run over an operating design domain in the recording: ``/odd/map`` (each drawn parameter's bins and
-the region that carries most of p_ODD), ``/odd/<name>/log10_p``, ``log10_low`` and ``log10_high`` on the ``odd_bin``
-timeline, and over two or more parameters ``/odd/pair``, a tensor of log10 p(failure | cell)
-(:func:`pemviz.sinks.rerun_blueprint.default_blueprint`)."""
+"""The map of a run over an operating design domain in the recording (``/odd/map``, ``/odd/<name>/...`` on the
+``odd_bin`` timeline, and over two or more parameters ``/odd/pair``); the entities are listed in docs/recording.md."""
 
 from __future__ import annotations
 

@@ -1,8 +1,6 @@
-"""The recording's rollouts (*Rollouts* tab, ``step`` timeline): which of a stage's rollouts are kept (one entity
-per signal, one series per rollout), which are featured as entities of their own (:func:`featured`: the least robust
-and the most likely failures, their detections and misses marked), and how both are logged. Featuring is kept to a
-few: each entity costs kilobytes and a millisecond.
-"""
+"""The recording's rollouts (*Rollouts* tab, ``step`` timeline): which of a stage's rollouts are kept (one entity per
+signal, one series per rollout), which few are featured as entities of their own (:func:`featured`), and how both are
+logged."""
 
 from __future__ import annotations
 
@@ -115,8 +113,7 @@ def log_stage_rollouts(
         stage_name: the plan's name of the stage.
         n_tagged: least-robust rollouts tagged (yellow, wide) and featured.
         n_likely: most likely failures featured.
-        indexes: the sink's time columns for ``send_columns``.
-    """
+        indexes: the sink's time columns for ``send_columns``."""
     s, batch = stream, ev.batch
     t = batch.n_steps
     keep = kept_rollouts(ev, max(n_tagged, n_likely))

@@ -1,9 +1,6 @@
-"""The per-stage series of a recording as static figures, visible on every timeline (rerun draws every view on the one
-chosen timeline, so series over ``stage`` would be blank on ``step``).
-
-Each figure (:class:`pemviz.sinks.rerun_views.Figure`, re-logged after each stage): the series over the stages
-finished so far, for log10 mu_hat with its 95 % intervals and the exact answer or reference as a line; the y range
-covers the finite values (log10 mu_hat: of the stages with a failure) with 8 % padding. No I/O beyond the stream."""
+"""The per-stage series of a recording as static figures (:class:`pemviz.sinks.rerun_views.Figure`, re-logged after
+each stage), visible on every timeline: rerun draws every view on the one chosen timeline, so series over ``stage``
+would be blank on ``step``."""
 
 from __future__ import annotations
 
@@ -79,8 +76,7 @@ class StageFigures:
         stream: the recording.
         last_stage: the plan's last stage (the x axis runs from 0 to it; it grows if a run adds stages).
         known_log10: log10 of the exact answer, or of the reference, drawn across log10 mu_hat; None: none known.
-        scene: the problem has a scene with contact (its share of contact is drawn).
-    """
+        scene: the problem has a scene with contact (its share of contact is drawn)."""
 
     stream: rr.RecordingStream
     last_stage: int

@@ -1,7 +1,6 @@
 """What the rerun recording (:mod:`pemviz.sinks.recording`) says of its estimate: the ``estimate`` document, the
 parts of the ``description`` below its head (:func:`pemviz.sinks.rerun_views.intro_markdown`) and the values of the
-``final`` entity, as Markdown or plain values from the engine's events and config: no state, no I/O, no rerun.
-"""
+``final`` entity, as Markdown or plain values from the engine's events and config: no state, no I/O, no rerun."""
 
 from __future__ import annotations
 
@@ -49,11 +48,7 @@ def stage_row(res: StageResult, label: str) -> str:
 
 
 def estimate_markdown(
-    e: Estimate,
-    where: str,
-    exact_log_p: float | None,
-    reference: Reference | None,
-    final: FinalEstimate | None = None,
+    e: Estimate, where: str, exact_log_p: float | None, reference: Reference | None, final: FinalEstimate | None = None
 ) -> str:
     """The ``estimate`` document of ``e``, headed ``where`` (e.g. "Final estimate"): mu_hat with its interval (or its
     bound), k-hat, verdict, the exact answer (``exact_log_p``) or the ``reference`` where known and, for the

@@ -1,10 +1,6 @@
 """What the rerun recording looks like (:mod:`pemviz.sinks.recording`): colours, figures with axes, the marginal
-proposal's bars, the words for a rollout's outcome, the run's description and the top-down scene of a problem whose
-drawing object draws one (:class:`pemviz.sinks.drawing.RecordingDrawing`). The layout is
-:mod:`pemviz.sinks.rerun_blueprint`'s.
-
-Everything here draws into a :class:`rerun.RecordingStream` it is given and keeps no state of a run.
-"""
+proposal's bars, a rollout's outcome in words, the run's description and the top-down scene. Everything here draws into
+a :class:`rerun.RecordingStream` it is given and keeps no state of a run."""
 
 from __future__ import annotations
 
@@ -27,11 +23,8 @@ from pemviz.sinks.drawing import recording_hooks
 
 def _pyarrow_without_pandas() -> None:
     """Let pyarrow settle, before rerun's first conversion, that this process hands it no pandas objects, without
-    importing pandas (about 0.2 s of a default run's 2.7 s). rerun turns numpy arrays into Arrow arrays with
-    ``pyarrow.array``, whose pandas shim imports pandas on first use only to see whether the array is a pandas one.
-    The import is refused for that one call (a finder that raises ``ImportError``, removed at once); pyarrow's paths
-    that need pandas (``to_pandas``, ``Table.from_pandas``) still import it when asked, as its shim retries there.
-    Nothing changes where pandas is imported already."""
+    importing pandas: the import is refused for that one call (a finder that raises ``ImportError``, removed at once);
+    pyarrow's paths that need pandas still import it when asked. Nothing changes where pandas is imported already."""
     import sys
 
     import pyarrow as pa
@@ -108,8 +101,7 @@ class Figure:
     """A static x-y plot in a 2D view: data in axis units under ``PATH/data``, a frame under ``PATH/axes``.
 
     A :class:`rerun.Transform3D` on ``PATH/data`` maps (x, y) in axis units to a ``width`` x ``height``
-    box with y pointing up (rerun's 2D y axis points down), so the logged points keep their real values.
-    """
+    box with y pointing up (rerun's 2D y axis points down), so the logged points keep their real values."""
 
     path: str
     x_label: str
@@ -147,11 +139,7 @@ class Figure:
         grid = [[[x, 0.0], [x, h]] for x in X] + [[[0.0, y], [w, y]] for y in Y]
         stream.log(f"{self.path}/axes/grid", rr.LineStrips2D(grid, colors=GRID_RGBA, radii=-0.5), static=True)
         frame: list[list[list[float]]] = [[[0, 0], [w, 0], [w, h], [0, h], [0, 0]]]
-        stream.log(
-            f"{self.path}/axes/frame",
-            rr.LineStrips2D(frame, colors=AXIS_RGBA, radii=-1.0),
-            static=static,
-        )
+        stream.log(f"{self.path}/axes/frame", rr.LineStrips2D(frame, colors=AXIS_RGBA, radii=-1.0), static=static)
         pos = [[x, h + 0.045 * h] for x in X] + [[-0.06 * w, y] for y in Y]
         labels = [f"{v:g}" for v in xt] + [f"{v:g}" for v in yt]
         for text, xy in ((self.x_label, [w / 2, h + 0.13 * h]), (self.y_label, [-0.06 * w, -0.07 * h])):
@@ -282,12 +270,9 @@ MARGINAL_PATH = "proposal_marginal"
 def log_marginal_proposal(stream: rr.RecordingStream, pv: ProposalView, rgb: tuple[int, ...]) -> None:
     """One stage's :class:`~pemviz.core.proposal_view.ProposalView` as bars per gap bin, on the current timeline.
 
-    Two charts: ``miss`` (q(miss) = 1 - q(detect), mean over the bin's visited states) and ``log_odds`` (the median
-    of log q(miss) / q(detect), nats, clipped to :data:`~pemviz.core.proposal_view.LOG_ODDS_SPAN_NATS`). In each bin:
-    the PEM's (grey, left half of the bin) and the sampler's (``rgb``, right half) as a narrow bar, and behind the
-    sampler's two light bars to its 10 % and 90 % quantiles, so the lighter band between them is the spread.
-    Empty bins have no bars. ``stats`` holds every array of the view (:class:`rerun.AnyValues`).
-    """
+    Two charts: ``miss`` (q(miss), mean over the bin's visited states) and ``log_odds`` (the median of log q(miss) /
+    q(detect), nats, clipped to :data:`~pemviz.core.proposal_view.LOG_ODDS_SPAN_NATS`): the PEM's (grey) and the
+    sampler's (``rgb``) bars, with the sampler's 10-90 % spread behind. ``stats`` holds every array of the view."""
     c, w = pv.centres_m, np.diff(pv.edges_m)
     empty = pv.n_states == 0
     span = LOG_ODDS_SPAN_NATS

@@ -1,7 +1,6 @@
 """Engine listener that saves the rollouts of the run's estimate as a rollout file (``pemviz run --save-rollouts``).
 
-The file format (Parquet table, JSON sidecar, proposal checkpoint) is :mod:`pemviz.io.rollout_format`'s.
-"""
+The file format (Parquet table, JSON sidecar, proposal checkpoint) is :mod:`pemviz.io.rollout_format`'s."""
 
 from __future__ import annotations
 
@@ -61,13 +60,9 @@ class RolloutSink(Sink):
     """Engine listener for ``pemviz run --save-rollouts``: writes every stage the run's estimate uses (``stages =
     "used"``) or every stage (``"all"``), so that ``pemviz estimate`` on the file reproduces the run's estimate.
 
-    Each rollout is written with its stage, mixture component, severity
-    (:data:`pemviz.io.rollout_table.SEVERITY_COLUMNS`) and as ``log_q`` the density the run weighed it with
-    (:func:`pemviz.core.weights.stage_log_q`); the sidecar holds the weight convention, each stage's components and
-    weight bound, and the pooling (:mod:`pemviz.io.rollout_format`). Chunks are written as the engine simulates them
-    (:class:`pemviz.io.rollout_writer.RolloutWriter`), so memory stays that of a chunk; the unit is moved into place
-    when the run finishes, nothing is left after a cancelled or failed run, and an interrupted one keeps its last
-    finished stage (:meth:`keep_finished`). A file of one proposal's stage also gets ``NAME.proposal.pt``.
+    Each rollout is written with its stage, component, severity and as ``log_q`` the density the run weighed it with
+    (:func:`pemviz.core.weights.stage_log_q`), chunk by chunk (:class:`pemviz.io.rollout_writer.RolloutWriter`);
+    nothing is left after a cancelled or failed run, and an interrupted one keeps its last finished stage.
 
     Attributes:
         written: the Parquet path once written, else None.

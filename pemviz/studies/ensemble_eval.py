@@ -22,8 +22,7 @@ class EnsembleEvaluation:
     ensemble is built), scored on the held-out fold.
 
     Attributes:
-        seed: the recipe's seed; folds: the folds run; bce, auc: float64 [M, F] (nats; ROC-AUC); wall_s: seconds.
-    """
+        seed: the recipe's seed; folds: the folds run; bce, auc: float64 [M, F] (nats; ROC-AUC); wall_s: seconds."""
 
     seed: int
     folds: tuple[int, ...]
@@ -56,8 +55,7 @@ def evaluate_ensemble(
     ``jobs`` worker processes; ``on_fit(member, fold, bce, auc)`` after each fit.
 
     Raises:
-        ValueError: members < 2 or jobs < 1.
-    """
+        ValueError: members < 2 or jobs < 1."""
     if members < 2 or jobs < 1:
         raise ValueError(f"need members >= 2 and jobs >= 1, got {members}, {jobs}")
     config = EvalConfig() if config is None else config

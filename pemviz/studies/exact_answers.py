@@ -1,7 +1,6 @@
 """The exact failure probabilities validation judges the estimators against: :func:`exact_answer`
 (:class:`ExactAnswer`: closed forms, the latched simulator, the enumeration of :mod:`pemviz.scenarios.braking.truth`
-or its kept answers, or a registered scenario's), :func:`validation_problems` and :func:`validation_problem`.
-"""
+or its kept answers, or a registered scenario's), :func:`validation_problems` and :func:`validation_problem`."""
 
 from __future__ import annotations
 
@@ -32,13 +31,11 @@ class ExactAnswer:
 def exact_answer(
     name: str, pem_path: str | None = None, *, progress: Callable[[str], None] | None = None, recompute: bool = False
 ) -> ExactAnswer:
-    """The exact p_fail of a problem of :data:`~pemviz.scenarios.problems.PROBLEMS` (milliseconds where kept or in
-    closed form; 20-40 s of enumeration for ``main`` with another PEM or ``recompute``), ``progress`` receiving a
-    line per refinement.
+    """The exact p_fail of a problem of :data:`~pemviz.scenarios.problems.PROBLEMS`, ``progress`` receiving a line per
+    refinement.
 
     Raises:
-        ValueError: an unknown name.
-    """
+        ValueError: an unknown name."""
     t0 = time.perf_counter()
     if name in TOY_PROBLEMS:
         params = TOY_PROBLEMS[name]
@@ -120,8 +117,7 @@ def validation_problem(name: str, pem_path: str | None = None):
     ``pem_path``'s PEM (:mod:`pemviz.scenarios.registry`).
 
     Raises:
-        ValueError: an unknown name, or a registered scenario whose problem carries no exact answer.
-    """
+        ValueError: an unknown name, or a registered scenario whose problem carries no exact answer."""
     if name in PROBLEMS:
         return build_problem(name, pem_path)
     from pemviz.config import ExperimentConfig

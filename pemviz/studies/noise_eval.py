@@ -1,12 +1,7 @@
-"""Noise PEM quality: 5-fold cross-validation of the noise PEMs against the homoscedastic baseline.
-
-The folds are the detection PEMs' (:func:`pemviz.studies.pem_eval.stratified_folds`) restricted to the noise data
-set (:func:`pemviz.pem.noise.noise_training_data`). Scores on the held-out fold: NLL (nats per obstacle and per
-dimension), coverage of the central 50 / 80 / 90 / 95 % intervals, ICE (the mean |coverage - level| over levels
-0.05..0.95, from the PIT), and the 90 % interval's coverage by range band. Models (:data:`NOISE_MODEL_NAMES`):
-``homo-normal``, ``homo-t`` and :class:`pemviz.pem.noise.NoisePEM` with a Normal, Laplace or Student-t head
-(``hetero-t`` shipped). :func:`evaluate_noise_pems` computes; :func:`format_markdown`, :func:`format_csv`,
-:func:`summary_lines` present."""
+"""Noise PEM quality: 5-fold cross-validation of the noise PEMs against the homoscedastic baseline, on the detection
+PEMs' folds restricted to the noise data set. Scores on the held-out fold: NLL (nats per obstacle and per dimension),
+coverage of the central intervals, ICE (the mean |coverage - level| from the PIT) and coverage by range band; models
+:data:`NOISE_MODEL_NAMES`."""
 
 from __future__ import annotations
 
@@ -48,8 +43,7 @@ class NoiseEvalConfig(CrossValidation):
     heteroscedastic networks (default: the shipped recipe's), ``seed`` (networks and dequantisation).
 
     Raises:
-        ValueError: an unknown or repeated model, n_splits < 2, a fold outside 0..n_splits-1, or epochs < 1.
-    """
+        ValueError: an unknown or repeated model, n_splits < 2, a fold outside 0..n_splits-1, or epochs < 1."""
 
     models: tuple[str, ...] = NOISE_MODEL_NAMES
     n_splits: int = 5
@@ -156,8 +150,7 @@ def evaluate_noise_pems(
     (:func:`pemviz.io.data.load_salient_label_table`); ``on_fold(model, score)`` after each fit.
 
     Raises:
-        ValueError: shapes other than ``[N, 11]`` and ``[N, 9]``, or labels not in {0, 1}.
-    """
+        ValueError: shapes other than ``[N, 11]`` and ``[N, 9]``, or labels not in {0, 1}."""
     config = NoiseEvalConfig() if config is None else config
     start = time.perf_counter()
     raw = np.asarray(inputs, dtype=np.float64)

@@ -1,8 +1,6 @@
-"""The paper's Tables II and III (Innes & Ramamoorthy 2022) with repetitions, standard errors and the exact answer:
-a row is R repetitions of one config (:class:`RowSpec`), summarised by :func:`summarise_row` (mean +- std/sqrt(R),
-failures, NLL, ESS, ratio to the exact p_fail); :func:`write_recording` writes the proposal curves and the paper's
-Fig. 4. ``pemviz tables`` is its command line.
-"""
+"""The paper's Tables II and III (Innes & Ramamoorthy 2022) with repetitions, standard errors and the exact answer: a
+row is R repetitions of one config (:class:`RowSpec`), summarised by :func:`summarise_row`; ``pemviz tables`` is its
+command line."""
 
 from __future__ import annotations
 
@@ -67,8 +65,7 @@ class Row:
 def log_mean_and_se(logs: Sequence[float]) -> tuple[float, float]:
     """log of the mean and of the standard error std/sqrt(n) (std with n - 1) of values given as logs.
 
-    Exact for values far below float64's range: everything is scaled by the largest value first.
-    """
+    Exact for values far below float64's range: everything is scaled by the largest value first."""
     x = np.asarray(logs, dtype=np.float64)
     n = x.size
     m = float(np.max(x))

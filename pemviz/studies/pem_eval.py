@@ -1,14 +1,7 @@
-"""PEM quality: 5-fold cross-validation of the PEM models (paper Table I) with calibration.
-
-Protocol (Innes & Ramamoorthy (2022), Table I; the authors' ``eval_kfold_class_models.py``):
-``StratifiedKFold(n_splits=5)`` on the detected label, no shuffle, the encoding's z-scores from the full file. Per
-fold: BCE (nats), ROC-AUC, average precision and expected calibration error (15 equal-width bins); the table reports
-the mean over folds beside the paper's. Models: ``ml-nn`` (:mod:`pemviz.pem.network`), ``lr`` (scikit-learn logistic
-regression), ``guess-mu`` (the training folds' rate), ``b-nn`` (:mod:`pemviz.pem.bayes`), ``gbt``
-(:mod:`pemviz.pem.trees`, the best by these folds).
-
-:func:`evaluate_pems` computes; :func:`format_markdown` / :func:`format_csv` and
-:func:`pemviz.studies.pem_eval_recording.write_recording` present."""
+"""PEM quality: 5-fold cross-validation of the PEM models (Innes & Ramamoorthy 2022, Table I; the authors'
+``eval_kfold_class_models.py``) with calibration: ``StratifiedKFold(n_splits=5)`` on the detected label, no shuffle,
+z-scores from the full file; per fold BCE (nats), ROC-AUC, average precision and expected calibration error (15 bins).
+Models: :data:`MODEL_NAMES`."""
 
 from __future__ import annotations
 
@@ -72,8 +65,7 @@ def check_study(config: CrossValidation, known: tuple[str, ...], sizes: tuple[st
     """Check a study's settings: its models among ``known``, at least 2 folds, and each field of ``sizes`` >= 1.
 
     Raises:
-        ValueError: an unknown or repeated model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1.
-    """
+        ValueError: an unknown or repeated model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1."""
     models = config.models
     if not models or any(m not in known for m in models) or len(set(models)) != len(models):
         raise ValueError(f"models {list(models)}: use distinct ones of {', '.join(known)}")
@@ -93,8 +85,7 @@ class EvalConfig(CrossValidation):
     model.
 
     Raises:
-        ValueError: an unknown model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1.
-    """
+        ValueError: an unknown model, n_splits < 2, a fold outside 0..n_splits-1, or a size < 1."""
 
     models: tuple[str, ...] = MODEL_NAMES
     n_splits: int = 5
@@ -129,8 +120,7 @@ class ModelEvaluation:
 
     ``test_rows`` int ``[M]`` (rows of the data file, fold after fold), ``test_fold`` ``[M]``, ``logits``
     float64 ``[M]`` (each row scored by the model that did not train on it), ``gap_prob`` float64
-    ``[F, G]`` (each fold's model on :data:`GAP_GRID_M`).
-    """
+    ``[F, G]`` (each fold's model on :data:`GAP_GRID_M`)."""
 
     name: str
     description: str
@@ -309,8 +299,7 @@ def evaluate_pems(
     each fit; the authors' PEM curve is added when ``../shared/reference/carla-stuff-pem`` is present.
 
     Raises:
-        ValueError: mismatched lengths or labels not in {0, 1}.
-    """
+        ValueError: mismatched lengths or labels not in {0, 1}."""
     config = EvalConfig() if config is None else config
     start = time.perf_counter()
     raw = np.asarray(inputs, dtype=np.float64)

@@ -1,7 +1,6 @@
 """The rerun recording of ``pemviz pem eval`` (:mod:`pemviz.studies.pem_eval`'s cross-validation): pooled and
 per-fold ROC curves, reliability diagrams, p(detect | gap) for the braking scenario's lead beside the authors' PEM,
-and each fold's BCE and ROC-AUC, all static, in 2D figures of their own axes.
-"""
+and each fold's BCE and ROC-AUC, all static, in 2D figures of their own axes."""
 
 from __future__ import annotations
 
@@ -49,8 +48,7 @@ def log_recording(result: EvalResult, stream: Any) -> None:
     """Log the evaluation into a rerun ``RecordingStream`` (all static, 2D figures in axis units): ``description``,
     ``roc/data/<model>`` (and ``/fold_K``), ``reliability/data/<model>`` (and ``/bins``, ``diagonal``),
     ``gap/data/<model>`` and ``gap/data/authors``, ``folds/{bce,auc}/data/<model>``, ``<figure>/legend`` and
-    ``metrics/<model>``.
-    """
+    ``metrics/<model>``."""
     import rerun as rr
     import rerun.blueprint as rrb
 

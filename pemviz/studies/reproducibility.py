@@ -1,15 +1,10 @@
 """What a seed reproduces, and where: a run's fingerprint under the CPU's vector-dispatch settings, chunk sizes and
 executors.
 
-A detection is drawn as ``u <= q``, so a last-bit change of q can flip a draw; every number that decides a draw or a
-fit is computed in arithmetic fixed by IEEE 754 alone (:mod:`pemviz.core.exact`). The contract this module checks
-(:func:`compare`): on one machine any chunk size and executor give the same fingerprint, bit for bit; on any x86-64
-CPU and dispatch setting (:data:`DISPATCH_SETTINGS`) the same rollouts, thresholds, elites and printed numbers, log
-mu_hat within :data:`LOG_MU_RTOL` relative.
-
-``python -m pemviz.studies.reproducibility [--scenario S] [--k K] [--n N] [--n-final N_e] [--chunk C] [--executor E]
-[--seed S] [--plain-fallback R]`` prints one run's fingerprint as JSON; ``benchmarks/reproducibility.py`` runs the
-matrix."""
+The contract this module checks (:func:`compare`): on one machine any chunk size and executor give the same
+fingerprint, bit for bit; on any x86-64 CPU and dispatch setting (:data:`DISPATCH_SETTINGS`) the same rollouts,
+thresholds, elites and printed numbers, log mu_hat within :data:`LOG_MU_RTOL` relative (:mod:`pemviz.core.exact`).
+``python -m pemviz.studies.reproducibility --help`` runs one; ``benchmarks/reproducibility.py`` the matrix."""
 
 from __future__ import annotations
 
@@ -146,14 +141,14 @@ def main(argv: list[str] | None = None) -> None:
 
     p = argparse.ArgumentParser(prog="python -m pemviz.studies.reproducibility", description=__doc__.split("\n")[0])
     p.add_argument("--scenario", default="braking")
-    p.add_argument("--k", type=int, default=None, help="cross-entropy stages K (default: the default config's)")
-    p.add_argument("--n", type=int, default=None, help="rollouts per stage N")
-    p.add_argument("--n-final", type=int, default=None, help="rollouts of the final estimate N_e")
-    p.add_argument("--pretrain", type=int, default=None, help="pretraining rollouts")
-    p.add_argument("--chunk", type=int, default=None, help="ExperimentConfig.chunk_rollouts")
+    p.add_argument("--k", type=int, help="cross-entropy stages K (default: the default config's)")
+    p.add_argument("--n", type=int, help="rollouts per stage N")
+    p.add_argument("--n-final", type=int, help="rollouts of the final estimate N_e")
+    p.add_argument("--pretrain", type=int, help="pretraining rollouts")
+    p.add_argument("--chunk", type=int, help="ExperimentConfig.chunk_rollouts")
     p.add_argument("--executor", default="serial")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--plain-fallback", type=int, default=None, help="plain_fallback (0: the stages alone)")
+    p.add_argument("--plain-fallback", type=int, help="plain_fallback (0: the stages alone)")
     a = p.parse_args(argv)
     fields = {
         "plain_fallback": a.plain_fallback,

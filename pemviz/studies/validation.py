@@ -1,8 +1,7 @@
 """Validation of the estimators against exact failure probabilities: a :class:`Job` is one method on one named
 problem (:data:`pemviz.scenarios.problems.PROBLEMS`) for one seed; :func:`run_jobs` runs them in worker processes,
 appending each :class:`RunRecord` to ``runs.jsonl`` (so a study resumes); :func:`summarise` makes table rows beside
-each problem's truth (:mod:`pemviz.studies.exact_answers`).
-"""
+each problem's truth (:mod:`pemviz.studies.exact_answers`)."""
 
 from __future__ import annotations
 
@@ -45,8 +44,7 @@ class RunRecord:
     """One method on one problem for one seed: the final estimate and what it cost.
 
     ``curves``: the proposal curve q(detect | d) after every stage, float64 [stages, G] (adaptive only, when
-    asked for); ``gammas``: gamma_kappa per CE stage.
-    """
+    asked for); ``gammas``: gamma_kappa per CE stage."""
 
     problem: str
     method: str
@@ -96,9 +94,7 @@ def run_job(job: Job, workers: int | None = None) -> RunRecord:
     """Run one :class:`Job` (in this process, its rollouts on ``workers`` processes: None, every usable core) and
     summarise it."""
     problem = validation_problem(job.problem, job.pem_path)
-    if (
-        dict(job.fields).get("method", DEFAULT_METHOD) not in BUILTIN_METHODS
-    ):  # a method of one's own: its plugin, in this worker
+    if dict(job.fields).get("method", DEFAULT_METHOD) not in BUILTIN_METHODS:  # a plugin's method: load it here
         from pemviz.methods import load_method_plugins
 
         load_method_plugins()
@@ -147,8 +143,7 @@ def all_fields(fields: Sequence[tuple[str, Any]]) -> list[tuple[str, Any]]:
     name: what a run depends on, whichever defaults the running pemviz has.
 
     Raises:
-        ConfigError: ``fields`` not a valid config.
-    """
+        ConfigError: ``fields`` not a valid config."""
     config = ExperimentConfig.of(**dict(fields)).flat()
     return sorted((k, v) for k, v in config.items() if k != "seed")
 
@@ -205,8 +200,7 @@ def run_jobs(
     """Run jobs in order (``n_jobs`` = 1) or in ``n_jobs`` worker processes; results in the jobs' order.
 
     With ``runs_file``, every run is appended to it as it ends and runs already there are not run again
-    (resume after Ctrl-C, SIGTERM or a crash). ``progress`` shows a bar with the ETA on stderr.
-    """
+    (resume after Ctrl-C, SIGTERM or a crash). ``progress`` shows a bar with the ETA on stderr."""
     done = read_finished(runs_file, jobs) if runs_file is not None else {}
     todo = [job for job in jobs if job_key(job) not in done]
     if done:

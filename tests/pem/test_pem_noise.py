@@ -431,7 +431,6 @@ def test_label_table_reader_round_trips_or_names_the_bad_line(tmp_path: Path, ro
             data.load_salient_label_table(path)
     else:
         np.testing.assert_array_equal(data.load_salient_label_table(path), table)
-        np.testing.assert_array_equal(data.load_salient_labels(path), table[:, 0])
 
 
 # ------------------------------------------------------------------------------------------------ CLI
