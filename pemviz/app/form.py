@@ -16,6 +16,7 @@ from typing import Any
 from pemviz.config import ConfigError, ExperimentConfig
 from pemviz.engine import cost
 from pemviz.engine.cost import N_STEPS, RunCost
+from pemviz.engine.resources import LoadReading
 from pemviz.methods import method_or_none
 from pemviz.scenarios.odd import is_odd
 from pemviz.scenarios.parameters import PairValue, Parameter, ParameterError, Value, check_pairs, parse_assignment
@@ -281,14 +282,15 @@ def _horizon(cfg: ExperimentConfig) -> tuple[int, float, Any, Any]:
 def run_cost(cfg: ExperimentConfig, n_steps: int | None = None, slowdown: float | None = None) -> RunCost:
     """What ``cfg``'s run will take (:func:`pemviz.engine.cost.run_cost` of its plan on its problem's :func:`horizon`,
     or ``n_steps`` steps): simulations, memory of the largest batch, expected seconds as planned and with what may
-    follow, on this machine as loaded now (times ``slowdown``; None: :func:`pemviz.engine.resources.load_slowdown` of a
-    pilot, read again after :data:`LOAD_FRESH_S`)."""
+    follow, on this machine as loaded now (times ``slowdown``; None: :func:`pemviz.engine.cost.start_reading` of a
+    pilot, the console's reading, which also prices a pooled batch; read again after :data:`LOAD_FRESH_S`)."""
     from pemviz.engine.experiment import stream_above  # the engine and the estimators import torch: only when asked
     from pemviz.estimators import run_plan
 
     steps, look, stated, problem = _horizon(cfg) if n_steps is None else (n_steps, 0.0, None, None)
-    speed, factor = (1.0, float(slowdown)) if slowdown is not None else _recent_load(cfg, problem)
-    idle = cost.run_cost(cfg, run_plan(cfg), steps, stream_above(cfg), look_ahead_s=look, problem=stated, speed=speed)
+    speed, factor, load = (1.0, float(slowdown), None) if slowdown is not None else _recent_load(cfg, problem)
+    plan, above = run_plan(cfg), stream_above(cfg)
+    idle = cost.run_cost(cfg, plan, steps, above, look_ahead_s=look, problem=stated, speed=speed, load=load)
     scaled = dataclasses.replace(idle, seconds=idle.seconds * factor, then_seconds=idle.then_seconds * factor)
     return dataclasses.replace(scaled, slowdown=factor)
 
@@ -296,11 +298,11 @@ def run_cost(cfg: ExperimentConfig, n_steps: int | None = None, slowdown: float 
 LOAD_FRESH_S = 3.0
 """How long the panel's cost line reuses a reading of a scene's speed and the machine's load (one reading takes
 a quarter of a second of wall time and a pilot of the scene's rollouts: every change to the form would wait on it)."""
-_LOAD: dict[tuple[Any, ...], tuple[float, float, float]] = {}
+_LOAD: dict[tuple[Any, ...], tuple[float, tuple[float, float, LoadReading]]] = {}
 
 
-def _recent_load(cfg: ExperimentConfig, problem: Any) -> tuple[float, float]:
-    """``(speed, slowdown)`` of a run of ``cfg`` on ``problem``, as the console's first line reads them
+def _recent_load(cfg: ExperimentConfig, problem: Any) -> tuple[float, float, LoadReading]:
+    """``(speed, slowdown, load)`` of a run of ``cfg`` on ``problem``, as the console's first line reads them
     (:func:`pemviz.engine.cost.start_reading` of a pilot of its rollouts; none without a problem), reused for
     :data:`LOAD_FRESH_S` s per scene."""
     from pemviz.engine.experiment import scene_pilot
@@ -308,12 +310,12 @@ def _recent_load(cfg: ExperimentConfig, problem: Any) -> tuple[float, float]:
 
     now, key = time.monotonic(), _key(cfg)
     if key in _LOAD and now - _LOAD[key][0] <= LOAD_FRESH_S:
-        return _LOAD[key][1:]
+        return _LOAD[key][1]
     opened = tasks_now()
     pilot, steps = ([], N_STEPS) if problem is None else (scene_pilot(problem), problem.n_steps or N_STEPS)
-    speed, factor = cost.start_reading(cfg, pilot, steps, since=opened)
-    _LOAD[key] = (now, speed, factor)
-    return speed, factor
+    reading = cost.start_reading(cfg, pilot, steps, since=opened)
+    _LOAD[key] = (now, reading)
+    return reading
 
 
 def setting_name(key: str) -> str:

@@ -32,7 +32,7 @@ from typing import Any
 
 from pemviz.config import ExperimentConfig
 from pemviz.core.plan import RunPlan
-from pemviz.engine.resources import BASE_BYTES, POOL_BLOCK, pool_workers, run_memory
+from pemviz.engine.resources import BASE_BYTES, POOL_BLOCK, LoadReading, pool_workers, run_memory, usable_cpus
 from pemviz.methods.adaptive import STATE_INPUTS
 from pemviz.methods.ams import AMS_STAGE
 from pemviz.settings import SCENARIO_COST_FACTORS, SCENARIO_COST_PARTS
@@ -76,7 +76,9 @@ class CostConstants:
         tilt_solve_s: the seconds of the tilt's solve, once a run (on its first stage), about.
         probe_share: a pilot of the reference scene's plain rollouts' CPU seconds over the model's where its run takes
             the model's (:func:`pilot_seconds`; another scene may declare its own ``probe`` part).
-        pool_gain: the speed each worker process after the first adds to a pooled batch, in one process's.
+        pool_share: a pooled batch's CPU seconds over the same rollouts' in one process (the workers' start, the
+            blocks' hand-off, the run's process collecting them while they simulate); the workers share the CPUs
+            as the load allows (:meth:`pemviz.engine.resources.LoadReading.pool_speedup`).
         measured: when, where and how the constants were measured.
     """
 
@@ -100,7 +102,7 @@ class CostConstants:
     tilt_rollouts: float = 6.0
     tilt_solve_s: float = 4.0
     probe_share: float = 1.0
-    pool_gain: float = 1.0
+    pool_share: float = 1.0
     measured: str = field(default="", compare=False)
 
 
@@ -125,7 +127,7 @@ COST = CostConstants(
     tilt_rollouts=2.7,
     tilt_solve_s=2.5,
     probe_share=0.49,
-    pool_gain=0.5,
+    pool_share=1.13,
     measured="2026-11-28, benchmarks/calibrate_cost.py --fit --repeat 1 (wall seconds), 2 cores, load average 0.5; "
     "tilt_rollouts and tilt_solve_s from per-rollout CPU seconds against a scene's plain rollouts in the same "
     "process (2026-11-29, benchmarks/calibrate_cost.py --tilt: a tilted rollout 2.5-3.0 plain ones, its weights "
@@ -136,8 +138,9 @@ COST = CostConstants(
     "the reference scene's proposal steps 1.8-2.1 times, its pretraining fit 0.4-0.6 times, the rest's 1.0); "
     "streamed_share from the CPU seconds of the two-pedestrian scene's plain rollouts, 40,000 streamed against "
     "10,000 held whole (0.64-0.82, 4 readings); probe_share 0.37-0.51, 3 readings (2026-11-30, calibrate_cost.py "
-    "--probe, load average 6.5); pool_gain: 200,000 plain rollouts of the two-pedestrian and the five-car scenes on "
-    "2 workers 1.41 and 1.66 times as fast as on 1, 2 cores",
+    "--probe, load average 6.5); pool_share: 10^6 plain rollouts of the two-pedestrian scene on 2 workers 1.79 and "
+    "1.74 times as fast as on 1, 2 idle cores (2026-11-30, two sittings: 2 / 1.79 = 1.12, 2 / 1.74 = 1.15), against "
+    "the two workers' 1.05 times one process's CPU seconds",
 )
 """The constants of the model (see :class:`CostConstants`); ``benchmarks/calibrate_cost.py --fit`` measures them."""
 
@@ -177,6 +180,7 @@ def stage_cost(
     model: str | None = None,
     stream_above: int = 20_000,
     speed: float = 1.0,
+    load: LoadReading | None = None,
 ) -> StageCost:
     """Predicted seconds of a stage of ``kind`` (``pretrain`` | ``ce`` | ``final`` | ``ams``) with ``n`` rollouts.
 
@@ -197,6 +201,11 @@ def stage_cost(
         speed: how many times the model's seconds the run's work takes here now: the pool starts where ``speed``
             times the model's seconds pay for it (:func:`pemviz.engine.resources.pool_workers`, as it starts on a
             block's measured seconds); the seconds returned are the model's.
+        load: the machine's load (:func:`pemviz.engine.resources.read_load`; None: idle on
+            :func:`pemviz.engine.resources.usable_cpus`): a pooled batch's simulation is its seconds in one process
+            times :attr:`CostConstants.pool_share` over what the workers gain at that load
+            (:meth:`pemviz.engine.resources.LoadReading.pool_speedup`: W x crowding(1) / crowding(W)), one process's
+            crowding left to the caller's slowdown as for every other part.
     """
     model = cfg.method_record.cost_model if model is None else model
     proposal = model == "proposal" and kind in ("ce", "final")
@@ -210,7 +219,8 @@ def stage_cost(
     blocks = max(1, math.ceil(n / POOL_BLOCK))  # a large batch is simulated block by block, each its steps
     simulate = n_steps * (per_step * blocks + per_rollout * rollouts)
     workers = pool_workers(cfg.execution, n, simulate * speed)  # worker processes share a large batch
-    simulate /= 1.0 + (workers - 1) * c.pool_gain
+    if workers > 1:
+        simulate *= c.pool_share / (load or LoadReading(usable_cpus())).pool_speedup(workers)
     simulate += c.tilt_solve_s if tilt and stage == 1 else 0.0
     cap = math.inf if cfg.adaptive.fit_rows is None else float(cfg.adaptive.fit_rows)
     inputs = cfg.adaptive.proposal_inputs
@@ -251,24 +261,33 @@ def pilot_speed(cfg: ExperimentConfig, pilot: list[tuple[int, float]], n_steps: 
 
 def start_reading(
     cfg: ExperimentConfig, pilot: list[tuple[int, float]], n_steps: int = N_STEPS, since: Any = None
-) -> tuple[float, float]:
-    """``(speed, slowdown)`` a run of ``cfg`` is priced at before it has measured anything of its own, read alike by
-    the console's first progress line (:class:`pemviz.sinks.StageClock`) and the panel's cost line
+) -> tuple[float, float, LoadReading]:
+    """``(speed, slowdown, load)`` a run of ``cfg`` is priced at before it has measured anything of its own, read
+    alike by the console's first progress line (:class:`pemviz.sinks.StageClock`) and the panel's cost line
     (:func:`pemviz.app.form.run_cost`): the speed of ``pilot``'s plain rollouts (:func:`pilot_speed`: how many times
-    the model's CPU seconds the run's work takes, 1 without a pilot) and the machine's load times it
-    (:func:`pemviz.engine.resources.load_slowdown`, its window opened at ``since``, a
-    :func:`pemviz.engine.resources.tasks_now` reading; None: now)."""
-    from pemviz.engine.resources import load_slowdown
+    the model's CPU seconds the run's work takes, 1 without a pilot), the machine's load
+    (:func:`pemviz.engine.resources.read_load`, its window opened at ``since``, a
+    :func:`pemviz.engine.resources.tasks_now` reading; None: now), and the slowdown: that load's crowding of one
+    thread times the speed. ``load`` also prices a pooled batch (:func:`stage_cost`): one reading for both."""
+    from pemviz.engine import resources
 
     speed = pilot_speed(cfg, pilot, n_steps)
-    return speed, load_slowdown(since=since, speed=speed)
+    load = resources.read_load(since)
+    return speed, load.crowding(1) * speed, load
 
 
 def plan_costs(
-    cfg: ExperimentConfig, plan: RunPlan, n_steps: int = N_STEPS, c: CostConstants = COST, speed: float = 1.0
+    cfg: ExperimentConfig,
+    plan: RunPlan,
+    n_steps: int = N_STEPS,
+    c: CostConstants = COST,
+    speed: float = 1.0,
+    load: LoadReading | None = None,
 ) -> dict[int, StageCost]:
-    """Stage number -> :func:`stage_cost` of each stage of ``plan`` (``speed``: as there)."""
-    return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, speed=speed) for s in plan.stages}
+    """Stage number -> :func:`stage_cost` of each stage of ``plan`` (``speed``, ``load``: as there)."""
+    return {
+        s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, speed=speed, load=load) for s in plan.stages
+    }
 
 
 def then_adds(cfg: ExperimentConfig, simulations: int) -> tuple[int, str]:
@@ -346,16 +365,17 @@ def follow_on_seconds(
     look_ahead_s: float = 0.0,
     c: CostConstants = COST,
     speed: float = 1.0,
+    load: LoadReading | None = None,
 ) -> float:
     """The model's seconds of all of ``follow``: the retry's stages (:func:`stage_cost`, each rollout's look-ahead
-    ``look_ahead_s`` added) and ``plain_most`` plain rollouts (``stage_cost`` of a ``plain`` final batch; ``speed``:
-    as there)."""
+    ``look_ahead_s`` added) and ``plain_most`` plain rollouts (``stage_cost`` of a ``plain`` final batch; ``speed``,
+    ``load``: as there)."""
     again = 0.0
     for s in () if follow.retry is None else follow.retry.stages:
-        cost = stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, speed=speed)
+        cost = stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, speed=speed, load=load)
         again += cost.seconds + s.n_rollouts * look_ahead_s
     most = follow.plain_most
-    plain = stage_cost(cfg, "final", most, n_steps, c, model="plain", speed=speed).seconds if most else 0.0
+    plain = stage_cost(cfg, "final", most, n_steps, c, model="plain", speed=speed, load=load).seconds if most else 0.0
     return again + plain
 
 
@@ -481,24 +501,25 @@ def run_cost(
     look_ahead_s: float = 0.0,
     problem: Any = None,
     speed: float = 1.0,
+    load: LoadReading | None = None,
 ) -> RunCost:
     """Simulations (:attr:`ExperimentConfig.n_simulations`), memory of the largest batch, and the seconds of ``plan``
     (the sum of :func:`stage_cost`, each rollout's look-ahead ``look_ahead_s`` added, as
     :class:`pemviz.sinks.StageClock` adds it; an open-ended plan counts its first stage only) and of what may follow
     it (:func:`follow_on` on ``problem``, :func:`follow_on_seconds`; ``problem`` None: whatever the scene), in the
-    model's seconds (``speed``: as :func:`stage_cost` takes it).
+    model's seconds (``speed``, ``load``: as :func:`stage_cost` takes them).
 
     A stage above ``stream_above`` rollouts (:data:`pemviz.engine.experiment.STREAM_ABOVE`) is simulated in chunks, so
     it does not count in full towards memory. The memory is the run's memory check's model
     (:func:`pemviz.engine.resources.run_memory`, :data:`pemviz.engine.resources.BYTES_PER_ROLLOUT_STEP`) without the
     process's own :data:`pemviz.engine.resources.BASE_BYTES`: one model of a step's bytes for both.
     """
-    seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c, speed).values())
+    seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c, speed, load).values())
     seconds += look_ahead_s * sum(s.n_rollouts for s in plan.stages)
     batch = run_memory(plan, n_steps, cfg.adaptive.quantile_level, stream_above=stream_above) - BASE_BYTES
     follow = follow_on(cfg, plan, problem)
     if follow is None:
         return RunCost(int(cfg.n_simulations), int(batch), float(seconds), cfg.method_record.run_adds)
-    then_s = follow_on_seconds(cfg, follow, n_steps, look_ahead_s, c, speed)
+    then_s = follow_on_seconds(cfg, follow, n_steps, look_ahead_s, c, speed, load)
     sims, adds = int(cfg.n_simulations), cfg.method_record.run_adds
     return RunCost(sims, int(batch), float(seconds), adds, follow.simulations, then_s, follow.words)

@@ -282,18 +282,43 @@ def crowding(c: Competition, cpus: int, threads: int = 1) -> float:
     return max(1.0, (threads + c.inside) / max(got, 1e-12))
 
 
-def load_slowdown(threads: int = 1, since: TaskTimes | None = None, speed: float = 1.0) -> float:
-    """How many times longer than the cost model says a run of ``threads`` busy threads will take now: ``crowding x
-    speed``. The crowding is the wall over the CPU seconds the scheduler's sharing gives the run (:func:`crowding` of
-    the other tasks' runnable time from ``since``, a :func:`tasks_now` reading at most :data:`LOAD_WINDOW_MAX_S` old,
-    else now, over at least :data:`LOAD_WINDOW_S`): a time average, where a count of the tasks runnable at five
-    instants in 20 ms priced the same run (a tilted multi-car run) at 5.2-9.8 times the model's while it took 6.3-7.8
-    times. The 1-minute load average is not blended in: it counts tasks, not the sessions the scheduler shares the CPUs
-    among, and lags by a minute. ``speed``: how many times the model's CPU seconds the run's work takes now, e.g. a
-    pilot of the scene's own rollouts (:func:`pemviz.engine.cost.pilot_speed`). Where the tasks' times cannot be
-    read, ``max(1, (L + threads) / C) x speed`` with L the 1-minute load average; ``speed`` where neither can. On an
-    idle machine ``speed``; beside two other busy sessions on two CPUs a one-thread run gets two thirds of a CPU, 1.5
-    times it."""
+@dataclasses.dataclass(frozen=True)
+class LoadReading:
+    """The machine's load, read once (:func:`read_load`): what the other tasks claimed of ``cpus`` CPUs over a window
+    (:func:`competition`), or where their times cannot be read the 1-minute load average; neither: an idle machine.
+
+    Attributes:
+        cpus: the CPUs the run may use (:func:`usable_cpus`).
+        competition: the other tasks' claim (None: not read).
+        average: the 1-minute load average, runnable tasks (None: not read; used only without ``competition``).
+    """
+
+    cpus: int
+    competition: Competition | None = Competition()
+    average: float | None = None
+
+    def crowding(self, threads: int = 1) -> float:
+        """Wall over CPU seconds of a run of ``threads`` busy threads (:func:`crowding`); from the load average
+        ``max(1, (L + threads) / C)``."""
+        if self.competition is None and self.average is not None:
+            return max(1.0, (self.average + threads) / self.cpus)
+        return crowding(self.competition or Competition(), self.cpus, threads)
+
+    def pool_speedup(self, workers: int) -> float:
+        """How many times as fast ``workers`` busy processes get through the same CPU seconds as one, at this load:
+        ``workers x crowding(1) / crowding(workers)`` (the same sharing of the CPUs among the sessions, the run's
+        session holding ``workers`` runnable tasks instead of one). Idle on 2 CPUs, 2 workers: 2; 4 workers: 2;
+        beside two other busy sessions on 2 CPUs: 1.0 (the run's session gets two thirds of a CPU either way)."""
+        return workers * self.crowding(1) / self.crowding(workers)
+
+
+def read_load(since: TaskTimes | None = None) -> LoadReading:
+    """The machine's load now (:class:`LoadReading`): the other tasks' runnable time from ``since``, a
+    :func:`tasks_now` reading at most :data:`LOAD_WINDOW_MAX_S` old, else now, over at least :data:`LOAD_WINDOW_S`
+    (the rest of the window is slept): a time average, where a count of the tasks runnable at five instants in 20 ms
+    priced a tilted multi-car run at 5.2-9.8 times the model's while it took 6.3-7.8 times. The 1-minute load average
+    is read only where the tasks' times cannot be: it counts tasks, not the sessions the scheduler shares the CPUs
+    among, and lags by a minute."""
     fresh = since is not None and time.perf_counter() - since.at <= LOAD_WINDOW_MAX_S
     opening = since if fresh else tasks_now()
     cpus = usable_cpus()
@@ -301,12 +326,19 @@ def load_slowdown(threads: int = 1, since: TaskTimes | None = None, speed: float
         time.sleep(max(0.0, LOAD_WINDOW_S - (time.perf_counter() - opening.at)))
         last = tasks_now()
         if last is not None:
-            return crowding(competition(opening, last), cpus, threads) * speed
+            return LoadReading(cpus, competition(opening, last))
     try:
-        load = os.getloadavg()[0]
+        return LoadReading(cpus, None, float(os.getloadavg()[0]))
     except (AttributeError, OSError):
-        return speed
-    return max(1.0, (float(load) + threads) / cpus) * speed
+        return LoadReading(cpus)
+
+
+def load_slowdown(threads: int = 1, since: TaskTimes | None = None, speed: float = 1.0) -> float:
+    """How many times longer than the cost model says a run of ``threads`` busy threads will take now: the crowding
+    of :func:`read_load` (from ``since``) times ``speed``, how many times the model's CPU seconds the run's work takes
+    now, e.g. a pilot of the scene's own rollouts (:func:`pemviz.engine.cost.pilot_speed`). On an idle machine
+    ``speed``; beside two other busy sessions on two CPUs a one-thread run gets two thirds of a CPU, 1.5 times it."""
+    return read_load(since).crowding(threads) * speed
 
 
 def cap_jobs(jobs: int, say: Callable[[str], object] | None = None) -> int:

@@ -28,7 +28,7 @@ from pemviz.engine.cost import (
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
-    from pemviz.engine.resources import TaskTimes
+    from pemviz.engine.resources import LoadReading, TaskTimes
 
 MAX_SCALE = 20.0
 """The most a :class:`StageClock` scales a prediction by (either way): a first stage slowed by a one-off start
@@ -86,8 +86,9 @@ class StageClock(Sink):
 
     Each stage has a predicted time (:func:`pemviz.engine.cost.plan_costs`); as stages end the clock scales what is
     left by measured / predicted, simulating and what follows per kind of stage separately, and before any stage by the
-    machine's load (``slowdown()``, default :func:`pemviz.engine.cost.start_reading`). :meth:`run_most_s` adds what may
-    follow the planned stages (:func:`pemviz.engine.cost.follow_on`).
+    machine's load (``slowdown()``, default :func:`pemviz.engine.cost.start_reading`, whose :attr:`reading` also
+    prices a pooled batch's workers). :meth:`run_most_s` adds what may follow the planned stages
+    (:func:`pemviz.engine.cost.follow_on`).
 
     Attributes:
         t0: when the run started; stage_t0: when the current stage started; sampled_t: when its rollouts were
@@ -117,6 +118,9 @@ class StageClock(Sink):
         self.speed = 1.0
         """How many times the model's CPU seconds the run's work takes here now (:func:`pemviz.engine.cost.
         pilot_speed` of :attr:`pilot`)."""
+        self.reading: LoadReading | None = None
+        """The load read at the run's start (:func:`pemviz.engine.resources.read_load`), which also prices a pooled
+        batch (:func:`pemviz.engine.cost.stage_cost`); None: an idle machine (a ``slowdown`` given)."""
         if slowdown is None:
             from pemviz.engine.resources import tasks_now
 
@@ -142,9 +146,12 @@ class StageClock(Sink):
         self.plan = event.plan
         self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
         if self._slowdown is None:  # as the panel's cost line reads them
-            self.speed, self.load = start_reading(event.config, self.pilot, self._n_steps, since=self.load_since)
+            self.speed, self.load, self.reading = start_reading(
+                event.config, self.pilot, self._n_steps, since=self.load_since
+            )
         else:
             self.speed, self.load = pilot_speed(event.config, self.pilot, self._n_steps), float(self._slowdown())
+            self.reading = None
         self._look_ahead_s = float(event.problem.look_ahead_s)
         # an open-ended plan's added batches follow its last stage: no time is said for it (run_left_s)
         self.follow = None if event.plan.open_ended else follow_on(event.config, event.plan, event)
@@ -223,12 +230,12 @@ class StageClock(Sink):
         if self._config is None:
             return StageCost(math.nan, math.nan)
         phase = "plan" if stage is None else self.phase(stage)
+        c, cfg, speed, load = self.constants, self._config, self.speed, self.reading
         if phase == "plain":
-            c = self.constants
-            return stage_cost(self._config, "final", n_rollouts, self._n_steps, c, model="plain", speed=self.speed)
+            return stage_cost(cfg, "final", n_rollouts, self._n_steps, c, model="plain", speed=speed, load=load)
         if phase == "retry" and stage is not None:
             stage -= self._last + 1
-        cost = stage_cost(self._config, kind, n_rollouts, self._n_steps, self.constants, stage, speed=self.speed)
+        cost = stage_cost(cfg, kind, n_rollouts, self._n_steps, c, stage, speed=speed, load=load)
         if self._look_ahead_s > 0.0:  # the problem's look-ahead: the estimator weighs the rollouts before they are out
             cost = StageCost(cost.simulate_s + n_rollouts * self._look_ahead_s, cost.after_s)
         return cost

@@ -10,7 +10,7 @@ import types
 import numpy as np
 import pytest
 from pemviz.engine import resources
-from pemviz.engine.resources import Competition, TaskTimes, competition, crowding
+from pemviz.engine.resources import Competition, LoadReading, TaskTimes, competition, crowding
 from pemviz.settings import SCENARIO_COST_PARTS
 
 NICE5 = 1.25**-5  # a session at autogroup nice 5 against this one at 0: 1024 / 1.25^5 of 1024 (sched_prio_to_weight)
@@ -41,6 +41,56 @@ NICE5 = 1.25**-5  # a session at autogroup nice 5 against this one at 0: 1024 / 
 )
 def test_the_crowding_is_the_session_s_share_split_among_its_tasks(c, cpus, threads, expected):
     assert crowding(c, cpus, threads) == pytest.approx(expected, rel=1e-12)
+
+
+BUSY = ((1.0, 1.0),)  # another session with one task runnable throughout
+
+
+@pytest.mark.parametrize(
+    "reading, workers, expected",
+    [
+        (LoadReading(2), 1, 1.0),
+        (LoadReading(2), 2, 2.0),  # idle: a CPU each
+        (LoadReading(2), 4, 2.0),  # 4 x 1 / (4 / 2): four workers on two CPUs add nothing
+        (LoadReading(4), 3, 3.0),
+        # another busy session: the run's session gets one CPU whatever its tasks (autogroups): 2 x 1 / 2
+        (LoadReading(2, Competition(BUSY)), 2, 1.0),
+        # two: two thirds of a CPU with one thread or two, 2 x 1.5 / 3
+        (LoadReading(2, Competition(BUSY * 2)), 2, 1.0),
+        # a session busy half the time leaves 1.5 CPUs to two workers: 2 x 1 / (2 / 1.5)
+        (LoadReading(2, Competition(((1.0, 0.5),))), 2, 1.5),
+        # one at nice 5 (weight 0.328) takes 0.328 / 1.328 of the two CPUs from two workers: 2 x 1 / (1.328 / 1)
+        (LoadReading(2, Competition(((NICE5, 1.0),))), 2, 2.0 / (1.0 + NICE5)),
+        # the load average where the tasks' times cannot be read: 2 x max(1, (5 + 1) / 2) / ((5 + 2) / 2)
+        (LoadReading(2, None, 5.0), 2, 2.0 * 3.0 / 3.5),
+        (LoadReading(2, None, None), 2, 2.0),  # neither: an idle machine
+    ],
+)
+def test_the_pool_s_speed_up_is_the_crowding_of_one_thread_over_that_of_the_workers(reading, workers, expected):
+    assert reading.pool_speedup(workers) == pytest.approx(expected, rel=1e-12)
+
+
+def test_a_pooled_batch_s_first_estimate_falls_with_the_workers_and_rises_with_the_load():
+    """A million plain braking rollouts, as the console prices them: the model's seconds of the stage times one
+    thread's crowding (the slowdown :func:`pemviz.engine.cost.start_reading` gives with speed 1). Idle on 2 CPUs, the
+    second worker takes 1.77 times off (2 / COST.pool_share), more workers nothing; beside two other busy sessions the
+    pool is slower than one process (COST.pool_share: 0.91-1.06 of one worker's speed measured so); each added busy
+    session makes every count of workers slower."""
+    from pemviz.config import ExperimentConfig
+    from pemviz.engine.cost import COST, stage_cost
+
+    def priced(workers: int, sessions: int) -> float:
+        cfg = ExperimentConfig.of(method="mc", n_per_stage=10**6, workers=workers)
+        load = LoadReading(2, Competition(BUSY * sessions))
+        return stage_cost(cfg, "final", 10**6, model="plain", load=load).simulate_s * load.crowding(1)
+
+    idle = [priced(w, 0) for w in (1, 2, 3, 4)]
+    assert idle[0] / idle[1] == pytest.approx(2.0 / COST.pool_share, rel=1e-12)
+    assert idle[0] > idle[1] == pytest.approx(idle[3], rel=1e-12) and idle[1] <= idle[2]
+    assert priced(2, 2) / priced(1, 2) == pytest.approx(COST.pool_share, rel=1e-12)
+    for w in (1, 2, 4):
+        by_load = [priced(w, g) for g in range(5)]
+        assert all(a <= b for a, b in zip(by_load, by_load[1:], strict=False)) and by_load[0] < by_load[-1]
 
 
 def _times(at, tasks, group="/autogroup-1", group_nice=0, nice=0):
