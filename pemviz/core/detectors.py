@@ -209,6 +209,11 @@ class StageSamplers:
         self._window = np.zeros(0, bool)
         """:meth:`window_rows` of the array last asked about."""
         self._logits: tuple[np.ndarray, np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
+        self._by_row = bool(getattr(proposal, "logit_by_row", False))
+        """Whether the proposal's logit of a row is a function of the row's bits alone (:attr:`_last` is kept)."""
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        """The rows last asked about: (their bits uint64 [N, F], their window mask [N], the plain and defensive
+        logits [N]), for a proposal whose logits are row by row."""
         self._noise_obs: np.ndarray | None = None
         self._noise: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.target, self.plain = SamplerView(self, 0), SamplerView(self, 1)
@@ -219,7 +224,7 @@ class StageSamplers:
 
     def forget(self) -> None:
         """Drop the kept evaluations (the proposal changed)."""
-        self._obs = self._noise_obs = self._asked = None
+        self._obs = self._noise_obs = self._asked = self._last = None
 
     @property
     def noisy_target(self) -> NoisyDetector:
@@ -239,21 +244,45 @@ class StageSamplers:
         near = window & np.isfinite(p)  # where the target is certain (an unseen object) it decides
         plain = p.copy()
         defensive = plain
+        bits = np.ascontiguousarray(obs).view(np.uint64) if self._by_row else None
         if near.any():  # the proposal's logit of each distinct row once, where it says which rows are one
+            ask, kept = near, self._unchanged(bits, near)
+            if kept is not None:  # rows as they were at the last step keep their logits (e.g. cars at rest)
+                ask = near & ~kept
+            rows = np.flatnonzero(ask)  # indices: faster than the mask, used three times
             distinct = getattr(self.proposal, "distinct_logit", None)
-            z, inverse = distinct(obs[near]) if distinct is not None else (self.proposal.detect_logit(obs[near]), None)
+            z, inverse = distinct(obs[rows]) if distinct is not None else (self.proposal.detect_logit(obs[rows]), None)
             z = np.asarray(z, dtype=np.float64)
-            plain[near] = z if inverse is None else z[inverse]
+            plain[rows] = z if inverse is None else z[inverse]
             if self.eps > 0.0:
                 defensive = p.copy()
                 d = defensive_logit(z, self.eps)
-                defensive[near] = d if inverse is None else d[inverse]
+                defensive[rows] = d if inverse is None else d[inverse]
+            if kept is not None and self._last is not None:
+                same = np.flatnonzero(kept)
+                plain[same] = self._last[2][same]
+                if self.eps > 0.0:
+                    defensive[same] = self._last[3][same]
         for a in (p, plain, defensive):
             a.flags.writeable = False
+        if bits is not None:
+            self._last = (bits.copy(), near, plain, defensive)
         # a read-only array is kept itself (no copy: it is recognised by identity only, its base may change later)
         self._obs = obs.copy() if obs.flags.writeable else None
         self._asked, self._window, self._logits = obs, window, (p, plain, defensive)
         return self._logits
+
+    def _unchanged(self, bits: np.ndarray | None, near: np.ndarray) -> np.ndarray | None:
+        """bool [N]: the rows (``bits`` uint64 [N, F]) inside the window now and when last asked about, with the same
+        bits as then; None where nothing is kept (a proposal whose logits are not row by row, a first ask or rows of
+        another shape)."""
+        last = self._last
+        if bits is None or last is None or last[0].shape != bits.shape:
+            return None
+        kept = near & last[1]
+        for j in range(bits.shape[1]):  # column by column: faster than a reduction along a short axis
+            kept &= bits[:, j] == last[0][:, j]
+        return kept
 
     def window_rows(self, obs: np.ndarray) -> np.ndarray:
         """bool [N]: the observations [N, F] inside the window, ``floor_m <= gap < radius_m``, where a detection can

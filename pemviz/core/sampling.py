@@ -186,6 +186,13 @@ class Proposal:
         logits, inverse = self._network_distinct(obs)
         return logits if inverse is None else logits[inverse]
 
+    @property
+    def logit_by_row(self) -> bool:
+        """Whether :meth:`detect_logit` of a row is a function of its bits alone, whatever rows are asked with it (the
+        exact network's, not a subclass's own): :class:`pemviz.core.detectors.StageSamplers` then keeps the logits
+        of rows unchanged since the last step."""
+        return type(self).detect_logit is Proposal.detect_logit
+
     def distinct_logit(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """:meth:`detect_logit` of each distinct row of observations [N, F] once (by their bits; from
         :data:`DISTINCT_FROM` rows, where at most 3/4 of them are distinct): (the logits float64 [U], each row's index

@@ -128,17 +128,19 @@ class MixtureWeights:
         (outside their window), else computed there (the components usually differ on the same steps: found once)."""
         for k in range(stacked.shape[1] - 1):
             stacked[:, k + 1] = batch.log_q if k == own else batch.log_p
+        detected = batch.detected[..., 0]
         for row, block in groups:
             where: tuple[np.ndarray, ...] | None = None
             for k in range(block.shape[0] - 1):
                 if k == own:
                     continue
-                differ = (block[k + 1] != block[0]).T  # [r, T]: rollout-major, as written
+                differ = block[k + 1] != block[0]  # [T, r]: step-major, as asked (each entry its own density)
                 if where is None or not np.array_equal(where[0], differ):
-                    i, t = np.nonzero(differ)
-                    where = (differ, i + row, t, batch.detected[i + row, t, 0])
-                _, i, t, detected = where
-                stacked[i, k + 1, t] = action_log_prob(block[k + 1][t, i - row], detected)
+                    t, i = np.nonzero(differ)
+                    i += row
+                    where = (differ, i, t, detected[i, t])
+                _, i, t, taken = where
+                stacked[i, k + 1, t] = action_log_prob(block[k + 1][differ], taken)
 
     def _drawn_by(self, start: int, n: int) -> int | None:
         """The index among :attr:`ScoredTarget.extras` of the component that drew rollouts ``start .. start + n - 1``

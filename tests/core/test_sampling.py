@@ -535,3 +535,56 @@ def test_distinct_rows_are_numpy_s_unique_rows(n, k):
     assert np.array_equal(x[first][inverse].view(np.uint64), x.view(np.uint64))
     assert np.unique(x[first].view(np.uint64), axis=0).shape[0] == first.size  # each representative once
     assert _distinct_rows(rng.normal(size=(n, k))) is None  # all distinct: declined
+
+
+def test_the_samplers_keep_the_logits_of_rows_unchanged_since_the_last_step_and_ask_about_the_others():
+    # rows with the bits they had at the last ask (cars at rest) keep their logits: every row still gets the bits of
+    # the proposal asked about it alone, the network is asked only about the changed rows, a fit forgets what was kept,
+    # and a proposal with a logit of its own (not row by row) is asked about every row
+    from pemviz.core.detectors import StageSamplers
+
+    rng = np.random.default_rng(11)
+    q = StateProposal((0, 1, 2), (20.0, 5.0, 1.0), (50.0, 0.0, 0.0))
+    q.initialise(np.random.default_rng(3))
+    first = np.column_stack([rng.uniform(0.0, 12.0, 600), rng.normal(size=(600, 2))])
+    second = first.copy()
+    moved = rng.random(600) < 0.5
+    second[moved, 0] += 0.25  # half the rows move (some into or out of the window), half stay
+    second[0, 1] = -0.0 if first[0, 1] == 0.0 else 0.0  # a sign of zero is a change of bits
+    asked: list[int] = []
+    network = q._network_distinct
+
+    def counted(obs):
+        asked.append(obs.shape[0])
+        return network(obs)
+
+    q._network_distinct = counted
+    samplers = StageSamplers(q, ConstantDetector(0.3), 10.0, 1.0, 0.1)
+    for obs in (first, second):
+        view = obs.view()
+        view.flags.writeable = False  # as draw_step hands each step's rows over
+        _, plain, defensive = samplers.logits(view)
+        near = (obs[:, 0] >= 1.0) & (obs[:, 0] < 10.0)
+        alone = np.array([network(row[None, :])[0][0] for row in obs[near]])
+        assert np.array_equal(plain[near].view(np.int64), alone.view(np.int64))
+        assert np.array_equal(defensive[near].view(np.int64), defensive_logit(alone, 0.1).view(np.int64))
+    near_1, near_2 = ((o[:, 0] >= 1.0) & (o[:, 0] < 10.0) for o in (first, second))
+    unchanged = near_1 & near_2 & (first.view(np.int64) == second.view(np.int64)).all(axis=1)
+    assert unchanged.sum() > 100 and asked == [near_1.sum(), (near_2 & ~unchanged).sum()]
+    samplers.forget()  # the proposal was fitted: nothing kept
+    samplers.logits(second.copy())
+    assert asked[-1] == near_2.sum()
+
+    class Shifted(StateProposal):
+        def detect_logit(self, obs):
+            return super().detect_logit(obs) + 1.0
+
+    s = Shifted((0, 1, 2), (20.0, 5.0, 1.0), (50.0, 0.0, 0.0))
+    s.initialise(np.random.default_rng(3))
+    assert q.logit_by_row and not s.logit_by_row
+    calls = []
+    shifted = StageSamplers(s, ConstantDetector(0.3), 10.0, 1.0, 0.1)
+    s.detect_logit = lambda obs: calls.append(obs.shape[0]) or Shifted.detect_logit(s, obs)
+    shifted.logits(first)
+    shifted.logits(second)
+    assert calls == [near_1.sum(), near_2.sum()]
