@@ -82,6 +82,9 @@ class Replica:
     cost: int
     failures: int
     verdict: str
+    ess: float = math.nan
+    """The replica's own ESS, 1 / its relative variance from its genealogy (:func:`pemviz.estimators.ams.ams_estimate`;
+    nan in files written before it was kept)."""
 
 
 def streams(seed: int, r: int) -> tuple[np.random.Generator, np.random.Generator]:
@@ -106,7 +109,7 @@ def replica(
         sp.iterate()
     e = sp.estimate()
     p = math.exp(e.log_mu_hat) if e.log_mu_hat > -math.inf else 0.0
-    return Replica(seed, r, n, p, sp.n_simulations, e.n_failures, e.verdict), sp
+    return Replica(seed, r, n, p, sp.n_simulations, e.n_failures, e.verdict, e.ess), sp
 
 
 def intervals(p: np.ndarray, rng: np.random.Generator | None = None) -> dict[str, tuple[float, float]]:
