@@ -83,9 +83,19 @@ def replica(
     return Replica(seed, r, n, p, sp.n_simulations, e.n_failures, e.verdict, e.ess), sp
 
 
-def intervals(p: np.ndarray, rng: np.random.Generator | None = None) -> dict[str, tuple[float, float]]:
-    """The three 95 % intervals of the mean of replicas ``p`` float64 [R] (module docstring), each (low, high) in
-    probability (low may be <= 0 for ``t``: no interval, an upper bound). Needs R >= 2."""
+def own_variances(run: list[Replica]) -> np.ndarray | None:
+    """Each replica's own relative variance 1 / ESS (its genealogy's; 0 with no failure), float64 [R]; None when a
+    file predates it."""
+    ess = np.array([x.ess for x in run])
+    return None if np.isnan(ess).any() else np.where(ess > 0, 1.0 / np.where(ess > 0, ess, 1.0), 0.0)
+
+
+def intervals(
+    p: np.ndarray, rng: np.random.Generator | None = None, v: np.ndarray | None = None
+) -> dict[str, tuple[float, float]]:
+    """The 95 % intervals of the mean of replicas ``p`` float64 [R] (module docstring), each (low, high) in
+    probability (low may be <= 0 for ``t``: no interval, an upper bound); with the replicas' own relative variances
+    ``v`` [R] also ``pemviz``'s (the log-t one no narrower than their genealogies say). Needs R >= 2."""
     r = p.size
     mean, sd = float(p.mean()), float(p.std(ddof=1))
     t = float(stats.t.ppf(0.5 + LEVEL / 2.0, r - 1))
@@ -93,6 +103,9 @@ def intervals(p: np.ndarray, rng: np.random.Generator | None = None) -> dict[str
     out = {"t": (mean - t * se, mean + t * se)}
     lo, hi = replicas_interval(p)[0]
     out["log-t"] = (math.exp(lo), math.exp(hi)) if mean > 0 else (0.0, 0.0)
+    if v is not None:
+        lo, hi = replicas_interval(p, v)[0]
+        out["pemviz"] = (math.exp(lo), math.exp(hi)) if mean > 0 else (0.0, 0.0)
     rng = rng or np.random.default_rng(0)
     b = p[rng.integers(r, size=(BOOT, r))]
     bse = b.std(axis=1, ddof=1) / math.sqrt(r)
@@ -125,9 +138,9 @@ def groups(reps: list[Replica], size: int, by_seed: bool) -> list[list[Replica]]
 def table(runs: list[list[Replica]], p_true: float, show: bool = True) -> dict[str, float]:
     """Per run (a group of replicas) its p_bar and intervals against ``p_true``; returns the study's row."""
     errors, within, cost = [], 0, []
-    held = {"t": 0, "log-t": 0, "boot-t": 0}
+    held = {"t": 0, "log-t": 0, "boot-t": 0, "pemviz": 0}
     printed = dict.fromkeys(held, 0)
-    reliable_out = reliable = 0
+    reliable_out = reliable = reliable_held = 0
     for i, run in enumerate(runs):
         p = np.array([x.p_hat for x in run])
         mean = float(p.mean())
@@ -139,16 +152,18 @@ def table(runs: list[list[Replica]], p_true: float, show: bool = True) -> dict[s
             reliable += run[0].verdict == "reliable"
             reliable_out += run[0].verdict == "reliable" and not 0.5 <= ratio <= 2.0
             continue
-        ivs = intervals(p, np.random.default_rng(i))
+        ivs = intervals(p, np.random.default_rng(i), own_variances(run))
         for name, (lo, hi) in ivs.items():
             backed = lo > 0 and hi > lo
             printed[name] += backed
             held[name] += backed and lo <= p_true <= hi
-        said = replicas_interval(p)[1]
+        said = replicas_interval(p, own_variances(run))[1]
         reliable += said == "reliable"
         reliable_out += said == "reliable" and not 0.5 <= ratio <= 2.0
+        lo, hi = ivs.get("pemviz", ivs["log-t"])
+        reliable_held += said == "reliable" and lo <= p_true <= hi
         if show:
-            lo, hi = ivs["log-t"]
+            lo, hi = ivs.get("pemviz", ivs["log-t"])
             print(
                 f"seed {run[0].seed}: p_bar {mean:.3e} (x{ratio:.2f}) [{lo:.3e}, {hi:.3e}] {said}; replicas/p "
                 + " ".join(f"{x.p_hat / p_true:.2f}" for x in run)
@@ -182,7 +197,8 @@ def table(runs: list[list[Replica]], p_true: float, show: bool = True) -> dict[s
     print(
         f"R = {len(runs[0])} x N = {runs[0][0].n}, {len(runs)} runs: median rel. error {m:.3f}; within x2 {within}/"
         f"{len(runs)}; intervals holding (held/printed) t {held['t']}/{printed['t']}, log-t {held['log-t']}/"
-        f"{printed['log-t']}, boot-t {held['boot-t']}/{printed['boot-t']}; reliable {reliable}, outside x2 "
+        f"{printed['log-t']}, boot-t {held['boot-t']}/{printed['boot-t']}, pemviz {held['pemviz']}/"
+        f"{printed['pemviz']}; reliable {reliable} (holding p {reliable_held}), outside x2 "
         f"{reliable_out}; cost {row['cost']:,.0f}; plain MC for that error {plain:,.0f}; ratio {row['ratio']:.3f}; "
         f"mean p_bar/p {row['mean ratio']:.3f}"
     )

@@ -316,10 +316,14 @@ def replica_streams(seed: int, r: int) -> tuple[np.random.Generator, np.random.G
     return np.random.default_rng((seed, REPLICA_STREAM, r)), np.random.default_rng((seed, REPLICA_STREAM + 1, r))
 
 
-def replicas_interval(p: np.ndarray) -> tuple[tuple[float, float], str, str]:
+def replicas_interval(p: np.ndarray, v: np.ndarray | None = None) -> tuple[tuple[float, float], str, str]:
     """The :data:`CI_LEVEL` interval of the mean p_bar of R >= 2 independent runs' estimates ``p`` float64 [R] (nats,
-    (-inf, 0) when every run is 0), its verdict and why: the delta method on log p_bar, ``log p_bar -+ t_{R-1} s /
-    (sqrt(R) p_bar)``, s the runs' sample standard deviation, t Student's quantile with R - 1 degrees of freedom.
+    (-inf, 0) when every run is 0), its verdict and why: the delta method on log p_bar, ``log p_bar -+ t_{R-1}
+    sqrt(w)``, t Student's quantile with R - 1 degrees of freedom and w p_bar's relative variance, the larger of the
+    runs' spread, s^2 / (R p_bar^2) (s their sample standard deviation), and, given each run's own relative variance
+    ``v`` float64 [R] (its genealogy's, :func:`ams_estimate`), their sum sum_r p_r^2 v_r / (R p_bar)^2: R runs that
+    happen to agree (the mass of p_hat sits in rare large runs) do not make the interval narrower than each run's
+    genealogy says.
 
     Verdict: ``unreliable`` when every run is 0; ``reliable`` with R >= :data:`MIN_REPLICAS`, at most one run 0, a
     positive spread and the runs' effective count (sum p)^2 / sum p^2 >= :data:`MIN_SPREAD_ESS` (the mean not carried
@@ -329,6 +333,8 @@ def replicas_interval(p: np.ndarray) -> tuple[tuple[float, float], str, str]:
     if mean == 0.0:
         return (-math.inf, 0.0), "unreliable", f"AMS: no failure in {r} runs"
     rel = float(p.std(ddof=1)) / (math.sqrt(r) * mean)
+    if v is not None:
+        rel = max(rel, math.sqrt(float(np.square(p) @ np.where(p > 0.0, v, 0.0))) / (r * mean))
     half = float(stdtrit(r - 1, 0.5 + CI_LEVEL / 2.0)) * rel
     spread_ess = mean**2 * r / float(np.square(p).mean())
     zeros = int(np.count_nonzero(p == 0.0))
@@ -346,7 +352,7 @@ def replicas_estimate(replicas: list[Estimate]) -> Estimate:
     Markov's over the runs."""
     p = np.array([math.exp(e.log_mu_hat) for e in replicas])
     n, nf = sum(e.n for e in replicas), sum(e.n_failures for e in replicas)
-    (lo, hi), verdict, why = replicas_interval(p)
+    (lo, hi), verdict, why = replicas_interval(p, np.array([1.0 / e.ess if e.ess > 0 else 0.0 for e in replicas]))
     if verdict == "unreliable":
         return dataclasses.replace(replicas[0], n=n, n_failures=nf, reason=why)
     w = np.array([e.n_failures for e in replicas], dtype=np.float64) / nf

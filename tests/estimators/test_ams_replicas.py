@@ -71,3 +71,19 @@ def test_interval_and_verdict_by_hand():
     assert replicas_interval(np.array([0.0, 0.0, 3.0, 4.0]))[1] == "doubtful"
     assert replicas_interval(np.array([1e-3, 1e-6, 1e-6, 1e-6]))[1] == "doubtful"  # effective runs 1.006
     assert replicas_interval(np.zeros(4)) == ((-math.inf, 0.0), "unreliable", "AMS: no failure in 4 runs")
+
+
+def test_the_runs_own_variances_floor_the_interval_by_hand():
+    """Four runs that agree, p = (1, 1, 1, 1), each with its genealogy's relative variance 0.25: their spread is 0
+    (no interval, doubtful) but p_bar's relative variance is at least 4 x 0.25 / 4^2 = 1 / 16, so the interval is
+    exp(-+ 3.1824 x 0.25) = [0.4513, 2.2157], reliable; a spread wider than the floor is kept ((1, 2, 3, 4) as
+    above with v = 0.1: sqrt(30 x 0.1) / (4 x 2.5) = 0.173 < 0.258), a narrower one is not (v = 0.25: 0.274)."""
+    same = np.ones(4)
+    assert replicas_interval(same)[1] == "doubtful"
+    (lo, hi), verdict, _ = replicas_interval(same, np.full(4, 0.25))
+    np.testing.assert_allclose(np.exp([lo, hi]), (0.4513, 2.2157), atol=2e-4)
+    assert verdict == "reliable"
+    wide = np.array([1.0, 2.0, 3.0, 4.0])
+    assert replicas_interval(wide, np.full(4, 0.1))[0] == replicas_interval(wide)[0]
+    lo, hi = replicas_interval(wide, np.full(4, 0.25))[0]
+    assert (hi - lo) / 2.0 == pytest.approx(3.1824 * math.sqrt(7.5) / 10.0, abs=1e-4)
