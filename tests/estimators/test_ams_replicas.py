@@ -22,16 +22,16 @@ def _pool(seeds: range, replicas: int) -> np.ndarray:
     )  # fmt: skip
 
 
-def test_the_engine_runs_replica_zero_as_the_one_run_and_each_replica_from_streams_of_its_own():
+@pytest.mark.parametrize("score", ["robustness", "lookahead"])
+def test_the_engine_runs_replica_zero_as_the_one_run_and_each_replica_from_streams_of_its_own(score):
     """R = 3 through the engine: replica 0 is the R = 1 run bit for bit, replica r is ``run_ams(replica=r)`` bit
     for bit, no two replicas draw the same particles; the run counts every replica's rollout-equivalents and the
     estimate is their mean."""
     pb = build_problem("toy-1e-3")
-    one = Experiment(ExperimentConfig.of(method="ams", n_per_stage=100, ams_killed=10, seed=7), problem=pb).run()
-    cfg = ExperimentConfig.of(method="ams", n_per_stage=100, ams_killed=10, seed=7, ams_replicas=3)
-    exp = Experiment(cfg, problem=pb)
-    three = exp.run()
-    direct = [run_ams(pb, 100, 10, seed=7, replica=r) for r in range(3)]
+    cfg = ExperimentConfig.of(method="ams", n_per_stage=100, ams_killed=10, seed=7, ams_score=score)
+    one = Experiment(cfg, problem=pb).run()
+    three = Experiment(cfg.replace(ams_replicas=3), problem=pb).run()
+    direct = [run_ams(pb, 100, 10, seed=7, score=score, replica=r) for r in range(3)]
     assert direct[0].estimate().log_mu_hat == one.final.estimate.log_mu_hat
     assert direct[0].n_simulations == one.final.n_simulations
     p = np.array([math.exp(d.estimate().log_mu_hat) for d in direct])
