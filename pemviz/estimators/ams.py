@@ -355,15 +355,15 @@ def replicas_estimate(replicas: list[Estimate]) -> Estimate:
     (lo, hi), verdict, why = replicas_interval(p, np.array([1.0 / e.ess if e.ess > 0 else 0.0 for e in replicas]))
     if verdict == "unreliable":
         return dataclasses.replace(replicas[0], n=n, n_failures=nf, reason=why)
-    w = np.array([e.n_failures for e in replicas], dtype=np.float64) / nf
-    on = w > 0
+    failing = [e for e in replicas if e.n_failures]
+    w = np.array([e.n_failures for e in failing], dtype=np.float64) / nf
     z = float(stdtrit(p.size - 1, 0.5 + CI_LEVEL / 2.0))
     return Estimate(
         n,
         nf,
         (lo + hi) / 2.0,
-        float(w[on] @ [e.nll_mean for e, o in zip(replicas, on, strict=True) if o]),
-        -float(logsumexp([-e.nll_lme for e, o in zip(replicas, on, strict=True) if o], b=w[on])),
+        float(w @ [e.nll_mean for e in failing]),
+        -float(logsumexp([-e.nll_lme for e in failing], b=w)),
         (2.0 * z / (hi - lo)) ** 2 if hi > lo else math.inf,
         (lo, hi),
         math.nan,
