@@ -16,10 +16,8 @@ from pemviz.scenarios.problems import build_problem
 def _pool(seeds: range, replicas: int) -> np.ndarray:
     """p_hat / p of toy-1e-3 (exact 1e-3) replicas [seeds, replicas], N = 100, k = 10, ranked by the robustness."""
     pb = build_problem("toy-1e-3")
-    return np.array(
-        [[math.exp(run_ams(pb, 100, 10, s, replica=r).estimate().log_mu_hat) / 1e-3 for r in range(replicas)]
-         for s in seeds]
-    )  # fmt: skip
+    logs = [[run_ams(pb, 100, 10, s, replica=r).estimate().log_mu_hat for r in range(replicas)] for s in seeds]
+    return np.exp(np.array(logs)) / 1e-3
 
 
 @pytest.mark.parametrize("score", ["robustness", "lookahead"])
