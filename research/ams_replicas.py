@@ -11,7 +11,9 @@ Intervals compared (:func:`intervals`; their coverage measured by ``--coverage``
 - ``t``: Student-t on p_bar, ``p_bar -+ t_{R-1} s / sqrt(R)`` (a lower end <= 0 backs no interval: a bound only);
 - ``log-t`` (chosen, pemviz's: it always backs an interval and covers best, below): the same relative half-width on
   the log scale (delta method), ``p_bar exp(-+ t_{R-1} s / (sqrt(R) p_bar))``, always positive;
-- ``boot-t``: a bootstrap-t (studentised) interval of the mean, 2,000 resamples of the R replicas.
+- ``boot-t``: a bootstrap-t (studentised) interval of the mean, 2,000 resamples of the R replicas;
+- ``pemviz`` (what ``--ams-replicas`` prints; files that keep each replica's ``ess``): log-t with p_bar's relative
+  variance at least the replicas' own genealogies', sum_r p_r^2 v_r / (R p_bar)^2.
 
 Measured (docs/validation.md, "Splitting with independent replicas"): the delta-method interval holds the exact
 answer in 93 % of 1,050 runs (toy-1e-3 and the crowd, R = 4 and 8), Student-t on p_bar in 82 %, the bootstrap-t in 74
