@@ -170,7 +170,10 @@ RUNGS: tuple[Rung, ...] = (
         "3.00e-6 (seed 0's 10^6: 3 failures, the same 3 rollouts as at 11 m/s^2, crashes the brake never starts for); "
         "the earlier "
         "trigger takes it to 7.5e-7; splitting ranked by the look-ahead (--method ams --ams-score lookahead --n 400 "
-        "--ams-killed 40, seed 1) gave 7.2e-7 at brake_mps2=10, doubtful, ESS 1.2",
+        "--ams-killed 40, seed 1) gave 7.2e-7 at brake_mps2=10, doubtful, ESS 1.2; a second estimator, the same "
+        "splitting with --ams-replicas 4 at this rung (seeds 1-9 and 2 replicas of seed 10: 38 replicas, 614,000 "
+        "rollout-equivalents, research/ams_replicas.py), pooled 1.40e-6 [7.6e-7, 2.6e-6], whose interval meets plain "
+        "Monte Carlo's on [7.6e-7, 1.2e-6]: they agree, barely (3 of the 38 replicas carry half the sum)",
         "plain Monte Carlo at 5 % needs 400 failures, about 5.3e8 rollouts at 7.5e-7: "
         + CROSSING_MC.format("brake_mps2=10 --param brake_ttc_s=2.0", "2000000")
         + " --workers 1 for S = 1..267: about 13 core-hours",

@@ -314,7 +314,8 @@ def test_the_state_methods_settings_are_its_own_and_recorded_where_runs_always_r
         True,
     )
     keys = list(ExperimentConfig.of().flat())
-    assert keys[-4:] == ["ams_score", "state_share", "state_model", "state_fit_errors"] and list(cfg.flat()) == keys
+    assert keys[-5:] == ["ams_score", "ams_replicas", "state_share", "state_model", "state_fit_errors"]
+    assert list(cfg.flat()) == keys
     assert [cfg.flat()[k] for k in keys[-3:]] == [0.3, "network", False]
     assert [ExperimentConfig.of(method=m).flat()[k] for m in ("mc", "ams") for k in keys[-3:]] == [
         0.1,
@@ -360,6 +361,7 @@ def test_an_estimator_gives_its_own_settings_with_the_values_it_was_built_with()
         "ams_killed": 7,
         "ams_max_iterations": 10_000,
         "ams_score": "robustness",
+        "ams_replicas": 1,
     }
 
 

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
-from scipy.special import logsumexp, ndtri
+from scipy.special import logsumexp, ndtri, stdtrit
 
 from pemviz import stl
 from pemviz.config import ExperimentConfig
@@ -57,6 +57,14 @@ from pemviz.methods import SPLITTING_METHOD
 from pemviz.methods.ams import AMS_STAGE
 from pemviz.settings import settings_of
 
+REPLICA_STREAM = 10
+"""Replica r >= 1 of a run of seed s draws from ``(s, REPLICA_STREAM, r)`` and picks survivors from ``(s,
+REPLICA_STREAM + 1, r)``: apart from the first run's ``s`` and ``(s, 1)`` and the learned score's ``(s, 2)``, ``(s,
+3)``."""
+MIN_REPLICAS = 4
+"""The fewest runs whose spread backs a ``reliable`` verdict (:func:`replicas_estimate`)."""
+MIN_SPREAD_ESS = 2.0
+"""The least effective number of runs (sum p)^2 / sum p^2 for ``reliable``: below it one run carries the mean."""
 SCORE_FLOOR = 1e-12
 """The least graded score of a prefix that has not failed: a state whose committor rounds to 1 stays above the failure
 threshold 0."""
@@ -300,6 +308,72 @@ def ams_estimate(
     )  # unbiased, stopped early or not: Markov's bound
 
 
+def replica_streams(seed: int, r: int) -> tuple[np.random.Generator, np.random.Generator]:
+    """Replica r's detection and survivor streams: ``seed`` and ``(seed, 1)`` for r = 0 (the run of one splitting),
+    ``(seed, REPLICA_STREAM, r)`` and ``(seed, REPLICA_STREAM + 1, r)`` for r >= 1."""
+    if r == 0:
+        return np.random.default_rng(seed), np.random.default_rng((seed, 1))
+    return np.random.default_rng((seed, REPLICA_STREAM, r)), np.random.default_rng((seed, REPLICA_STREAM + 1, r))
+
+
+def replicas_interval(p: np.ndarray, v: np.ndarray | None = None) -> tuple[tuple[float, float], str, str]:
+    """The :data:`CI_LEVEL` interval of the mean p_bar of R >= 2 independent runs' estimates ``p`` float64 [R] (nats,
+    (-inf, 0) when every run is 0), its verdict and why: the delta method on log p_bar, ``log p_bar -+ t_{R-1}
+    sqrt(w)``, t Student's quantile with R - 1 degrees of freedom and w p_bar's relative variance, the larger of the
+    runs' spread, s^2 / (R p_bar^2) (s their sample standard deviation), and, given each run's own relative variance
+    ``v`` float64 [R] (its genealogy's, :func:`ams_estimate`), their sum sum_r p_r^2 v_r / (R p_bar)^2: R runs that
+    happen to agree (the mass of p_hat sits in rare large runs) do not make the interval narrower than each run's
+    genealogy says.
+
+    Verdict: ``unreliable`` when every run is 0; ``reliable`` with R >= :data:`MIN_REPLICAS`, at most one run 0, a
+    positive spread and the runs' effective count (sum p)^2 / sum p^2 >= :data:`MIN_SPREAD_ESS` (the mean not carried
+    by one run); else ``doubtful``.
+    """
+    r, mean = p.size, float(p.mean())
+    if mean == 0.0:
+        return (-math.inf, 0.0), "unreliable", f"AMS: no failure in {r} runs"
+    rel = float(p.std(ddof=1)) / (math.sqrt(r) * mean)
+    if v is not None:
+        rel = max(rel, math.sqrt(float(np.square(p) @ np.where(p > 0.0, v, 0.0))) / (r * mean))
+    half = float(stdtrit(r - 1, 0.5 + CI_LEVEL / 2.0)) * rel
+    spread_ess = mean**2 * r / float(np.square(p).mean())
+    zeros = int(np.count_nonzero(p == 0.0))
+    ok = r >= MIN_REPLICAS and zeros <= 1 and rel > 0.0 and spread_ess >= MIN_SPREAD_ESS
+    why = f"AMS: the mean of {r} runs ({zeros} with no failure), {spread_ess:.1f} effective"
+    return (math.log(mean) - half, math.log(mean) + half), "reliable" if ok else "doubtful", why
+
+
+def replicas_estimate(replicas: list[Estimate]) -> Estimate:
+    """The mean p_bar = (1 / R) sum_r p_hat_r of R >= 2 independent splitting runs' estimates ``replicas`` (a run
+    with no failure counts 0), unbiased as each p_hat_r is (Brehier et al. 2016), with the interval and verdict of
+    :func:`replicas_interval`: a spread that rests on no genealogy (Cerou, Guyader, Lelievre & Pommier, "A multiple
+    replica approach to simulate reactive trajectories", J. Chem. Phys. 134, 2011). ``ess`` is 1 / the relative
+    variance of p_bar, the failures a Monte Carlo sample of the same relative error would hold; the lower bound is
+    Markov's over the runs."""
+    p = np.array([math.exp(e.log_mu_hat) for e in replicas])
+    n, nf = sum(e.n for e in replicas), sum(e.n_failures for e in replicas)
+    (lo, hi), verdict, why = replicas_interval(p, np.array([1.0 / e.ess if e.ess > 0 else 0.0 for e in replicas]))
+    if verdict == "unreliable":
+        return dataclasses.replace(replicas[0], n=n, n_failures=nf, reason=why)
+    failing = [e for e in replicas if e.n_failures]
+    w = np.array([e.n_failures for e in failing], dtype=np.float64) / nf
+    z = float(stdtrit(p.size - 1, 0.5 + CI_LEVEL / 2.0))
+    return Estimate(
+        n,
+        nf,
+        (lo + hi) / 2.0,
+        float(w @ [e.nll_mean for e in failing]),
+        -float(logsumexp([-e.nll_lme for e in failing], b=w)),
+        (2.0 * z / (hi - lo)) ** 2 if hi > lo else math.inf,
+        (lo, hi),
+        math.nan,
+        0.0,
+        verdict,
+        why,
+        markov_logs=tuple(e.log_mu_hat for e in replicas) if np.all(p > 0) else ((lo + hi) / 2.0,),
+    )
+
+
 class AdaptiveMultilevelSplitting(OwnsSettings):
     """AMS (module docstring) as an engine estimator (``method = "ams"``).
 
@@ -326,23 +400,24 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
             raise ValueError(f"method ams needs a safety formula G[a,b](state predicate); {problem.name} has {f}")
         self.config, self.problem = config, problem
         self.check: Check = check or (lambda: None)
-        self.rng = np.random.default_rng(config.seed)
-        self.ams = Splitting(
-            problem,
-            config.ams.ams_killed,
-            config.ams.ams_max_iterations,
-            self.rng,
-            np.random.default_rng((config.seed, 1)),
-            committor_score(problem, config.ams.ams_score),
-        )
-        self._stage = -1
+        self.replicas: list[tuple[Estimate, int]] = []
+        """The finished replicas' estimates and rollout-equivalents."""
+        self._start_replica(0)
+        self._stage = self._first = -1
         self._initial: list[RolloutBatch] = []
         self._graded: np.ndarray | None = None
+
+    def _start_replica(self, r: int, score: GradedScore | None = None) -> None:
+        """Replica r's splitting, drawn from :func:`replica_streams` and ranked by ``score`` (None: ``ams_score``)."""
+        cfg = self.config
+        self.rng, pick = replica_streams(cfg.seed, r)
+        score = score or committor_score(self.problem, cfg.ams.ams_score)
+        self.ams = Splitting(self.problem, cfg.ams.ams_killed, cfg.ams.ams_max_iterations, self.rng, pick, score)
 
     @property
     def n_simulations(self) -> int:
         """Rollout-equivalents simulated (module docstring); the engine reports this, not its count of batches."""
-        return self.ams.n_simulations
+        return self.ams.n_simulations + sum(sims for _, sims in self.replicas)
 
     @staticmethod
     def run_plan(config: ExperimentConfig) -> RunPlan:
@@ -354,11 +429,21 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
 
     def next_stage(self) -> StagePlan | None:
         if self._stage >= 0 and self.ams.stop:
-            return None
+            if len(self.replicas) + 1 >= self.config.ams.ams_replicas:
+                return None
+            self.replicas.append((self.ams.estimate(), self.ams.n_simulations))
+            self._start_replica(len(self.replicas))
         self._stage += 1
+        if self.ams.particles is None:
+            self._first = self._stage
         n = self.config.n_per_stage
         first = None if self.ams.scorer is None else self._initial_scored
-        return StagePlan(self._stage, AMS_STAGE, n, self.problem.target, first if self._stage == 0 else self._iterate)
+        return StagePlan(self._stage, AMS_STAGE, n, self.problem.target, first if self._is_first else self._iterate)
+
+    @property
+    def _is_first(self) -> bool:
+        """Whether this stage draws a replica's initial particles."""
+        return self._stage == self._first
 
     def _initial_scored(self, rng: np.random.Generator) -> RolloutBatch:
         """The N initial particles drawn by the graded score (their scores kept for :meth:`finish`)."""
@@ -376,12 +461,12 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         return self.ams.particles
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
-        if self._stage == 0:  # the initial particles, possibly in chunks (a streamed stage)
+        if self._is_first:  # the initial particles, possibly in chunks (a streamed stage)
             self._initial.append(batch)
         return np.zeros(batch.n)  # drawn from the target itself: every importance weight is 1
 
     def finish(self) -> StageOutcome:
-        if self._stage == 0:
+        if self._is_first:
             self.ams.start(
                 RolloutBatch.concatenate(self._initial) if len(self._initial) > 1 else self._initial[0], self._graded
             )
@@ -391,7 +476,9 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         return StageOutcome(self.ams.level, int(failed.sum()), self.ams.estimate(), nan, nan)
 
     def result(self) -> tuple[Estimate, tuple[int, ...]]:
-        return self.ams.estimate(), (self._stage,)
+        """The run's estimate: its one splitting's, or the mean of ``ams_replicas`` (:func:`replicas_estimate`)."""
+        last = self.ams.estimate()
+        return (replicas_estimate([*(e for e, _ in self.replicas), last]) if self.replicas else last), (self._stage,)
 
 
 def committor_score(problem: Problem, score: str) -> GradedScore | None:
@@ -427,11 +514,12 @@ def run_ams(
     seed: int = 0,
     max_iterations: int = 100_000,
     score: str | GradedScore = "robustness",
+    replica: int = 0,
 ) -> Splitting:
     """One whole AMS run without the engine (for studies and tests): N particles from ``problem.target``, seeded
-    like ``method = "ams"`` with ``seed`` and ranked by ``score`` (an ``ams_score`` name, or a study's own
-    :class:`GradedScore`, which then draws the particles); returns the finished :class:`Splitting`
-    (``.estimate()``, ``.n_simulations``).
+    like ``method = "ams"`` with ``seed`` (replica ``replica`` of it: :func:`replica_streams`) and ranked by ``score``
+    (an ``ams_score`` name, or a study's own :class:`GradedScore`, which then draws the particles); returns the
+    finished :class:`Splitting` (``.estimate()``, ``.n_simulations``).
 
     Raises:
         ValueError: as :class:`AdaptiveMultilevelSplitting`.
@@ -445,9 +533,8 @@ def run_ams(
         ams_score=score if isinstance(score, str) else "robustness",
     )
     est = AdaptiveMultilevelSplitting(cfg, problem)
-    if not isinstance(score, str):  # a study's own score: the method's streams, this score
-        est.rng = np.random.default_rng(seed)
-        est.ams = Splitting(problem, killed, max_iterations, est.rng, np.random.default_rng((seed, 1)), score)
+    if replica or not isinstance(score, str):  # another replica's streams, or a study's own score
+        est._start_replica(replica, None if isinstance(score, str) else score)
     if est.ams.scorer is not None:
         est.ams.start(*est.ams.scorer.simulate(n, est.rng))
     else:

@@ -50,7 +50,12 @@ def ams(cfg: Any, plan: Any, window: str) -> str:
         "(Cerou & "
         f"Guyader 2007): N = {cfg.n_per_stage} "
         f"PEM rollouts, the k = {cfg.ams.ams_killed} highest killed per iteration and branched from survivors; "
-        "each stage shows the particles after about N resamplings."
+        "each stage shows the particles after about N resamplings"
+        + (
+            f"; {cfg.ams.ams_replicas} such runs from streams of their own, their mean."
+            if cfg.ams.ams_replicas > 1
+            else "."
+        )
     )
 
 
