@@ -1,8 +1,7 @@
 """Checkers for what a user plugs into pemviz (as Gymnasium's ``check_env``): :func:`check_simulator` runs a
 simulator through the ``Simulator`` protocol and :func:`check_estimator` drives an estimator through the
 ``Estimator`` interface of :mod:`pemviz.estimators.base` as the engine does; each raises :class:`CheckError` naming
-the first thing wrong. Cheap, for a user's own test suite.
-"""
+the first thing wrong. Cheap, for a user's own test suite."""
 
 from __future__ import annotations
 
@@ -209,8 +208,7 @@ def check_estimator(
         the estimate of the first run.
     Raises:
         CheckError: the first rule broken, e.g. ``check_estimator: observe() at stage 1 must return float64 [200] ...``.
-        ValueError: an unknown ``metric``, or ``max_relative_error`` without an exact answer on ``problem``.
-    """
+        ValueError: an unknown ``metric``, or ``max_relative_error`` without an exact answer on ``problem``."""
     if metric not in METRICS:
         raise ValueError(f"check_estimator: metric {metric!r}; use one of {', '.join(METRICS)}")
     if max_relative_error is not None and problem.exact_log_p is None:

@@ -1,8 +1,7 @@
 """Confidence intervals and lower confidence bounds of a failure probability, as natural logs: the exact interval of
 plain Monte Carlo's failure count, the log-scale interval of an importance-sampling mean widened by the weights'
 Pareto tail, and lower bounds that hold whatever that tail (testing by betting; Markov's inequality on independent
-runs' estimates). :class:`pemviz.core.estimate.Estimate` reports them.
-"""
+runs' estimates). :class:`pemviz.core.estimate.Estimate` reports them."""
 
 from __future__ import annotations
 
@@ -54,8 +53,7 @@ def log_mean_interval(log_y: np.ndarray, khat: float = math.nan) -> tuple[float,
     importance-sampling mean falls short of mu with a small se until the run draws the weights that carry mu
     (Chatterjee & Diaconis, "The sample size required in importance sampling", Ann. Appl. Probab. 28(2), 2018), so
     with a heavy tail a symmetric interval misses mu from below far more often than 2.5 % (:data:`TAIL_QUANTILES`);
-    nan ``khat``: c = t_{N-1}. Computed in log space.
-    """
+    nan ``khat``: c = t_{N-1}. Computed in log space."""
     from scipy.special import logsumexp
 
     n = log_y.size
@@ -76,8 +74,7 @@ def clopper_pearson(n_failures: int, n: int, level: float = CI_LEVEL) -> tuple[f
     root finder's 1e-7, without importing scipy.stats (0.8 s).
 
     Raises:
-        ValueError: ``n`` < 1, ``n_failures`` outside 0..n, or ``level`` outside (0, 1).
-    """
+        ValueError: ``n`` < 1, ``n_failures`` outside 0..n, or ``level`` outside (0, 1)."""
     from scipy.special import betaincinv
 
     k, n = int(n_failures), int(n)
@@ -122,8 +119,7 @@ class BettingEvidence:
     of log X_i > -inf rounded down to :data:`BET_BIN_NATS` (``log_x`` float64 [U], nats), how many terms have each
     (``counts`` int64 [U]), and N (``n``).
 
-    Built by :meth:`of`; the wealth of a fraction lambda does not depend on the terms' order, so the counts suffice.
-    """
+    Built by :meth:`of`; the wealth of a fraction lambda does not depend on the terms' order, so the counts suffice."""
 
     log_x: np.ndarray
     counts: np.ndarray

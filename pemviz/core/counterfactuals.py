@@ -97,8 +97,7 @@ def counterfactuals(
     Returns:
         :class:`Counterfactuals`, its interventions in step and object order, misses before errors at a step.
     Raises:
-        ValueError: the problem cannot replay (no ``branch``), or rollout ``index`` did not fail.
-    """
+        ValueError: the problem cannot replay (no ``branch``), or rollout ``index`` did not fail."""
     from pemviz import stl
 
     if problem.branch is None:
@@ -170,8 +169,7 @@ class LikelyFailure:
         rollout: its number in the stage (``event.rollout_numbers[row]``: the row, except in a streamed stage,
             whose listeners see a sample of its rollouts).
         log_p: its log p under the PEM (nats; :func:`failure_log_p`): the log-probability of its detections plus,
-            where the PEM mislocates, the log-density of its measurement errors (:func:`failure_log_p_parts`).
-    """
+            where the PEM mislocates, the log-density of its measurement errors (:func:`failure_log_p_parts`)."""
 
     stage: int
     row: int
@@ -187,8 +185,7 @@ def failure_log_p(batch: RolloutBatch, failed: np.ndarray) -> np.ndarray:
     (:func:`failure_log_p_parts`).
 
     Raises:
-        ValueError: ``failed`` is not of shape [N].
-    """
+        ValueError: ``failed`` is not of shape [N]."""
     failed = np.asarray(failed, dtype=bool)
     if failed.shape != (batch.n,):
         raise ValueError(f"failure_log_p: failed needs shape ({batch.n},), got {failed.shape}")
@@ -247,8 +244,7 @@ class LogPParts:
     Attributes:
         detections: the log-probability of its detections and misses (nats, <= 0).
         errors: the log-density of its detected objects' measurement errors (nats, with the errors in metres; can be
-            positive), or None where the detector does not mislocate.
-    """
+            positive), or None where the detector does not mislocate."""
 
     detections: float
     errors: float | None = None

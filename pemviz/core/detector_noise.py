@@ -1,8 +1,7 @@
 """Detectors' measurement errors: the location-scale families a detected object's error is drawn from, their
 quantiles and log densities in closed form, and the helpers that draw and score the errors of a
 :class:`~pemviz.core.detectors.NoisyDetector` (through :class:`ErrorModelOf` wrappers). Re-exported by
-:mod:`pemviz.core.detectors`.
-"""
+:mod:`pemviz.core.detectors`."""
 
 from __future__ import annotations
 
@@ -31,8 +30,7 @@ def standard_quantile(family: str, df: np.ndarray | None, u: np.ndarray) -> np.n
     from :func:`pemviz.core.t_quantile.student_t_quantile`, others from ``stdtrit``.
 
     Raises:
-        ValueError: an unknown family.
-    """
+        ValueError: an unknown family."""
     from scipy.special import ndtri, stdtrit
 
     _check_family(family)
@@ -56,8 +54,7 @@ def standard_log_density(family: str, df: np.ndarray | None, z: np.ndarray) -> n
     """log f(z) of the standard ``family`` (nats), float64, in closed form (see :func:`standard_quantile`).
 
     Raises:
-        ValueError: an unknown family.
-    """
+        ValueError: an unknown family."""
     _check_family(family)
     z = np.asarray(z, dtype=np.float64)
     if family == "normal":
@@ -88,8 +85,7 @@ def noise_quantile(
     that an error is the same on every CPU (numpy's vector exp rounds its last bit by the CPU).
 
     Raises:
-        ValueError: an unknown family.
-    """
+        ValueError: an unknown family."""
     z = standard_quantile(family, df, u)
     return np.asarray(loc, dtype=np.float64) + exact.exp(np.asarray(log_scale, dtype=np.float64)) * z
 
@@ -101,8 +97,7 @@ def noise_log_density(
     whose components are independent of a location-scale family.
 
     Raises:
-        ValueError: an unknown family.
-    """
+        ValueError: an unknown family."""
     z = (np.asarray(noise, dtype=np.float64) - loc) * exact.exp(-np.asarray(log_scale, dtype=np.float64))
     return row_sum(standard_log_density(family, df, z) - log_scale)
 

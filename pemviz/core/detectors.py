@@ -1,8 +1,7 @@
 """Detectors: what the scenario asks each step about each object: ``logit p(detect)`` float64 [R] of object rows
 float64 [R, G] (the window's column first), so every log-probability is exact (``log_expit(+-logit)``). A
 :class:`NoisyDetector` also gives the density of a detected object's measurement error; :func:`draw_step` draws one
-step's events and their log-probabilities for every simulator.
-"""
+step's events and their log-probabilities for every simulator."""
 
 from __future__ import annotations
 
@@ -41,8 +40,7 @@ class NoisyDetector(Detector, Protocol):
     ``noise_names``, e.g. metres) has a location-scale density given the row: ``noise_params(rows) -> (loc [R, D],
     log_scale [R, D])`` of the family ``noise_family`` (:data:`NOISE_FAMILIES`, ``noise_df`` for Student-t),
     independent components; ``noise_from_uniforms(rows, u [R, D])`` draws by inverse CDF and ``noise_log_prob(rows,
-    noise) -> [R]`` is the log density (nats).
-    """
+    noise) -> [R]`` is the log density (nats)."""
 
     noise_names: tuple[str, ...]
     noise_family: str
@@ -80,8 +78,7 @@ def action_log_prob(logit: np.ndarray, detected: np.ndarray) -> np.ndarray:
         logit: float64 [...], logit of p(detect).
         detected: bool [...], the taken actions (same shape).
     Returns:
-        float64 [...] log-probabilities in nats.
-    """
+        float64 [...] log-probabilities in nats."""
     sign = np.where(np.asarray(detected, dtype=bool), 1.0, -1.0)
     return log_expit(sign * np.asarray(logit, dtype=np.float64))
 
@@ -94,8 +91,7 @@ def action_log_prob_into(
     ``log_expit(+logit)`` where detected, ``log_expit(-logit) = -logaddexp(0, logit)`` elsewhere, evaluated only where
     missed. A hot path, so written out (numpy's ``logaddexp(..., where=missed)``, faster than ``log_expit`` on every
     entry); ``scipy.special.log_expit(..., where=...)`` corrupted the heap (scipy 1.17.1: a segfault a few calls
-    later).
-    """
+    later)."""
     if log_p_detect is None:
         log_p_detect = log_expit(logit)
     missed = ~detected
@@ -469,8 +465,7 @@ class StepDraw:
         detected: bool [R].
         noise: float64 [R, D] measurement errors (0 where missed), or None (the detectors only detect).
         log_q: float64 [R] log q(event | row) under the sampler.
-        log_p: float64 [R] log p(event | row) under the target.
-    """
+        log_p: float64 [R] log p(event | row) under the target."""
 
     detected: np.ndarray
     noise: np.ndarray | None
@@ -571,8 +566,7 @@ def errors_log_density(batch: Any, detector: Detector, target: Detector | None) 
     :func:`pemviz.core.detectors.draw_step` draws them), float64 [N, T] (nats) for a batch with ``noise``.
 
     Raises:
-        ValueError: ``detector`` without an error model and no ``target``.
-    """
+        ValueError: ``detector`` without an error model and no ``target``."""
     source = detector if noise_names_of(detector) else target
     if source is None:
         raise ValueError("errors_log_density: a detector without an error model of its own needs the target's")

@@ -1,7 +1,6 @@
 """Diagnostics of importance weights from log-weights: the effective sample size and the Pareto k-hat of their tail.
 pemviz's own rather than ``arviz.psislw``'s, whose tail size and relative efficiency would move k-hat and every
-verdict.
-"""
+verdict."""
 
 from __future__ import annotations
 
@@ -14,8 +13,7 @@ from scipy.special import softmax
 def effective_sample_size(log_weights: np.ndarray) -> float:
     """Kish's effective sample size (sum w)^2 / sum w^2 of weights given as natural logs, float64 [S] (S >= 1),
     computed relative to the largest (Kong, Liu & Wong, JASA 89(425), 1994; Owen 2013, Sec. 9.3): in [1, S]; 0 when
-    every weight is 0; nan when a weight is nan or +inf.
-    """
+    every weight is 0; nan when a weight is nan or +inf."""
     lw = np.asarray(log_weights, dtype=np.float64)
     if lw.size and np.all(lw == -np.inf):
         return 0.0

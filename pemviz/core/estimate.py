@@ -1,8 +1,7 @@
 """The importance-sampling estimate of a failure probability: mu_hat, its interval and a verdict (Innes &
 Ramamoorthy 2022, eq. 6, in float64 log space). :func:`estimate` gives an :class:`Estimate` with diagnostics from
 :mod:`pemviz.core.diagnostics` and interval and lower bound from :mod:`pemviz.core.confidence`;
-:func:`format_probability` and :func:`relative_error` work on natural logs, exact far below float64's range.
-"""
+:func:`format_probability` and :func:`relative_error` work on natural logs, exact far below float64's range."""
 
 from __future__ import annotations
 
@@ -107,8 +106,7 @@ class Estimate:
         :func:`pemviz.core.confidence.markov_lower_bound` of run-level estimates (splitting).
 
         Raises:
-            ValueError: ``alpha`` outside (0, 1).
-        """
+            ValueError: ``alpha`` outside (0, 1)."""
         if not 0.0 < alpha < 1.0:
             raise ValueError(f"lower_bound: alpha must be in (0, 1), got {alpha}")
         if self.n_failures == 0:
@@ -214,8 +212,7 @@ class Estimate:
     def summary(self, exact_log_p: float | None = None, reference: Reference | None = None) -> str:
         """One line: mu_hat, its interval, ESS, k-hat, the verdict and its reason, and the exact answer or reference
         (:meth:`Reference.comparison`), e.g. ``mu_hat = 1.795e-15, 95 % CI [1.3e-15, 2.5e-15], ESS 10.2, k-hat 0.41:
-        reliable (96 failures); exact 1.984e-15 (relative error 0.095, inside the interval)``.
-        """
+        reliable (96 failures); exact 1.984e-15 (relative error 0.095, inside the interval)``."""
         khat = "-" if math.isnan(self.khat) else f"{self.khat:.2f}"
         if self.n_failures == 0:  # no point estimate: the bound, if the rollouts give one
             hi = self.log_ci[1]
@@ -254,8 +251,7 @@ class Reference:
         n_failures, n: failures among ``n`` rollouts drawn from the PEMs.
         source: a few words saying where they come from (e.g. ``plain Monte Carlo, benchmarks/cut_in_mc.py``).
     Raises:
-        ValueError: ``n`` < 1 or ``n_failures`` outside 1..n (a reference without a failure bounds, it does not say).
-    """
+        ValueError: ``n`` < 1 or ``n_failures`` outside 1..n (a reference without a failure bounds, it does not say)."""
 
     n_failures: int
     n: int

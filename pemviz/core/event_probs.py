@@ -2,8 +2,7 @@
 (nats, <= 0) and the log-density of each detected object's error (nats; a density in metres, so it can be positive:
 Cover & Thomas, *Elements of Information Theory*, 2006, Sec. 8.1). A rollout's ``log p`` is their sum
 (:attr:`pemviz.core.rollouts.RolloutBatch.log_p`). :func:`event_log_probs` gives them for object rows,
-:func:`batch_log_probs` for a batch.
-"""
+:func:`batch_log_probs` for a batch."""
 
 from __future__ import annotations
 
@@ -22,8 +21,7 @@ class EventLogProbs:
     Attributes:
         detections: ``log p(a | x)`` of each detection or miss (<= 0; 0 for an unseen object missed).
         errors: ``log p_noise(e | x)`` of each detected object's measurement error (metres; 0 where missed), or None
-            for a detector that only detects.
-    """
+            for a detector that only detects."""
 
     detections: np.ndarray
     errors: np.ndarray | None

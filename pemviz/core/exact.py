@@ -28,8 +28,7 @@ def grid_bits(inner: int) -> int:
     integer: ``(53 - ceil(log2 inner)) // 2`` (24 for ``inner`` = 32, 20 for 3,000).
 
     Raises:
-        ValueError: ``inner`` < 1.
-    """
+        ValueError: ``inner`` < 1."""
     if inner < 1:
         raise ValueError(f"grid_bits: inner dimension must be >= 1, got {inner}")
     return (MANTISSA_BITS - (inner - 1).bit_length()) // 2
@@ -44,8 +43,7 @@ def on_grid(x: np.ndarray, bits: int, axis: int | None, nonneg: bool = False) ->
         axis: 1: one power of two per row (e [m, 1]); 0: per column (e [1, n]); None: one for all (e [1, 1]).
         nonneg: ``x`` >= 0 (skips an absolute value).
     Returns:
-        (xi [m, n], e int) with e broadcastable to xi. Rounding is to nearest, ties to even (``np.rint``).
-    """
+        (xi [m, n], e int) with e broadcastable to xi. Rounding is to nearest, ties to even (``np.rint``)."""
     magnitude = x if nonneg else np.abs(x)
     largest = np.max(magnitude, axis=axis, keepdims=True) if x.size else np.zeros((1, 1))
     _, e = np.frexp(largest)  # largest < 2^e (0 -> 0)

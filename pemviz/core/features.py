@@ -46,8 +46,7 @@ class StateFeatures:
     Attributes:
         ego: float64 [N, T, F] (``feature_names``).
         objects: float64 [N, T, M, G] (``object_feature_names``).
-        feature_names, object_feature_names: the F and G names.
-    """
+        feature_names, object_feature_names: the F and G names."""
 
     ego: np.ndarray
     objects: np.ndarray
@@ -86,8 +85,7 @@ def replay_features(
         :class:`StateFeatures` [K, T], or None: the simulator reports none (:func:`reports_features`).
     Raises:
         ValueError: features of another shape than their names say (one line naming the simulator), or
-            ``chunk_size`` < 1.
-    """
+            ``chunk_size`` < 1."""
     k, n_steps = detected.shape[:2]
     if chunk_size is not None and chunk_size < 1:
         raise ValueError(f"replay_features: chunk_size must be >= 1, got {chunk_size}")
@@ -133,8 +131,7 @@ def check_features(features: FeaturesFn, batch: RolloutBatch, chunk_size: int) -
     difference: feature, rollout, step, object).
 
     Raises:
-        ValueError: the simulator reports no features (nothing to check).
-    """
+        ValueError: the simulator reports no features (nothing to check)."""
     first = features(batch, None)
     if first is None:
         raise ValueError("check_features: the simulator reports no state features")

@@ -1,7 +1,6 @@
 """The files the lower layers write and read themselves: :func:`atomic_write` (never a half-written file) and
 :func:`load_tagged` (format tag and version checked), for proposal checkpoints and PEMs; output-path checks before a
-run are :mod:`pemviz.io.files`'s.
-"""
+run are :mod:`pemviz.io.files`'s."""
 
 from __future__ import annotations
 
@@ -68,8 +67,7 @@ def temp_file(path: str | os.PathLike[str]) -> Iterator[str]:
     """A temporary file of a unique name beside ``path`` (created empty), removed on every exit path.
 
     Write it, then commit it (:func:`atomic_write`, :func:`pemviz.io.files.commit_files`); whatever was not committed
-    is gone when the block ends (an exception, Ctrl-C, SIGTERM).
-    """
+    is gone when the block ends (an exception, Ctrl-C, SIGTERM)."""
     target = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     os.close(fd)

@@ -1,6 +1,5 @@
 """The one rollout runner: every simulator's rollouts drawn, scored and stepped through :func:`run_batched`, the same
-bits for any chunk size (:func:`uniform_chunks`).
-"""
+bits for any chunk size (:func:`uniform_chunks`)."""
 
 from __future__ import annotations
 
@@ -176,8 +175,7 @@ def uniform_chunks(
     """``(start, stop, per-step uniforms [(stop - start) K])`` for each chunk of rollouts, K = ``per_rollout``: the
     numbers one ``rng.random(n K)`` per step gives rollouts ``start .. stop - 1``, whatever the chunks (a PCG64 /
     PCG64DXSM generator jumps to each chunk's slice with ``bit_generator.advance`` and ends where the serial run
-    leaves it; another draws chunk after chunk).
-    """
+    leaves it; another draws chunk after chunk)."""
     bounds = [(a, min(a + chunk_size, n)) for a in range(0, n, chunk_size)]
     k = int(per_rollout)
     bit_gen = rng.bit_generator
@@ -224,8 +222,7 @@ def iter_rollouts(
     (:attr:`RolloutBatch.replay`, :func:`replay_rows`).
 
     Raises:
-        ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
-    """
+        ValueError: ``n`` or ``chunk_size`` not an integer >= 1."""
     check_counts("iter_rollouts", n=n, chunk_size=chunk_size)
     n, chunk_size = int(n), int(chunk_size)
     if _coupled(sampler) and chunk_size != RQMC_BLOCK:  # simulated block by block, handed out chunk by chunk
@@ -255,8 +252,7 @@ def simulate_rollouts(
     for very large ``n``).
 
     Raises:
-        ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
-    """
+        ValueError: ``n`` or ``chunk_size`` not an integer >= 1."""
     check_counts("simulate_rollouts", n=n, chunk_size=chunk_size)
     size = RQMC_BLOCK if _coupled(sampler) else int(chunk_size)
     chunks = list(iter_rollouts(make, n, n_steps, sampler, target, rng, chunk_size=size))
@@ -278,8 +274,7 @@ def branch_rollouts(
     Returns:
         :class:`RolloutBatch` [K, T].
     Raises:
-        ValueError: ``parent`` / ``at`` out of range (:func:`check_branch_args`).
-    """
+        ValueError: ``parent`` / ``at`` out of range (:func:`check_branch_args`)."""
     parent, at = np.asarray(parent, dtype=np.int64), np.asarray(at, dtype=np.int64)
     check_branch_args(parents, parent, at)
     sim = make(parent.size)

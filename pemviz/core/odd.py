@@ -38,8 +38,7 @@ class Distribution:
     Attributes:
         kind: one of :data:`KINDS`.
         args: ``(a, b)`` for uniform (a < b), ``(mu, sd)`` for normal (sd > 0), the values for choice.
-        weights: choice only: each value's probability (summing to 1); empty otherwise.
-    """
+        weights: choice only: each value's probability (summing to 1); empty otherwise."""
 
     kind: str
     args: tuple[float, ...]
@@ -115,8 +114,7 @@ def parse_distribution(text: str, where: str = "distribution") -> Distribution:
     Raises:
         ODDError: one line naming ``where``: an unknown distribution (the allowed ones listed), a wrong number of
             arguments, a non-number, an empty support (uniform with b <= a, a normal's sd <= 0, no choice), a weight
-            that is negative or weights summing to 0.
-    """
+            that is negative or weights summing to 0."""
     match = _CALL.match(str(text))
     if match is None:
         raise ODDError(
@@ -193,8 +191,7 @@ class ODD:
 def bin_log_weights(values: np.ndarray, log_w: np.ndarray, edges: np.ndarray, probs: np.ndarray, b: int) -> np.ndarray:
     """The log importance weights [N] (nats) that estimate p(failure | theta in bin ``b``) as the plain mean of ``w
     1[fail]``: ``log w - log P(bin)`` for a rollout whose ``values`` [N] fall in the bin, ``-inf`` for the others;
-    unbiased, as E[w 1[fail] 1[theta in bin]] = P(fail, theta in bin).
-    """
+    unbiased, as E[w 1[fail] 1[theta in bin]] = P(fail, theta in bin)."""
     values = np.asarray(values, dtype=np.float64)
     last = b == len(probs) - 1
     inside = (values >= edges[b]) & ((values <= edges[b + 1]) if last else (values < edges[b + 1]))
@@ -235,8 +232,7 @@ def odd_map(
     failure rate of the bin's rollouts with its Clopper-Pearson interval.
 
     Raises:
-        ValueError: arrays of other lengths.
-    """
+        ValueError: arrays of other lengths."""
     from pemviz.core.estimate import estimate
 
     values = np.asarray(values, dtype=np.float64).reshape(len(log_w), len(odd))
@@ -282,8 +278,7 @@ class PairMap:
         x_probs, y_probs: float64 ``[Bx]``, ``[By]``: their bins' probabilities.
         cells: ``cells[b][a]`` the estimate of p(failure | x in bin a, y in bin b) (:class:`pemviz.core.estimate.
             Estimate`).
-        shares: float64 ``[By, Bx]``: each cell's share of p_ODD (P(cell) p_cell over their sum; 0 without failure).
-    """
+        shares: float64 ``[By, Bx]``: each cell's share of p_ODD (P(cell) p_cell over their sum; 0 without failure)."""
 
     names: tuple[str, str]
     x_edges: np.ndarray

@@ -1,8 +1,7 @@
 """The map of where p_ODD comes from over a pair of parameters: a heat map of p(failure | theta_1 in bin a, theta_2
 in bin b) for the first two parameters of an ODD (:meth:`pemviz.core.odd.Distribution.bins`); independent parameters
 make a cell's probability P(a) P(b), and its estimate is :func:`pemviz.core.odd.bin_log_weights` on the cell,
-unbiased. Log-space throughout (nats).
-"""
+unbiased. Log-space throughout (nats)."""
 
 from __future__ import annotations
 
@@ -21,8 +20,7 @@ def pair_map(
     detections ``log_p_total`` [N] (nats); None for an ODD of one parameter.
 
     Raises:
-        ValueError: arrays of other lengths.
-    """
+        ValueError: arrays of other lengths."""
     from pemviz.core.estimate import estimate
 
     if len(odd) < 2:

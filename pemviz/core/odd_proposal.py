@@ -44,8 +44,7 @@ class ParameterProposal:
         odd: the ODD.
         log_q: float64 [C] log q(cell) (nats), C = prod_j B_j, cells in C order over the parameters' bins.
         log_m: float64 [C] log P_ODD(cell) (nats).
-        bins: each parameter's (edges [B + 1] or a choice's values [B], probabilities [B]).
-    """
+        bins: each parameter's (edges [B + 1] or a choice's values [B], probabilities [B])."""
 
     odd: ODD
     log_q: np.ndarray
@@ -127,8 +126,7 @@ class ParameterProposal:
         unchanged.
 
         Raises:
-            ValueError: ``rate`` or ``defensive`` out of range, or arrays of other lengths.
-        """
+            ValueError: ``rate`` or ``defensive`` out of range, or arrays of other lengths."""
         if not 0.0 < rate <= 1.0 or not 0.0 < defensive < 1.0:
             raise ValueError(f"ParameterProposal.refit: rate {rate}, defensive {defensive}; need (0, 1] and (0, 1)")
         log_w = np.asarray(log_w, dtype=np.float64).reshape(-1)

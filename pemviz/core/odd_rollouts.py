@@ -66,8 +66,7 @@ def odd_rollout_functions(make: MakeWith, odd: ODD, n_steps: int) -> tuple[Calla
     docstring): rollout i of a stage has parameters ``odd.draw(u_i)``, u the stage's first N x D uniforms.
 
     Raises (from the functions):
-        ValueError: ``n`` or ``chunk_size`` not an integer >= 1.
-    """
+        ValueError: ``n`` or ``chunk_size`` not an integer >= 1."""
     names = odd.names
 
     def made(values: np.ndarray) -> WithParameters:

@@ -1,7 +1,6 @@
 """A run's plan: the stages an estimator will run, their names and sizes, stated before the first batch
 (:meth:`pemviz.estimators.base.Estimator.plan`) and handed to every listener with
-:class:`pemviz.engine.events.RunStarted`. No numpy, no torch.
-"""
+:class:`pemviz.engine.events.RunStarted`. No numpy, no torch."""
 
 from __future__ import annotations
 
@@ -16,8 +15,7 @@ def stage_label(stage: int, kind: str, n_stages: int) -> str:
 
     ``pretraining`` (stage 0), ``CE stage k/K`` (stages 1..K, ``n_stages`` = K; ``CE stage k`` past them, a
     retry's), ``final batch`` (stage K+1, or the only batch of mc / naive50 / mixed50), ``AMS particles`` / ``AMS
-    iterations k`` (adaptive multilevel splitting); the number is the engine's ``stage`` everywhere.
-    """
+    iterations k`` (adaptive multilevel splitting); the number is the engine's ``stage`` everywhere."""
     if kind == "pretrain":
         return "pretraining"
     if kind == "ce":
@@ -35,8 +33,7 @@ class PlannedStage:
         stage: the engine's number (0 = pretraining, 1..K = CE stages, K+1 = the final batch).
         kind: ``pretrain`` | ``ce`` | ``final`` | ``ams``.
         label: its one name in the console, panel and recording (:func:`pemviz.core.plan.stage_label`).
-        n_rollouts: rollouts it simulates.
-    """
+        n_rollouts: rollouts it simulates."""
 
     stage: int
     kind: str
@@ -52,8 +49,7 @@ class RunPlan:
     Attributes:
         stages: the stages in order.
         open_ended: more stages of the last one's kind follow until the estimator stops (AMS's groups of iterations,
-            whose number depends on the particles); ``stages`` then holds the first only.
-    """
+            whose number depends on the particles); ``stages`` then holds the first only."""
 
     stages: tuple[PlannedStage, ...]
     open_ended: bool = False

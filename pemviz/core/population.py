@@ -22,8 +22,7 @@ def pooling_shifts(stage_weights: np.ndarray, sizes: np.ndarray) -> np.ndarray:
 
     Args:
         stage_weights: lambda_k >= 0, [K], summing to 1.
-        sizes: n_k, the stages' rollouts, [K].
-    """
+        sizes: n_k, the stages' rollouts, [K]."""
     n = np.asarray(sizes, dtype=np.float64)
     with np.errstate(divide="ignore"):
         return np.log(np.asarray(stage_weights, dtype=np.float64)) + math.log(n.sum()) - np.log(n)
@@ -77,8 +76,7 @@ def failure_shares(
     Returns:
         The failures sorted by share, largest first (ties: the earlier stage, then the lower index).
     Raises:
-        ValueError: arrays of one stage of unequal lengths, or ``stage_weights`` of another length than ``parts``.
-    """
+        ValueError: arrays of one stage of unequal lengths, or ``stage_weights`` of another length than ``parts``."""
     if stage_weights is not None and len(stage_weights) != len(parts):
         raise ValueError(f"failure_shares: {len(stage_weights)} stage weights for {len(parts)} stages")
     sizes = np.array([np.size(lw) for _, lw, _, _ in parts], dtype=np.float64)
@@ -114,8 +112,7 @@ class FailureGroup:
         label: the key in words.
         count: its failures.
         share: the fraction of mu_hat its failures carry (the groups' shares add up to 1).
-        first: the rank (in :class:`FailureShares` order) of its failure with the largest share.
-    """
+        first: the rank (in :class:`FailureShares` order) of its failure with the largest share."""
 
     key: Hashable
     label: str
@@ -133,8 +130,7 @@ def failure_groups(shares: FailureShares, keys: Sequence[Hashable], labels: dict
         keys: [F] a hashable key per failure.
         labels: key -> words (default: ``str(key)``).
     Raises:
-        ValueError: ``keys`` of another length than the failures.
-    """
+        ValueError: ``keys`` of another length than the failures."""
     if len(keys) != shares.n:
         raise ValueError(f"failure_groups: {len(keys)} keys for {shares.n} failures")
     if not len(keys):

@@ -1,7 +1,6 @@
 """What a sink sees of a problem (:class:`ProblemView`: name, description, signals and units, thresholds, scene
 constants, where objects and errors are in the rows) and the scene of a batch's first rollout of several objects
-(:func:`object_scene`). Plain data; re-exported by :mod:`pemviz.core.problems`.
-"""
+(:func:`object_scene`). Plain data; re-exported by :mod:`pemviz.core.problems`."""
 
 from __future__ import annotations
 
@@ -23,8 +22,7 @@ class Thresholds:
         failure: the failure threshold: below it the rollout has failed (e.g. the braking scenario's 2 m crash gap).
         window: the sampler window, where the detector can change the outcome (e.g. the braking scenario's 10 m).
         unit: of both (e.g. ``m``).
-        failure_name, window_name: what they are called in legends (e.g. ``crash gap``, ``braking distance``).
-    """
+        failure_name, window_name: what they are called in legends (e.g. ``crash gap``, ``braking distance``)."""
 
     failure: float
     window: float
@@ -122,8 +120,7 @@ def object_scene(view: ProblemView, batch: RolloutBatch) -> ObjectScene:
     view's ``objects_xy`` / ``noise_xy`` (the one reading of those columns for every sink).
 
     Raises:
-        ValueError: the view names no object positions or the batch has no object rows.
-    """
+        ValueError: the view names no object positions or the batch has no object rows."""
     if view is None or view.objects_xy is None or batch.objects is None:
         raise ValueError(
             "object_scene: the problem's view names no object positions (objects_xy), or the rollout "

@@ -184,8 +184,7 @@ class Problem:
 
         Args:
             batch: the rollouts [N, T].
-            classic: the batch's classic robustness [N] when it is already computed (None: computed here).
-        """
+            classic: the batch's classic robustness [N] when it is already computed (None: computed here)."""
         return (self.robustness(batch, "classic") if classic is None else np.asarray(classic)) < 0.0
 
     def target_curve(self) -> np.ndarray:
@@ -194,8 +193,7 @@ class Problem:
         grid value.
 
         Raises:
-            ValueError: the target cannot read those rows (one line naming ``curve_rows``, which gives rows it can).
-        """
+            ValueError: the target cannot read those rows (one line naming ``curve_rows``, which gives rows it can)."""
         grid = np.asarray(self.curve_grid, dtype=np.float64)
         try:
             if self.curve_rows is not None:
@@ -272,8 +270,7 @@ def step_robustness(problem: Problem, batch: RolloutBatch) -> np.ndarray:
     [N, T], +inf outside [a, b].
 
     Raises:
-        ValueError: a formula that is not ``G[a,b](state predicate)`` (cf. :func:`pemviz.stl.first_violation`).
-    """
+        ValueError: a formula that is not ``G[a,b](state predicate)`` (cf. :func:`pemviz.stl.first_violation`)."""
     f = problem.formula
     if not isinstance(f, stl.Always) or f.operand.horizon() != 0:
         raise ValueError(f"method ams needs a safety formula G[a,b](state predicate), got {f}")
@@ -292,8 +289,7 @@ class StateScore:
 
     Attributes:
         problem: the problem whose rollouts are scored (a ``branch`` of its own).
-        steps: rollout-steps simulated besides the rollouts (a solve this run made; 0 by default).
-    """
+        steps: rollout-steps simulated besides the rollouts (a solve this run made; 0 by default)."""
 
     problem: Problem
     steps: int = 0

@@ -41,8 +41,7 @@ def bins_over(grid: np.ndarray, n_bins: int = N_BINS) -> np.ndarray:
     observation column's, e.g. metres).
 
     Raises:
-        ValueError: a grid without a positive span, or ``n_bins`` < 1.
-    """
+        ValueError: a grid without a positive span, or ``n_bins`` < 1."""
     g = np.asarray(grid, dtype=np.float64)
     lo, hi = (float(g.min()), float(g.max())) if g.size else (math.nan, math.nan)
     if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo) or n_bins < 1:
@@ -81,8 +80,7 @@ def object_detect_probabilities(
     be.
 
     Raises:
-        ValueError: ``i`` outside the batch.
-    """
+        ValueError: ``i`` outside the batch."""
     if not 0 <= int(i) < batch.n:
         raise ValueError(f"object_detect_probabilities: rollout {i} outside a batch of {batch.n}")
     if batch.objects is None or batch.n_objects < 2 or sampler is None or target is None:
@@ -193,8 +191,7 @@ def proposal_view(
         window_m: the input below which the mean miss probabilities are also taken over all states (the problem's
             window, in the same unit).
     Raises:
-        ValueError: arrays of different shapes, or edges not increasing with at least one bin.
-    """
+        ValueError: arrays of different shapes, or edges not increasing with at least one bin."""
     gap = np.asarray(inputs, dtype=np.float64).ravel()
     d = np.asarray(detected, dtype=bool).ravel()
     lq, lp = np.asarray(log_q, dtype=np.float64).ravel(), np.asarray(log_p, dtype=np.float64).ravel()

@@ -38,8 +38,7 @@ class Requirement:
 
     Attributes:
         op: one of :data:`OPERATORS`.
-        threshold: a probability in (0, 1).
-    """
+        threshold: a probability in (0, 1)."""
 
     op: str
     threshold: float
@@ -62,8 +61,7 @@ def parse_requirement(text: str) -> Requirement:
     """``"p < 1e-9"`` -> :class:`Requirement` ("<", 1e-9). Spaces are optional.
 
     Raises:
-        RequirementError: not of the form ``p OP NUMBER``, or the number not in (0, 1).
-    """
+        RequirementError: not of the form ``p OP NUMBER``, or the number not in (0, 1)."""
     m = _PATTERN.match(text) if isinstance(text, str) else None
     if m is None:
         raise RequirementError(
@@ -82,8 +80,7 @@ def alpha_at_look(look: int, alpha: float = ALPHA) -> float:
     """``alpha_j = alpha 6 / (pi^2 j^2)`` for look j >= 1: the error spent at look j; the sum over j >= 1 is alpha.
 
     Raises:
-        ValueError: ``look`` < 1.
-    """
+        ValueError: ``look`` < 1."""
     if look < 1:
         raise ValueError(f"look must be >= 1, got {look}")
     return alpha * 6.0 / (math.pi**2 * look * look)
@@ -99,8 +96,7 @@ def interval_at_level(est: Estimate, level: float, plain_mc: bool) -> tuple[floa
     Args:
         est: an estimate of :func:`pemviz.core.estimate.estimate`.
         level: in (0, 1).
-        plain_mc: whether ``est`` comes from rollouts of the PEM itself (weights all 1).
-    """
+        plain_mc: whether ``est`` comes from rollouts of the PEM itself (weights all 1)."""
     from scipy.special import stdtrit
 
     from pemviz.core.confidence import CI_LEVEL, clopper_pearson
@@ -124,8 +120,7 @@ class Decision:
         look: j, 1 for the first look.
         level: the interval's confidence level at this look, ``1 - alpha_j``.
         log_ci: that interval, natural logs (lo, hi).
-        why: one line: what decided, or why not.
-    """
+        why: one line: what decided, or why not."""
 
     outcome: str
     look: int
@@ -138,8 +133,7 @@ def decide(est: Estimate, req: Requirement, look: int, plain_mc: bool, alpha: fl
     """Look ``look`` at ``est``: ``met`` when the interval at level ``1 - alpha_look`` (:func:`alpha_at_look`,
     :func:`interval_at_level`) lies wholly on the requirement's side of the threshold, ``violated`` when wholly on
     the other, else ``undecided``; an importance-sampling estimate whose verdict is not ``reliable`` decides only by
-    its lower bound.
-    """
+    its lower bound."""
     level = 1.0 - alpha_at_look(look, alpha)
     t = req.log_threshold
     if not plain_mc and est.verdict != "reliable":

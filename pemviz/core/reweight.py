@@ -38,8 +38,7 @@ def with_pem(detector: Any, pem: Any) -> Any:
     :class:`pemviz.pem.perception.SalientDetector` (field ``detect``).
 
     Raises:
-        TypeError: a detector with neither field.
-    """
+        TypeError: a detector with neither field."""
     names = {f.name for f in dataclasses.fields(detector)} if dataclasses.is_dataclass(detector) else set()
     if "pem" in names:
         return dataclasses.replace(detector, pem=pem)
@@ -58,8 +57,7 @@ def detection_log_ratios(
         others: K detectors.
         rows: object rows, float64 [N, T, M, G].
         detected: bool [N, T, M].
-        mask: bool [N, T], the steps that enter the weight.
-    """
+        mask: bool [N, T], the steps that enter the weight."""
     from scipy.special import log_expit
 
     n, t, m, g = rows.shape
@@ -88,8 +86,7 @@ class AlternativeTarget:
         kind: ``member`` (of a PEM ensemble) or ``shift`` (the nominal PEM with shifted logits).
         label: how it is named (``member 3``, ``+0.5``).
         detector: the target detector with that PEM (:func:`with_pem`, :class:`ShiftedDetector`).
-        exact_log_p: its exact log p (nats) where known, else None.
-    """
+        exact_log_p: its exact log p (nats) where known, else None."""
 
     kind: str
     label: str
@@ -104,8 +101,7 @@ class Alternative:
     Attributes:
         label: ``member 3``, ``shift +0.5``.
         estimate: p under it, with its interval, ESS and verdict (capped as the run's).
-        exact_log_p: its exact log p (nats) where known, else None.
-    """
+        exact_log_p: its exact log p (nats) where known, else None."""
 
     label: str
     estimate: Estimate
@@ -119,8 +115,7 @@ class PemSpread:
 
     Attributes:
         nominal: the run's estimate; members: one :class:`Alternative` per ensemble member (may be empty);
-        shifts: one per logit shift; source: where the members come from (a file name).
-    """
+        shifts: one per logit shift; source: where the members come from (a file name)."""
 
     nominal: Estimate
     members: tuple[Alternative, ...]

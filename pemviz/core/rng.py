@@ -1,8 +1,7 @@
 """Jumps along a PCG64 stream: where the k-th float64 draw of a generator is, without drawing the ones before it, so
 chunks of rollouts read their slice of the serial uniforms (PCG64 / PCG64DXSM ``advance`` in O(log n): O'Neill 2014,
 "PCG: a family of simple fast space-efficient statistically good algorithms for random number generation"); other
-bit generators cannot jump.
-"""
+bit generators cannot jump."""
 
 from __future__ import annotations
 
@@ -31,8 +30,7 @@ def bit_generator_at(state: Mapping[str, Any], skip: int) -> np.random.PCG64 | n
         state: ``bit_generator.state`` of a PCG64 or PCG64DXSM (a plain dict, so it crosses processes).
         skip: draws to jump over, >= 0.
     Raises:
-        KeyError: a state of another bit generator.
-    """
+        KeyError: a state of another bit generator."""
     bg = _BY_NAME[state["bit_generator"]](0)
     bg.state = cast("_PCG64State", state)  # a PCG64 / PCG64DXSM state (KeyError above for another generator's)
     if skip:
@@ -69,8 +67,7 @@ def array_rqmc_uniforms(u: np.ndarray, key: np.ndarray, then: np.ndarray | None 
     Returns:
         float64 [n] in [0, 1), a new array.
     Raises:
-        ValueError: ``u`` not [n] with n >= 1, ``key`` not [n] or [n, k], or ``then`` not [n, j].
-    """
+        ValueError: ``u`` not [n] with n >= 1, ``key`` not [n] or [n, k], or ``then`` not [n, j]."""
     u, key = np.asarray(u, dtype=np.float64), np.asarray(key)
     if key.dtype.kind not in "iu":  # integer keys (:func:`ranking_key`) are ranked as they are
         key = key.astype(np.float64)
@@ -135,8 +132,7 @@ def ranking_key(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
         primary: float [n], the first key.
         secondary: float [n], the key of ties.
     Raises:
-        ValueError: the two of different shapes or not 1-D.
-    """
+        ValueError: the two of different shapes or not 1-D."""
     p, s = np.asarray(primary, dtype=np.float64), np.asarray(secondary, dtype=np.float64)
     if p.ndim != 1 or p.shape != s.shape:
         raise ValueError(f"ranking_key: primary and secondary must be [n] each, got {p.shape} and {s.shape}")
@@ -169,8 +165,7 @@ def block_bounds(n: int, block: int = RQMC_BLOCK) -> list[tuple[int, int]]:
     """The fixed blocks ``(start, stop)`` of a batch of ``n`` rollouts, in order: ``[(0, B), (B, 2B), ..., (., n)]``.
 
     Raises:
-        ValueError: ``n`` or ``block`` below 1.
-    """
+        ValueError: ``n`` or ``block`` below 1."""
     if n < 1 or block < 1:
         raise ValueError(f"block_bounds: n and block must be >= 1, got {n}, {block}")
     return [(a, min(a + block, n)) for a in range(0, n, block)]
@@ -180,8 +175,7 @@ def by_blocks(fn, rows: np.ndarray, block: int = RQMC_BLOCK) -> np.ndarray:
     """``fn(rows)`` computed one block of rows at a time (``rows[jB:(j + 1)B]``), concatenated: float64 [n].
 
     A torch network may round a row's output differently in batches of different sizes (its kernels depend on the
-    shape); asked about the same blocks, every executor gets the same bits. ``fn(rows)`` itself for n <= B.
-    """
+    shape); asked about the same blocks, every executor gets the same bits. ``fn(rows)`` itself for n <= B."""
     n = np.shape(rows)[0]
     if n <= block:
         return fn(rows)

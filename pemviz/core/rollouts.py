@@ -20,8 +20,7 @@ class Simulator(Protocol):
     Required: ``observation_names``, ``reset()``, ``observation() -> float64 [F]``, ``step(...)``. A scene of several
     objects also has ``n_objects`` (M), ``object_names`` (G names) and ``objects() -> float64 [M, G]``, and its
     ``step(detected: bool [M], noise: float64 [M, D] | None)`` takes every object's event; without them the
-    simulator has one object whose row is its observation and ``step(detected: bool)``.
-    """
+    simulator has one object whose row is its observation and ``step(detected: bool)``."""
 
     @property
     def observation_names(self) -> Sequence[str]: ...
@@ -37,8 +36,7 @@ class Snapshotting(Simulator, Protocol):
     """A :class:`Simulator` whose state can be saved and put back (the optional snapshot/restore capability).
 
     ``restore(snapshot())`` on any simulator of the same scenario, then the same detections, gives exactly
-    the observations the snapshotted simulator would have reported (bit for bit).
-    """
+    the observations the snapshotted simulator would have reported (bit for bit)."""
 
     def snapshot(self) -> object: ...
 
@@ -226,8 +224,7 @@ class RolloutBatch:
     def log_weight(self, n_factors: int | None = None) -> np.ndarray:
         """Importance log-weights ``sum_t log p - log q`` over the first ``n_factors`` steps (less
         :attr:`log_q_params`), float64 [N]; default T - 1 factors, as the last action affects nothing (Innes &
-        Ramamoorthy (2022), Algorithm 1).
-        """
+        Ramamoorthy (2022), Algorithm 1)."""
         k = self.n_steps - 1 if n_factors is None else n_factors
         log_w = (self.log_p[:, :k] - self.log_q[:, :k]).sum(axis=1)
         return log_w if self.log_q_params is None else log_w - self.log_q_params

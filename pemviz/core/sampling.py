@@ -1,7 +1,6 @@
 """Adaptive importance sampling of detector outputs (Innes & Ramamoorthy 2022, Algorithm 1): the proposal networks
 q_phi(detect | h(s)) and their cross-entropy fits to each stage's elites (robustness at or below gamma_kappa),
-importance weights raised to the smoothing power alpha.
-"""
+importance weights raised to the smoothing power alpha."""
 
 from __future__ import annotations
 
@@ -117,8 +116,7 @@ class Proposal:
         """Replace the network's parameters by ``arrays`` (float64, :meth:`layer_shapes` order; copied).
 
         Raises:
-            ValueError: a shape differs from :meth:`layer_shapes`.
-        """
+            ValueError: a shape differs from :meth:`layer_shapes`."""
         arrays = [np.array(a, dtype=np.float64, copy=True) for a in arrays]
         if [a.shape for a in arrays] != self.layer_shapes():
             shapes = [a.shape for a in arrays]
@@ -291,8 +289,7 @@ class Proposal:
         holds the network alone, else into torch (imports torch).
 
         Raises:
-            ValueError: a numpy load of the wrong shapes; RuntimeError: torch's, for wrong keys or shapes.
-        """
+            ValueError: a numpy load of the wrong shapes; RuntimeError: torch's, for wrong keys or shapes."""
         keys = [f"net.{i}.{k}" for i in range(0, 6, 2) for k in ("weight", "bias")]  # the three Linear layers
         if self._module is None and set(state) == set(keys):
             self.set_parameter_arrays([np.asarray(state[k], dtype=np.float64) for k in keys])
@@ -399,8 +396,7 @@ class StateProposal(Proposal):
 
     Same network as :class:`Proposal` with ``len(columns)`` inputs (gap first). ``forward(h [M, k])``;
     :meth:`curve` varies the gap and holds the other inputs at ``reference`` (e.g. the start state).
-    Opt in with ``ExperimentConfig.proposal_inputs = "state"``; the paper's proposal sees the gap only.
-    """
+    Opt in with ``ExperimentConfig.proposal_inputs = "state"``; the paper's proposal sees the gap only."""
 
     def __init__(self, columns: tuple[int, ...], scales: tuple[float, ...], reference: tuple[float, ...]) -> None:
         if len(columns) != len(scales) or len(columns) != len(reference) or columns[:1] != (GAP_COLUMN,):
@@ -547,8 +543,7 @@ def save_proposal(proposal: Proposal, path: str | os.PathLike[str], *, overwrite
 
     Raises:
         OSError: the folder is missing or not writable, the disk is full (nothing is left behind).
-        pemviz.core.files.OutputExists: ``path`` exists and ``overwrite`` is False.
-    """
+        pemviz.core.files.OutputExists: ``path`` exists and ``overwrite`` is False."""
     return atomic_write(path, lambda tmp: write_proposal_file(proposal, tmp), overwrite=overwrite)
 
 
@@ -557,8 +552,7 @@ def load_proposal(path: str | os.PathLike[str]) -> Proposal:
 
     Raises:
         FileNotFoundError: no such file.
-        ProposalFormatError: not a pemviz proposal checkpoint, another format version, or damaged weights.
-    """
+        ProposalFormatError: not a pemviz proposal checkpoint, another format version, or damaged weights."""
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"proposal checkpoint {p} not found")

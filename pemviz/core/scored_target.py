@@ -13,8 +13,7 @@ class ScoredTarget(ErrorModelOf):
     """The target detector that also asks ``extras`` about every observation it is asked about and keeps their
     logits and its own, so that a mixture's component densities come out of the simulation itself. :meth:`take`
     hands them over as [K, n, T] (and the target's [n, T]) for the next ``n`` rollouts, or None when the asks do not
-    fit that shape (then the caller asks ``extras`` itself).
-    """
+    fit that shape (then the caller asks ``extras`` itself)."""
 
     _error_model_of = "target"  # it scores as the target does
 

@@ -73,8 +73,7 @@ def level_events(
         ``hit`` bool [L, N]: failed and min_t s_t < x; ``step`` int [L, N]: for a hit, max(failure step, first t with
         s_t < x), the step at which E_x is decided (T where there is no hit).
     Raises:
-        ValueError: shapes that do not match.
-    """
+        ValueError: shapes that do not match."""
     signal = np.asarray(signal, dtype=np.float64)
     n, t = signal.shape
     failed, fail_step = np.asarray(failed, dtype=bool), np.asarray(fail_step)
@@ -98,8 +97,7 @@ class SeverityPoint:
     Attributes:
         level: x (the scale's unit); None for the failure itself (the run's estimate).
         estimate: its estimate, interval, ESS and verdict (from the same rollouts as the run's estimate).
-        exact_log_p: the exact log probability (nats) where it is known, else None.
-    """
+        exact_log_p: the exact log probability (nats) where it is known, else None."""
 
     level: float | None
     estimate: Estimate
@@ -121,8 +119,7 @@ class SeverityCurve:
 
     Attributes:
         scale: the signal and its levels.
-        points: the failure first (``level`` None, or the scale's margin), then one per level, descending.
-    """
+        points: the failure first (``level`` None, or the scale's margin), then one per level, descending."""
 
     scale: SeverityScale
     points: tuple[SeverityPoint, ...]
@@ -263,8 +260,7 @@ def contact_level(problem: object) -> float:
     (:attr:`SeverityScale.contact`: 0 where the boxes meet, or e.g. 0.7 m where a scene's controller stops the ego).
 
     Raises:
-        ValueError: a problem without a severity scale.
-    """
+        ValueError: a problem without a severity scale."""
     scale = getattr(problem, "severity", None)
     if scale is None:
         raise ValueError(f"problem {getattr(problem, 'name', problem)!r} has no severity scale")
@@ -415,8 +411,7 @@ class FailureSeverity:
         share (the failures at or below it) reaches 1/2.
 
         Raises:
-            ValueError: no kept failure.
-        """
+            ValueError: no kept failure."""
         if self.n == 0:
             raise ValueError("median_min_distance: no failure's severity is known")
         dist = self.min_distance[self.kept]
@@ -467,8 +462,7 @@ def failure_severity(
         The distribution, with NaN min distance and impact speed where not kept.
     Raises:
         ValueError: arrays of unequal length, a kept failure without a finite min distance or with an impact speed
-            that is not positive, or bad edges.
-    """
+            that is not positive, or bad edges."""
     log_share = np.asarray(log_share, dtype=np.float64)
     f = log_share.size
     kept = np.ones(f, dtype=bool) if kept is None else np.asarray(kept, dtype=bool)

@@ -72,8 +72,7 @@ def student_t_quantile(df: float | np.ndarray, u: np.ndarray) -> np.ndarray:
         df: degrees of freedom, a float >= 1, or float [D] >= 1: one per column of ``u`` [..., D].
         u: float64 uniforms, any shape (0 gives -inf, 1 gives inf, outside [0, 1] nan, as ``stdtrit``).
     Raises:
-        ValueError: ``df`` below 1 or not finite, or one per column that does not match ``u``'s last axis.
-    """
+        ValueError: ``df`` below 1 or not finite, or one per column that does not match ``u``'s last axis."""
     from scipy.special import stdtrit
 
     nus = tuple(float(v) for v in np.ravel(df))

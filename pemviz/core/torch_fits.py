@@ -1,8 +1,7 @@
 """The proposal's fits that run in torch: L-BFGS and the float32 / float64 Adam fits (:func:`fit_in_torch`), the
 measurement-error head (:class:`NoiseShift`, :func:`fit_noise_shift`), and the torch module a proposal becomes when
 one of them or a checkpoint needs it (:class:`ProposalModule`). Imports torch; :mod:`pemviz.core.sampling` imports
-this module only then.
-"""
+this module only then."""
 
 from __future__ import annotations
 
@@ -52,8 +51,7 @@ class NoiseShift(nn.Module):
         loc_q = loc_p + s_p a(h),    log s_q = log s_p + b(h),
 
     in the target's family; (a, b) are linear in h and zero at first, moved by cross-entropy fits toward the
-    failures' errors (Rubinstein & Kroese, "The Cross-Entropy Method", 2004).
-    """
+    failures' errors (Rubinstein & Kroese, "The Cross-Entropy Method", 2004)."""
 
     def __init__(self, n_inputs: int, n_noise: int) -> None:
         super().__init__()
@@ -153,8 +151,7 @@ class Backprop:
     Args:
         net: Linear-ReLU-Linear-ReLU-Linear-LogSoftmax (:class:`Proposal`'s ``net``).
         h: the network's input, float64 [M, k].
-        grads: float64 tensors shaped like the parameters, in ``net.parameters()`` order.
-    """
+        grads: float64 tensors shaped like the parameters, in ``net.parameters()`` order."""
 
     def __init__(self, net: nn.Sequential, h: torch.Tensor, grads: list[torch.Tensor]) -> None:
         first, _, second, _, third, _ = net
@@ -215,8 +212,7 @@ class Adam:
 
     Args:
         params: the tensors to optimise (``requires_grad``); their ``.grad`` is read by :meth:`step`.
-        lr: step size (> 0).
-    """
+        lr: step size (> 0)."""
 
     def __init__(
         self, params: list[torch.Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8

@@ -82,8 +82,7 @@ def _rebuild_tensor_v2(
 
     Raises:
         UnsupportedPayload: not a storage, sizes or strides not non-negative ints, a view beyond the storage,
-            backward hooks, or tensor metadata (the conjugate / negative bits).
-    """
+            backward hooks, or tensor metadata (the conjugate / negative bits)."""
     if not isinstance(storage, _Storage):
         raise UnsupportedPayload(f"tensor rebuilt from a {type(storage).__name__}, not a storage")
     if not (isinstance(size, tuple) and isinstance(stride, tuple) and len(size) == len(stride)):
@@ -228,8 +227,7 @@ def load_payload(path: str | os.PathLike[str]) -> Any:
 
     Raises:
         Whatever ``torch.load`` raises for a file neither reads (several types; some messages span several lines),
-        and TypeError for a tensor of a dtype numpy lacks (``bfloat16``).
-    """
+        and TypeError for a tensor of a dtype numpy lacks (``bfloat16``)."""
     try:
         return read_payload(path)
     except Exception:  # noqa: BLE001 - torch decides: the same result, or the same error, as before this reader
@@ -244,8 +242,7 @@ def tensors_to_numpy(value: Any) -> Any:
     anything else as it is. Does not import torch.
 
     Raises:
-        TypeError: a tensor of a dtype numpy lacks (``bfloat16``).
-    """
+        TypeError: a tensor of a dtype numpy lacks (``bfloat16``)."""
     torch = sys.modules.get("torch")
     if torch is None:
         return value

@@ -1,7 +1,6 @@
 """torch, imported where a computation first needs it, with the thread count a run asked for:
 :func:`pemviz.engine.resources.torch_threads` leaves the number here when torch is not imported yet
-(:func:`want_threads`), and :func:`torch_module` applies it on the import.
-"""
+(:func:`want_threads`), and :func:`torch_module` applies it on the import."""
 
 from __future__ import annotations
 

@@ -3,8 +3,7 @@ beside the verdict (:func:`pemviz.core.estimate.estimate` decides from the same 
 :data:`~pemviz.core.estimate.MIN_FAILURES` failures, an ESS of at least
 :data:`~pemviz.core.estimate.MIN_ESS_RELIABLE` and a Pareto k-hat at most the sample-size threshold of Vehtari,
 Simpson, Gelman, Yao & Gabry ("Pareto Smoothed Importance Sampling", JMLR 25(72), 2024, Sec. 3.2); plain Monte Carlo
-needs the failures alone; splitting keeps no weights.
-"""
+needs the failures alone; splitting keeps no weights."""
 
 from __future__ import annotations
 
@@ -31,8 +30,7 @@ class Check:
         rule: what the check asks (``at least 10``).
         passed: True or False; None where the check does not apply to the sampling (``not used``).
         fails_to: the verdict at best when it fails (one of :data:`pemviz.core.estimate.VERDICTS`), ``""`` where it
-            cannot fail.
-    """
+            cannot fail."""
 
     name: str
     found: str
@@ -60,8 +58,7 @@ def verdict_checks(n: int, n_failures: int, ess: float | None, khat: float | Non
     Returns:
         Three checks: failures, effective sample size, Pareto k-hat.
     Raises:
-        ValueError: an unknown ``sampling``.
-    """
+        ValueError: an unknown ``sampling``."""
     if sampling not in SAMPLINGS:
         raise ValueError(f"verdict_checks: sampling must be one of {', '.join(SAMPLINGS)}, got {sampling!r}")
     ess_f = math.nan if ess is None else float(ess)

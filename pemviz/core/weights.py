@@ -109,8 +109,7 @@ def stage_log_q(
         (log q float64 [n, T] in nats: ``batch.log_q`` for one sampler, else :func:`mixture_step_log_q` of every
         sampler's density of the logged actions, the measurement errors' included (:func:`errors_log_density`);
         component int64 [n]; over an ODD whose parameters a sampler drew from a proposal of its own, their term of
-        each rollout's log q, float64 [n] (:attr:`~pemviz.core.rollouts.RolloutBatch.log_q_params`), else None).
-    """
+        each rollout's log q, float64 [n] (:attr:`~pemviz.core.rollouts.RolloutBatch.log_q_params`), else None)."""
     sizes = [k for k, _ in parts] or [batch.n]
     component = component_of(start, batch.n, sizes)
     if len(parts) <= 1:
@@ -146,8 +145,7 @@ class MeanWeight:
         n: N.
         bound_se: the largest standard error of the mean a correct density allows, sqrt(sum_i (B_i - 1)) / N, when
             every weight is bounded by a known B_i (a share of the stage drawn from the target itself); else None.
-        over_bound: rollouts whose weight exceeds its bound B_i (impossible under the declared density).
-    """
+        over_bound: rollouts whose weight exceeds its bound B_i (impossible under the declared density)."""
 
     log_mean: float
     se: float

@@ -19,8 +19,7 @@ The seconds follow what a run does (:mod:`pemviz.engine`, :mod:`pemviz.estimator
 :data:`COST` holds the constants, measured by ``python benchmarks/calibrate_cost.py`` (which prints the predicted and
 measured seconds of a handful of runs and, with ``--fit``, the constants fitted to them). :class:`StageClock
 <pemviz.sinks.StageClock>` scales the prediction by what the run has measured so far, for the whole run's time
-left. No numpy, no torch.
-"""
+left. No numpy, no torch."""
 
 from __future__ import annotations
 
@@ -79,8 +78,7 @@ class CostConstants:
         pool_share: a pooled batch's CPU seconds over the same rollouts' in one process (the workers' start, the
             blocks' hand-off, the run's process collecting them while they simulate); the workers share the CPUs
             as the load allows (:meth:`pemviz.engine.resources.LoadReading.pool_speedup`).
-        measured: when, where and how the constants were measured.
-    """
+        measured: when, where and how the constants were measured."""
 
     pem_step_s: float
     proposal_step_s: float
@@ -205,8 +203,7 @@ def stage_cost(
             :func:`pemviz.engine.resources.usable_cpus`): a pooled batch's simulation is its seconds in one process
             times :attr:`CostConstants.pool_share` over what the workers gain at that load
             (:meth:`pemviz.engine.resources.LoadReading.pool_speedup`: W x crowding(1) / crowding(W)), one process's
-            crowding left to the caller's slowdown as for every other part.
-    """
+            crowding left to the caller's slowdown as for every other part."""
     model = cfg.method_record.cost_model if model is None else model
     proposal = model == "proposal" and kind in ("ce", "final")
     parts = SCENARIO_COST_PARTS.get(cfg.scenario, {})  # what the scene declares (none: the reference's)
@@ -314,8 +311,7 @@ class FollowOn:
         offset: the engine's number of the retry's first stage (the planned stages' last + 1).
         plain_most: the most plain rollouts after the stages (and their retry).
         simulations: all the simulations it may add (the retry's and the plain rollouts).
-        words: the cost line's words for them (:func:`then_adds`).
-    """
+        words: the cost line's words for them (:func:`then_adds`)."""
 
     retry: RunPlan | None
     offset: int
@@ -339,8 +335,7 @@ def follow_on(cfg: ExperimentConfig, plan: RunPlan, problem: Any = None) -> Foll
     :class:`~pemviz.core.problems.Problem` or the run's :class:`~pemviz.engine.events.RunStarted`), what its method
     would draw on that scene (:attr:`~pemviz.methods.Method.then_drawn`, where it has one): e.g. no plain rollouts
     where they could decide nothing (e.g. braking at ``--margin 0``,
-    :func:`pemviz.estimators.fallback.plain_cannot_decide`).
-    """
+    :func:`pemviz.estimators.fallback.plain_cannot_decide`)."""
     from pemviz.methods import resolve
 
     if not plan.stages:
@@ -512,8 +507,7 @@ def run_cost(
     A stage above ``stream_above`` rollouts (:data:`pemviz.engine.experiment.STREAM_ABOVE`) is simulated in chunks, so
     it does not count in full towards memory. The memory is the run's memory check's model
     (:func:`pemviz.engine.resources.run_memory`, :data:`pemviz.engine.resources.BYTES_PER_ROLLOUT_STEP`) without the
-    process's own :data:`pemviz.engine.resources.BASE_BYTES`: one model of a step's bytes for both.
-    """
+    process's own :data:`pemviz.engine.resources.BASE_BYTES`: one model of a step's bytes for both."""
     seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c, speed, load).values())
     seconds += look_ahead_s * sum(s.n_rollouts for s in plan.stages)
     batch = run_memory(plan, n_steps, cfg.adaptive.quantile_level, stream_above=stream_above) - BASE_BYTES

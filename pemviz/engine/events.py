@@ -3,8 +3,7 @@
 :class:`~pemviz.core.problem_view.ProblemView`); per stage (0 = pretraining, 1..K = cross-entropy stages, K+1 =
 final batch) :class:`StageStarted`, a :class:`RolloutChunk` per chunk, one :class:`RolloutsSampled` and
 :class:`StageFinished`; then :class:`FinalEstimate` and :class:`RunFinished` (or :class:`RunCancelled`). Sinks read
-these and nothing else of the engine; this module imports neither torch nor the engine.
-"""
+these and nothing else of the engine; this module imports neither torch nor the engine."""
 
 from __future__ import annotations
 
@@ -34,8 +33,7 @@ class RunStarted:
     """The run begins: its config, the PEM's detection curve, the problem and the stages the estimator plans.
 
     ``config`` is the run's :class:`~pemviz.config.ExperimentConfig`; ``formula`` the requirement's STL formula as
-    text; ``curve_grid_m`` the distances (metres, float64 [G]) the detection curves are drawn on.
-    """
+    text; ``curve_grid_m`` the distances (metres, float64 [G]) the detection curves are drawn on."""
 
     config: ExperimentConfig
     formula: str

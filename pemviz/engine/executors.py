@@ -245,8 +245,7 @@ def check_draws(problem: Any, results: list[Block]) -> tuple[int, int]:
     """Check that every chunk result ``(batch, draws, uniforms per rollout)`` drew once per step; returns (T, K).
 
     Raises:
-        RuntimeError: a chunk drew another number of times than its rollouts have steps.
-    """
+        RuntimeError: a chunk drew another number of times than its rollouts have steps."""
     n_steps, per_rollout = results[0][0].n_steps, results[0][2]
     for batch, calls, _ in results:
         if calls != n_steps or batch.n_steps != n_steps:
@@ -262,8 +261,7 @@ def gather_chunks(problem: Any, n: int, rng: np.random.Generator, results: list[
     by n K T.
 
     Raises:
-        RuntimeError: a chunk drew another number of times than its rollouts have steps.
-    """
+        RuntimeError: a chunk drew another number of times than its rollouts have steps."""
     n_steps, per_rollout = check_draws(problem, results)
     batches = [b for b, _, _ in results]
     advance(rng, n * per_rollout * n_steps)
@@ -281,8 +279,7 @@ def probe_ray_address(address: str | None, timeout_s: float = RAY_PROBE_TIMEOUT_
     left to Ray (they name no socket).
 
     Raises:
-        ValueError: a malformed address, or nothing answers at it (the message names it and the timeout).
-    """
+        ValueError: a malformed address, or nothing answers at it (the message names it and the timeout)."""
     if address is None or address in ("auto", "local"):
         return
 
@@ -426,8 +423,7 @@ def get_executor(name: str = "local", address: str | None = None, workers: int |
 
     Raises:
         ValueError: an unknown name, or ``workers`` below 1.
-        ImportError: ``ray`` without Ray installed.
-    """
+        ImportError: ``ray`` without Ray installed."""
     if name not in EXECUTORS:
         raise ValueError(f"unknown executor {name!r}; use one of {', '.join(EXECUTORS)}")
     if name == "local":

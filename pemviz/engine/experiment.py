@@ -6,8 +6,7 @@ as listeners ``listener(event) -> None`` and never call back into the engine, ex
 
 The events and their order are :mod:`pemviz.engine.events`'s. A stage of more than :data:`STREAM_ABOVE` rollouts on a
 problem that can stream is simulated chunk by chunk and never held whole: the estimator keeps per-rollout numbers and
-the rollouts that can still matter (e.g. the elites), listeners get each chunk and a bounded sample of the stage.
-"""
+the rollouts that can still matter (e.g. the elites), listeners get each chunk and a bounded sample of the stage."""
 
 from __future__ import annotations
 
@@ -141,8 +140,7 @@ class Experiment:
     arithmetic; the experiment simulates them (on ``config.execution.executor``), computes their robustness, emits the
     events and checks the cancel token. ``problem``: what to estimate (a :class:`Problem`, e.g. the one
     :func:`pemviz.scenarios.problems.problem_for` ``(config)`` builds for the config's scenario); the engine itself
-    loads nothing.
-    """
+    loads nothing."""
 
     def __init__(
         self,

@@ -99,8 +99,7 @@ def unpack(packed: Packed) -> Any:
     file removed at once: its memory is freed with the last array).
 
     Raises:
-        OSError: the hand-off file is missing (its pool's folder was removed).
-    """
+        OSError: the hand-off file is missing (its pool's folder was removed)."""
     head, path, spans = packed
     if path is None:
         return pickle.loads(head)

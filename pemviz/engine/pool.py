@@ -86,8 +86,7 @@ class LocalExecutor(Executor):
         workers: worker processes (None: :func:`pemviz.engine.resources.usable_cpus`); 1 never starts a pool (the
             serial executor).
     Raises:
-        ValueError: ``workers`` below 1.
-    """
+        ValueError: ``workers`` below 1."""
 
     name = "local"
 

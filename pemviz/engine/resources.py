@@ -54,8 +54,7 @@ def run_memory(
 
     The largest stage held at once, each [N, T] whole or, above ``stream_above`` rollouts, one chunk plus
     :data:`BYTES_PER_STREAMED_ROLLOUT` a rollout and, for a CE stage, its elites ((1 - sigma) N rollouts,
-    ``quantile_level`` = sigma).
-    """
+    ``quantile_level`` = sigma)."""
     cell = BYTES_PER_ROLLOUT_STEP * n_steps
     peaks = [0]
     for stage in plan.stages:
@@ -83,8 +82,7 @@ def check_run_memory(cfg: ExperimentConfig, n_steps: int, *, stream_above: int |
     Returns:
         the estimate in bytes (:func:`run_memory`).
     Raises:
-        ValueError: the estimate exceeds the available memory; the message gives both numbers and the knobs.
-    """
+        ValueError: the estimate exceeds the available memory; the message gives both numbers and the knobs."""
     from pemviz.estimators import run_plan  # imports torch: only when a run is checked
 
     need = run_memory(run_plan(cfg), n_steps, cfg.adaptive.quantile_level, stream_above=stream_above)
@@ -157,8 +155,7 @@ class TaskTimes:
             thread but this process's. The group is ``""`` where it cannot be read (a kernel thread: the root group).
         group: this process's autogroup (None without autogroups: then every task counts as in this group).
         group_nice: that group's nice.
-        nice: this process's nice.
-    """
+        nice: this process's nice."""
 
     at: float
     tasks: dict[str, tuple[str, int, int, int]]
@@ -175,8 +172,7 @@ class Competition:
         groups: each other autogroup (session) that had a runnable task: (its weight against this one's,
             :data:`NICE_WEIGHT` ^ (this group's nice - its), its runnable tasks: the mean over the window, >= 0).
         inside: this session's other runnable tasks, each weighed :data:`NICE_WEIGHT` ^ (this task's nice - its).
-        inside_tasks: the same tasks, counted (what they can use: one CPU each).
-    """
+        inside_tasks: the same tasks, counted (what they can use: one CPU each)."""
 
     groups: tuple[tuple[float, float], ...] = ()
     inside: float = 0.0
@@ -290,8 +286,7 @@ class LoadReading:
     Attributes:
         cpus: the CPUs the run may use (:func:`usable_cpus`).
         competition: the other tasks' claim (None: not read).
-        average: the 1-minute load average, runnable tasks (None: not read; used only without ``competition``).
-    """
+        average: the 1-minute load average, runnable tasks (None: not read; used only without ``competition``)."""
 
     cpus: int
     competition: Competition | None = Competition()

@@ -27,8 +27,7 @@ def build_estimator(config: ExperimentConfig, problem: Problem, check: Check | N
     a stop rule and in what the method runs after its stages (:attr:`pemviz.methods.Method.then`).
 
     Raises:
-        KeyError: a method no one registered; ValueError: a stop rule for a method that cannot take more batches.
-    """
+        KeyError: a method no one registered; ValueError: a stop rule for a method that cannot take more batches."""
     from pemviz.estimators.precision import PrecisionTarget
 
     method = _method_of(config)
@@ -43,8 +42,7 @@ def check_runnable(config: ExperimentConfig, problem: Problem) -> None:
     :meth:`pemviz.methods.Method.conflict` with the problem's objects.
 
     Raises:
-        ValueError: one line naming what cannot run and what to use instead.
-    """
+        ValueError: one line naming what cannot run and what to use instead."""
     conflict = config.method_record.conflict(config, problem.n_objects)
     if conflict is not None:
         raise ValueError(conflict[1])

@@ -32,8 +32,7 @@ the step keeps p_hat unbiased (Brehier et al. 2016 above); a poor one costs vari
 Cost: the N initial rollouts (N T steps) plus, per iteration, the continuations' steps sum_i (T - branch step_i).
 ``n_simulations`` counts rollout-equivalents, ceil(simulated steps / T), so that budgets compare with the
 cross-entropy sampler's rollouts (its default spends 2,100), with a graded score's look-ahead and preparation steps.
-Replayed prefixes are not counted: a snapshot restores them without simulation.
-"""
+Replayed prefixes are not counted: a snapshot restores them without simulation."""
 
 from __future__ import annotations
 
@@ -108,8 +107,7 @@ def running_score(
             state).
 
     Raises:
-        ValueError: a formula that is not ``G[a,b](state predicate)``.
-    """
+        ValueError: a formula that is not ``G[a,b](state predicate)``."""
     score = step_robustness(problem, batch)
     if graded is not None:
         score = np.where(score < 0.0, score, np.maximum(graded, SCORE_FLOOR))
@@ -140,8 +138,7 @@ class Splitting:
         max_iterations: stop after this many iterations even if the level has not reached 0.
         rng: the detections of the continuations; pick_rng: which survivor each killed particle copies.
         scorer: a graded score that simulates the particles itself (None: the robustness, and the problem's
-            ``simulate`` / ``branch``).
-    """
+            ``simulate`` / ``branch``)."""
 
     problem: Problem
     killed: int
@@ -260,8 +257,7 @@ def ams_estimate(
     Verdict: ``unreliable`` with no failure (p_hat = 0, after an extinction or with the level above 0);
     ``doubtful`` when stopped before the level reached 0, with fewer than :data:`MIN_FAILURES` failures, or when
     the failures descend from fewer than :data:`MIN_FAILURES` initial particles (the variance then rests on one
-    family); else ``reliable``. There are no importance weights (k-hat nan, mean weight 1).
-    """
+    family); else ``reliable``. There are no importance weights (k-hat nan, mean weight 1)."""
     n = particles.n
     nf = int(failed.sum())
     lp = log_p_before_failure(problem, particles)[failed]
@@ -327,8 +323,7 @@ def replicas_interval(p: np.ndarray, v: np.ndarray | None = None) -> tuple[tuple
 
     Verdict: ``unreliable`` when every run is 0; ``reliable`` with R >= :data:`MIN_REPLICAS`, at most one run 0, a
     positive spread and the runs' effective count (sum p)^2 / sum p^2 >= :data:`MIN_SPREAD_ESS` (the mean not carried
-    by one run); else ``doubtful``.
-    """
+    by one run); else ``doubtful``."""
     r, mean = p.size, float(p.mean())
     if mean == 0.0:
         return (-math.inf, 0.0), "unreliable", f"AMS: no failure in {r} runs"
@@ -387,8 +382,7 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
 
     Raises:
         ValueError: a problem without ``branch`` (no snapshot/restore) or without a ``G[a,b](state predicate)``
-            formula, or a committor score asked of a problem without one: one line.
-    """
+            formula, or a committor score asked of a problem without one: one line."""
 
     SETTINGS = settings_of(SPLITTING_METHOD)
 
@@ -487,8 +481,7 @@ def committor_score(problem: Problem, score: str) -> GradedScore | None:
     proposal's (solved, or reused from an earlier run of the process).
 
     Raises:
-        ValueError: ``committor`` for a problem whose scenario has no learned committor: one line.
-    """
+        ValueError: ``committor`` for a problem whose scenario has no learned committor: one line."""
     if score == "robustness":
         return None
     if score == "lookahead":
@@ -522,8 +515,7 @@ def run_ams(
     finished :class:`Splitting` (``.estimate()``, ``.n_simulations``).
 
     Raises:
-        ValueError: as :class:`AdaptiveMultilevelSplitting`.
-    """
+        ValueError: as :class:`AdaptiveMultilevelSplitting`."""
     cfg = ExperimentConfig.of(
         method=SPLITTING_METHOD,
         n_per_stage=n,

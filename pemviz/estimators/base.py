@@ -1,8 +1,7 @@
 """What every estimator shares: the interface the engine drives, importance weights up to the failure step, and the
 per-rollout numbers of a stage. An estimator states its run (:class:`RunPlan`), plans each batch
 (:class:`StagePlan`), is shown its rollouts (:meth:`Estimator.observe`), closes the stage (:meth:`Estimator.finish`)
-and gives the answer (:meth:`Estimator.result`); the engine does simulation, robustness, events and cancellation.
-"""
+and gives the answer (:meth:`Estimator.result`); the engine does simulation, robustness, events and cancellation."""
 
 from __future__ import annotations
 
@@ -89,8 +88,7 @@ class Estimator(Protocol):
     """A rare-event estimator as the engine drives it: ``while (plan := next_stage())``: draw ``plan.n`` rollouts
     from ``plan.sampler``, ``observe`` them (in one or more chunks), ``finish`` the stage; then ``result``.
 
-    ``rng`` is the stream the rollouts' detections are drawn from (the estimator seeds it, with its other streams).
-    """
+    ``rng`` is the stream the rollouts' detections are drawn from (the estimator seeds it, with its other streams)."""
 
     rng: np.random.Generator
 
@@ -123,8 +121,7 @@ def failure_steps(problem: Problem, batch: RolloutBatch, level: float = 0.0) -> 
     the problem's safety formula on the batch's signals (robustness of the operand <= ``level``; < 0 at level 0).
 
     Raises:
-        ValueError: if the formula is not ``G[a,b](operand)`` with a time-free operand (horizon 0).
-    """
+        ValueError: if the formula is not ``G[a,b](operand)`` with a time-free operand (horizon 0)."""
     global _LAST_FAILURE_STEPS
     known = _LAST_FAILURE_STEPS  # read once: another thread may replace it
     if known is not None and known[0]() is batch.observations and known[1] is problem and known[2] == level:
@@ -147,8 +144,7 @@ def log_weight(problem: Problem, batch: RolloutBatch, until_failure: bool) -> np
     the steps before the failure step, where later actions change nothing either.
 
     Raises:
-        ValueError: ``until_failure`` with a formula :func:`failure_steps` cannot read.
-    """
+        ValueError: ``until_failure`` with a formula :func:`failure_steps` cannot read."""
     if not until_failure:
         return batch.log_weight()
     return masked_log_weight(batch, weighted_steps_mask(problem, batch, until_failure))
@@ -198,8 +194,7 @@ def mixture_log_weight(log_p: np.ndarray, log_q: np.ndarray, shares: np.ndarray)
     Args:
         log_p: log p(x) of each rollout under the target, float64 [N] (nats, over the weighted steps).
         log_q: log q_k(x) of each rollout under each sampler, float64 [K, N] (nats, the same steps).
-        shares: c_k >= 0, [K], summing to 1.
-    """
+        shares: c_k >= 0, [K], summing to 1."""
     with np.errstate(divide="ignore"):
         log_c = libm.log(np.asarray(shares, dtype=np.float64))[:, None]
     return np.asarray(log_p, dtype=np.float64) - libm.logsumexp(log_c + np.asarray(log_q, dtype=np.float64), axis=0)
@@ -220,8 +215,7 @@ class SeenFailures:
     """The probability of the distinct failures a run has drawn: a lower bound of p, whatever the samplers. Where
     the detections are a rollout's only randomness and its start is fixed, each distinct failing prefix of
     detections is a disjoint event of probability prod_{t < t_f} p(a_t | s_t) that implies the failure; at most
-    :data:`KEEP` of the likeliest are kept.
-    """
+    :data:`KEEP` of the likeliest are kept."""
 
     KEEP: ClassVar[int] = 20_000
 
@@ -311,8 +305,7 @@ def severity_arrays(
 
     Returns:
         (log-weights, events, log p), float64 / bool / float64 [L, N] (nats), or None: no severity scale, the
-        signal missing from the batch, or a formula without a failure step.
-    """
+        signal missing from the batch, or a formula without a failure step."""
     scale = problem.severity
     if scale is None or not scale.levels:
         return None
@@ -461,8 +454,7 @@ def quantile_threshold(robustness: np.ndarray, quantile_level: float, floor: flo
     """gamma_kappa = max(floor, the ceil((1 - sigma) N)-th smallest robustness).
 
     With sigma = 0.95 and N = 100 this is the 5th smallest value (Innes & Ramamoorthy 2022, Algorithm 1). ``floor``
-    is the failure threshold gamma (0): once enough rollouts fail, every failure is an elite.
-    """
+    is the failure threshold gamma (0): once enough rollouts fail, every failure is an elite."""
     r = np.asarray(robustness, dtype=np.float64)
     return kth_threshold(r, elite_count(r.size, quantile_level), floor)
 
@@ -481,8 +473,7 @@ class EliteCandidates:
     Args:
         n: N, rollouts of the stage.
         quantile_level: sigma.
-        floor: the failure level (0): every rollout at or below it is kept.
-    """
+        floor: the failure level (0): every rollout at or below it is kept."""
 
     def __init__(self, n: int, quantile_level: float, floor: float = 0.0) -> None:
         self.n, self.k, self.floor = n, elite_count(n, quantile_level), float(floor)
@@ -555,6 +546,5 @@ def pooled_estimate(stages: list[StageRollouts], stage_weights: np.ndarray | Non
 
     Args:
         stages: K stages of n_k rollouts each.
-        stage_weights: lambda_k >= 0, [K], summing to 1, or None (:func:`pool`).
-    """
+        stage_weights: lambda_k >= 0, [K], summing to 1, or None (:func:`pool`)."""
     return pool([s.arrays() for s in stages], stage_weights)

@@ -1,7 +1,6 @@
 """The built-in methods' hooks that are not their estimators' own, as :mod:`pemviz.methods` names them (each
 imported on first use): the builders of ``mc``, ``naive50``, ``mixed50`` (:mod:`pemviz.estimators.fixed`) and
-``tilt``, and the methods' checks, budgets and advice. Each builder is ``(config, problem, check) -> Estimator``.
-"""
+``tilt``, and the methods' checks, budgets and advice. Each builder is ``(config, problem, check) -> Estimator``."""
 
 from __future__ import annotations
 

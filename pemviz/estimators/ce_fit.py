@@ -1,8 +1,7 @@
 """The cross-entropy fit of the proposal (Innes & Ramamoorthy 2022, Algorithm 1, eq. 10-11): the pretraining fit to the
 target's own actions, the weighted CE update on the elites' steps, the frozen- and recomputed-weight objectives, the
 systematic subsample that bounds a fit's rows, and :class:`EliteSteps`, the elites' fitted steps gathered chunk by
-chunk. :class:`pemviz.estimators.cross_entropy.CrossEntropy` runs the stages around them.
-"""
+chunk. :class:`pemviz.estimators.cross_entropy.CrossEntropy` runs the stages around them."""
 
 from __future__ import annotations
 
@@ -47,8 +46,7 @@ def weighted_steps(
         rng: draws the resampling offset.
     Returns:
         (distinct inputs [M] or [M, k] float64, counts [M, 2] float64: weight on miss, on
-        detect), M <= ``max_rows``.
-    """
+        detect), M <= ``max_rows``."""
     w = np.asarray(step_weight, dtype=np.float64).reshape(-1)
     keep = np.flatnonzero(w > 0)
     if keep.size > max_rows:
@@ -86,8 +84,7 @@ def _action_counts(
             epoch does not evaluate the network where it cannot change the loss; ``inverse`` is then None.
     Returns:
         (uniq [U] (or [U, k]) float64, counts [U, 2] float64: weighted misses, detections;
-        inverse [N, T] index of each entry into ``uniq``).
-    """
+        inverse [N, T] index of each entry into ``uniq``)."""
     inputs = np.asarray(inputs, dtype=np.float64)
     shape = np.shape(detected)
     if inputs.ndim == 3:
@@ -142,8 +139,7 @@ def pretrain_proposal(
         step_mask: bool [N, T] or None: only these steps are fitted (e.g. inside the proposal's window).
     Returns:
         the loss per epoch, or per L-BFGS evaluation (mean negative log-likelihood, nats per step).
-    Source: Innes & Ramamoorthy 2022, Algorithm 1 (pretraining on PEM-driven rollouts).
-    """
+    Source: Innes & Ramamoorthy 2022, Algorithm 1 (pretraining on PEM-driven rollouts)."""
     n_fitted = np.size(detected) if step_mask is None else int(np.count_nonzero(step_mask))
     if options.summed(n_fitted):
         if step_mask is None:
@@ -192,8 +188,7 @@ def ce_update(
         the loss per epoch (per L-BFGS evaluation). The weights are divided by their largest value (a
         constant factor, to which Adam's steps are invariant), so that w^alpha never overflows.
     Raises:
-        ValueError: if there is no elite rollout.
-    """
+        ValueError: if there is no elite rollout."""
     idx = np.flatnonzero(elite)
     if idx.size == 0:
         raise ValueError("ce_update: no elite rollouts (robustness <= gamma) to fit the proposal to")
@@ -237,8 +232,7 @@ def recomputed_objective(
     Returns:
         log q [M, 2] -> (loss, d loss / d log q [M, 2]): the operations autograd would run, in its order, so a fit
         gives the same bits as differentiating the loss with autograd (a test checks it).
-    Source: Innes & Ramamoorthy 2022, eq. 10-11, with the weights differentiated as in the authors' code.
-    """
+    Source: Innes & Ramamoorthy 2022, eq. 10-11, with the weights differentiated as in the authors' code."""
     from pemviz.core.torch_use import torch_module
 
     torch = torch_module()
@@ -284,8 +278,7 @@ def fit_elite_steps(
     Returns:
         the loss per epoch (per L-BFGS evaluation).
     Source: Innes & Ramamoorthy 2022, eq. 10-11 (the CE update), summed over distinct inputs. With no step to fit
-    (the elites never entered the step mask) the proposal stays as it is and the loss list is empty.
-    """
+    (the elites never entered the step mask) the proposal stays as it is and the loss list is empty."""
     if np.shape(actions)[0] == 0:
         return []
     w = libm.exp(np.asarray(log_w, dtype=np.float64) - log_w_max)[None]
@@ -311,8 +304,7 @@ class EliteSteps:
         rng: draws the thinning.
         thin_above: steps held before a thinning (default 20 x ``max_rows``).
         keep_observations: also hold each step's observation, so that :meth:`reweight` can compute new weights
-            (until a thinning).
-    """
+            (until a thinning)."""
 
     def __init__(
         self,
@@ -394,8 +386,7 @@ class EliteSteps:
 
         Returns:
             False (nothing changed) without ``keep_observations`` or once thinned: the steps then no longer
-            belong to whole rollouts.
-        """
+            belong to whole rollouts."""
         if not self.keep_observations or self.thinned or not self.parts:
             return False
         order, rows, actions, _ = (np.concatenate(a) for a in zip(*self.parts, strict=False))
@@ -430,8 +421,7 @@ def break_ties(
     At gamma = 0 (the failure threshold) this keeps all failures (r < 0) and admits a non-failing rollout
     with r = 0 only to reach ceil((1 - sigma) N) elites. ``n``: N, the stage's rollouts, when ``robustness``
     holds only some of them (:class:`~pemviz.estimators.base.EliteCandidates`: every one at or below gamma);
-    default M. ``settled``: rollouts below gamma already taken as elites and not in ``robustness``.
-    """
+    default M. ``settled``: rollouts below gamma already taken as elites and not in ``robustness``."""
     k = elite_count(robustness.size if n is None else n, quantile_level)
     below = robustness < gamma
     ties = np.flatnonzero(robustness == gamma)

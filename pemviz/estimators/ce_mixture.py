@@ -2,8 +2,7 @@
 under the mixture over whole rollouts it was drawn from, from the components' log-probabilities the simulation kept
 (asked again where it could not keep them), and the failure pool's rollouts weighed under the samplers of every stage
 in the pool (``fit_weights = "mixture"``). :class:`MixtureWeights` holds these methods of
-:class:`~pemviz.estimators.cross_entropy.CrossEntropy`, which inherits them.
-"""
+:class:`~pemviz.estimators.cross_entropy.CrossEntropy`, which inherits them."""
 
 from __future__ import annotations
 

@@ -2,8 +2,7 @@
 beside the perception's: the CE stages' samplers draw each rollout's parameters from it, and after each stage it
 moves toward the cells of the stage's elites (from the failure level on, of every failure since), weighted as the
 perception's fit weighs them. The target's share of a stage's mixture draws its parameters from the ODD itself, so
-every weight stays bounded by the target's share, as without a parameter proposal.
-"""
+every weight stays bounded by the target's share, as without a parameter proposal."""
 
 from __future__ import annotations
 
@@ -30,8 +29,7 @@ class ParameterFit:
 
     Args:
         problem: the run's problem; without an ODD (or with one too fine to grid: :meth:`ParameterProposal.of`) there
-            is no proposal and every method is a no-op.
-    """
+            is no proposal and every method is a no-op."""
 
     def __init__(self, problem: Problem) -> None:
         self.proposal = ParameterProposal.of(problem.odd) if problem.odd is not None else None

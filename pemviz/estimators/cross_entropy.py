@@ -7,8 +7,7 @@ the proposal, takes the elites (robustness <= gamma_kappa, the (1 - sigma) quant
 final batch of N_e rollouts from the last proposal gives the estimate, alone or pooled with the CE stages drawn
 from proposals fitted to failures. The whole stage lives here: elites, weights (a mixture's in
 :mod:`pemviz.estimators.ce_mixture`), step masks, the fit's data and loss (:mod:`pemviz.estimators.ce_fit`; the
-optimiser and the proposal networks are in :mod:`pemviz.core.sampling`).
-"""
+optimiser and the proposal networks are in :mod:`pemviz.core.sampling`)."""
 
 from __future__ import annotations
 
@@ -100,8 +99,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
     Args:
         config: the sampler's settings.
         problem: what to estimate.
-        check: called between and inside fits; may raise to abandon the run.
-    """
+        check: called between and inside fits; may raise to abandon the run."""
 
     SETTINGS = settings_of(CROSS_ENTROPY_METHOD)
     fits_errors = True
@@ -212,8 +210,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         stage; :meth:`result` pools them with the final batch, every final rollout alike.
 
         Raises:
-            RuntimeError: before the final batch, or with ``final_estimate = "last-stage"`` (no final batch).
-        """
+            RuntimeError: before the final batch, or with ``final_estimate = "last-stage"`` (no final batch)."""
         final = self.ce.n_stages + 1
         if self._plan is None or self._plan.stage < final or final not in self.stages:
             raise RuntimeError("CrossEntropy.extend: the final batch has not been drawn")
@@ -322,8 +319,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         (j = 1..K) counts lambda_j = j n_j / sum_i i n_i, with ``quadratic`` (the default) j^2 n_j / sum_i i^2 n_i:
         fixed as soon as the pool starts too, so still unbiased, and later proposals, fitted to more failures, count
         more (weighting the stages of adaptive importance sampling: Portier & Delyon, "Asymptotic optimality of
-        adaptive importance sampling", NeurIPS 2018).
-        """
+        adaptive importance sampling", NeurIPS 2018)."""
         est, used = self._result()
         return est.at_most(self.verdict_cap), used
 
@@ -554,8 +550,7 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         step where the operand of the ``G`` safety formula is violated; with the classic metric and a level
         gamma_kappa > 0, the first step where its robustness is <= gamma_kappa: whether a rollout is an
         elite is settled there, later actions are not what made it one); ``proposal_window``: the objects
-        inside the problem's window (their row's first column below it).
-        """
+        inside the problem's window (their row's first column below it)."""
         cfg = self.config
         if not (cfg.weights_until_failure or self.ce.proposal_window):
             return None

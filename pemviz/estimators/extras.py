@@ -21,8 +21,7 @@ class Extras:
         stop: why it stopped (one line), or None.
         decision: a requirement's decision (:class:`pemviz.core.requirement.Decision`), or None.
         prepared: how its proposal was prepared (one line), or None.
-        needs_chunk_rows: whether a streamed stage's chunks must carry their object rows (True unless it says not).
-    """
+        needs_chunk_rows: whether a streamed stage's chunks must carry their object rows (True unless it says not)."""
 
     n_simulations: int | None = None
     pooling: tuple[str, tuple[float, ...]] | None = None

@@ -109,8 +109,7 @@ def plain_cannot_decide(cap: int, stated: tuple[float, str] | None, require: str
         require: the run's requirement (``"p < 1e-9"``), or None.
     Returns:
         one clause saying why not (e.g. ``p = 8.06e-33 (the exact answer) expects 8.1e-27 failures in 1,000,000
-        rollouts``), or None.
-    """
+        rollouts``), or None."""
     if cap < 1:
         return "no plain rollout is left in the run's budget"
     if stated is None:
@@ -192,8 +191,7 @@ class Shifted(_Speaks):
 
     Args:
         inner: the estimator.
-        offset: added to each of its stage numbers (>= 0).
-    """
+        offset: added to each of its stage numbers (>= 0)."""
 
     def __init__(self, inner: Estimator, offset: int) -> None:
         self.inner, self.offset = inner, int(offset)

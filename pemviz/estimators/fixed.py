@@ -24,8 +24,7 @@ class FixedSampler:
         weights_until_failure: importance weights stop at the failure step (see
             :func:`pemviz.estimators.base.log_weight`).
         seed: the rollouts' stream, ``numpy.random.default_rng(seed)``.
-        first_stage: the number of its first batch (1; after another estimator's stages, the stage after them).
-    """
+        first_stage: the number of its first batch (1; after another estimator's stages, the stage after them)."""
 
     needs_chunk_rows = False
     """A streamed stage's chunks may come without their object rows (:attr:`pemviz.core.rollouts.RolloutBatch.replay`):

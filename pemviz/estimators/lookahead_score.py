@@ -46,8 +46,7 @@ class LookAheadScore:
         problem: a problem with ``branch`` and a ``G[a,b](state predicate)`` formula.
         stride: score every ``stride``-th step (None: ceil(T / :data:`SCORED_STEPS`)).
     Raises:
-        ValueError: a problem without ``branch``, or a stride < 1.
-    """
+        ValueError: a problem without ``branch``, or a stride < 1."""
 
     def __init__(self, problem: Problem, stride: int | None = None) -> None:
         if problem.branch is None:

@@ -60,8 +60,7 @@ class Draw:
     Attributes:
         estimate: mu_hat with its diagnostics.
         log_weight: importance log-weights [N] (nats).
-        failed: bool [N].
-    """
+        failed: bool [N]."""
 
     estimate: Estimate
     log_weight: np.ndarray
@@ -70,8 +69,7 @@ class Draw:
 
 def draw_fixed(problem: Problem, sampler: Detector, n: int, seed: int = 0, weights_until_failure: bool = True) -> Draw:
     """``n`` rollouts of ``problem`` from ``sampler`` through the ``mc`` / ``naive50`` baselines' estimator
-    (:class:`~pemviz.estimators.fixed.FixedSampler`), in the engine's order of calls.
-    """
+    (:class:`~pemviz.estimators.fixed.FixedSampler`), in the engine's order of calls."""
     est = FixedSampler(problem, sampler, n, weights_until_failure, seed)
     plan = est.next_stage()
     assert plan is not None
@@ -93,8 +91,7 @@ def relative_variance(log_weight: np.ndarray, failed: np.ndarray, log_mu: float)
         failed: bool [N] the failures.
         log_mu: the exact log p_fail (nats).
     Raises:
-        ValueError: on arrays of different shapes or N = 0.
-    """
+        ValueError: on arrays of different shapes or N = 0."""
     log_weight = np.asarray(log_weight, dtype=np.float64)
     failed = np.asarray(failed, dtype=bool)
     if log_weight.size == 0 or log_weight.shape != failed.shape:

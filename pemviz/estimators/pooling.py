@@ -1,8 +1,7 @@
 """Pooling the stages of a run: the run's estimate over several stages' rollouts, each weighted by the proposal that
 drew it (:func:`pool`, stage weights lambda_k: :func:`pool_stage_weights`, :func:`stage_weights_of`), and what is
 pooled alike: the exceedance curve (:func:`severity_curve`), p under alternative PEMs (:func:`pem_spread`) and the
-failures' shares (:func:`failure_population`). Re-exported by :mod:`pemviz.estimators.base`.
-"""
+failures' shares (:func:`failure_population`). Re-exported by :mod:`pemviz.estimators.base`."""
 
 from __future__ import annotations
 
@@ -26,8 +25,7 @@ def pool(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], stage_weights: 
     Args:
         parts: the K stages' (log-weights float64 [n_k] in nats, failed bool [n_k], log p before the failure float64
             [n_k] in nats).
-        stage_weights: lambda_k >= 0, [K], summing to 1; None: n_k / N (every rollout alike).
-    """
+        stage_weights: lambda_k >= 0, [K], summing to 1; None: n_k / N (every rollout alike)."""
     own = np.concatenate([lw for lw, _, _ in parts])  # the lower bound bets on each rollout's own p/q (estimate)
     if stage_weights is not None:
         shift = pooling_shifts(stage_weights, np.array([lw.size for lw, _, _ in parts], dtype=np.float64))
@@ -50,8 +48,7 @@ def severity_curve(
     best verdict, :meth:`pemviz.core.estimate.Estimate.at_most`).
 
     Returns:
-        The curve, or None: no scale, or an estimator that keeps no per-stage rollouts (``stages``), e.g. AMS.
-    """
+        The curve, or None: no scale, or an estimator that keeps no per-stage rollouts (``stages``), e.g. AMS."""
     from pemviz.core.severity import SeverityCurve, SeverityPoint
 
     scale = problem.severity

@@ -47,8 +47,7 @@ def cannot_back(est: Estimate, cap: tuple[str, str] | None, heavy_looks: int) ->
     tail with k-hat above :data:`~pemviz.core.estimate.KHAT_UNRELIABLE` for :data:`HEAVY_LOOKS` looks running
     (``heavy_looks``), whose variance is in practice infinite (Vehtari, Simpson, Gelman, Yao, Gabry, "Pareto
     smoothed importance sampling", JMLR 25(72), 2024, Sec. 3). Returns one clause, e.g. ``k-hat above 0.7 at 2 looks
-    running (2.54 now): ...``, or None.
-    """
+    running (2.54 now): ...``, or None."""
     if cap is not None and cap[0] != "reliable":
         return f"the sampler caps their verdict at {cap[0]} ({cap[1]})"
     if heavy_looks >= HEAVY_LOOKS:

@@ -6,8 +6,7 @@ state of the object, the ego's), for every perception event of a step; the model
 The rollouts are drawn with the features (:func:`pemviz.core.lockstep.run_batched` asks a detector that
 ``reads_state`` about the rows with them); each batch the estimator observes gets them back by replay
 (:attr:`pemviz.core.problems.Problem.features`), and the target reads the rows' own columns only
-(:class:`FirstColumns`), so every log p is the PEM's own.
-"""
+(:class:`FirstColumns`), so every log p is the PEM's own."""
 
 from __future__ import annotations
 
@@ -32,8 +31,7 @@ if TYPE_CHECKING:
 class FirstColumns:
     """``detector`` asked about rows that may carry state features after their own ``columns`` columns: it reads the
     first ``columns`` only (None: all), so its answers (detection logits, measurement-error parameters, draws and
-    densities) are those at the rows themselves, bit for bit (rows of ``columns`` columns are handed on as they are).
-    """
+    densities) are those at the rows themselves, bit for bit (rows of ``columns`` columns are handed on as they are)."""
 
     def __init__(self, detector: Any, columns: int | None = None) -> None:
         self.detector, self.columns = detector, columns
@@ -96,8 +94,7 @@ class StateCrossEntropy(CrossEntropy):
     estimator built on it by hand).
 
     Raises:
-        ValueError: the problem's simulator reports no state features (:func:`no_features_refusal`).
-    """
+        ValueError: the problem's simulator reports no state features (:func:`no_features_refusal`)."""
 
     SETTINGS = tuple(StateSettings.__dataclass_fields__)
 

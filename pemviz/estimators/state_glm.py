@@ -6,8 +6,7 @@ h the row's columns with the step's state features, each over its scale: the PEM
 logistic regression (McCullagh & Nelder, "Generalized Linear Models", 1989), so that q is the PEM where w . h + b is
 0 and the cross-entropy fit (the elites' weighted log-likelihood, Innes & Ramamoorthy 2022 eq. 10-11, with an L2
 penalty on w) moves it only along the directions of the state that tell failures apart; the paper's
-q(detect | salient variables) generalised, with one weight per feature to fit instead of a network's thousand.
-"""
+q(detect | salient variables) generalised, with one weight per feature to fit instead of a network's thousand."""
 
 from __future__ import annotations
 
@@ -34,8 +33,7 @@ class StateGLM(FeatureProposal):
         columns, scales, reference: as :class:`pemviz.core.sampling.StateProposal` (every column of the rows with
             their features, the gap first).
         offset: the target's detector at such rows (it reads the rows' own columns:
-            :class:`pemviz.estimators.state.FirstColumns`), whose logit is the offset.
-    """
+            :class:`pemviz.estimators.state.FirstColumns`), whose logit is the offset."""
 
     def __init__(self, columns: tuple[int, ...], scales: tuple[float, ...], reference: tuple[float, ...], offset: Any):
         super().__init__(columns, scales, reference)

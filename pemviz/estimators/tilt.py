@@ -3,8 +3,7 @@
 drawn in proportion to p(event) times an approximate committor, mixed defensively with the PEMs, every weight p / q
 exact. This estimator solves it once, draws its batches and pools them as plain Monte Carlo (Kollman, Baggerly, Cox
 & Picard 1999, Ann. Appl. Probab. 9(2); L'Ecuyer & Tuffin 2008, WSC); unbiased whatever the committor's errors.
-Simulations count the look-aheads' steps too, in rollout-equivalents.
-"""
+Simulations count the look-aheads' steps too, in rollout-equivalents."""
 
 from __future__ import annotations
 
@@ -29,8 +28,7 @@ class SceneProposal:
     the target's.
 
     Attributes:
-        target: the problem's target (p).
-    """
+        target: the problem's target (p)."""
 
     target: Detector
 
@@ -48,8 +46,7 @@ class CommittorTilt(FixedSampler):
         weights_until_failure: importance weights stop at the failure step.
         seed: the rollouts' stream, ``numpy.random.default_rng(seed)``.
     Raises:
-        ValueError: a problem without a tilted proposal.
-    """
+        ValueError: a problem without a tilted proposal."""
 
     def __init__(self, problem: Problem, n: int, weights_until_failure: bool, seed: int = 0) -> None:
         if problem.tilt is None:

@@ -8,8 +8,7 @@ the command line, the panel, ``pemviz validate`` and ``pemviz.testing.check_esti
 This module imports no estimator: a builder (and every hook) may be given as the text ``"package.module:name"``
 (imported when first used), so listing the methods loads no torch and the registry sits below the config and the
 estimators (``scripts/import_cycles.py`` checks the layers). Each built-in method's settings are a light frozen
-dataclass in a module of this package.
-"""
+dataclass in a module of this package."""
 
 from __future__ import annotations
 
@@ -93,8 +92,7 @@ class Method:
             rows of the settings table: the config holds, records and checks them, ``pemviz run`` takes each as a
             flag (:attr:`pemviz.config.ExperimentConfig.method_settings`). A :data:`Ref` (:meth:`settings_class`).
     Raises:
-        ValueError: an empty name, a name with spaces around it, or a description of several lines.
-    """
+        ValueError: an empty name, a name with spaces around it, or a description of several lines."""
 
     name: str
     description: str
@@ -135,8 +133,7 @@ class Method:
         """The method's own settings class (:attr:`settings`, imported where a text names it), or None.
 
         Raises:
-            ValueError: not a frozen dataclass. ImportError, AttributeError: a text naming nothing.
-        """
+            ValueError: not a frozen dataclass. ImportError, AttributeError: a text naming nothing."""
         if self.settings is None:
             return None
         cls = resolve(self.settings)
@@ -176,8 +173,7 @@ def register_method(method: Method, *, replace: bool = False) -> Method:
 
     Raises:
         TypeError: not a :class:`Method`; ValueError: the name is taken (``replace=True`` replaces a method of one's
-            own; a built-in one is never replaced).
-    """
+            own; a built-in one is never replaced)."""
     if not isinstance(method, Method):
         raise TypeError(f"register_method: expected a Method, got {type(method).__name__}")
     if method.name in _BUILTIN and _REGISTRY[method.name] is not method:
@@ -192,8 +188,7 @@ def unregister_method(name: str) -> None:
     """Remove a method of one's own (a test's); the built-in ones stay.
 
     Raises:
-        ValueError: a built-in method; KeyError: no method of that name.
-    """
+        ValueError: a built-in method; KeyError: no method of that name."""
     if name in _BUILTIN:
         raise ValueError(f"method {name!r} is built in and stays registered")
     del _REGISTRY[name]
@@ -205,8 +200,7 @@ def load_method_plugins() -> None:
 
     Raises:
         MethodPluginError: a plugin that cannot be imported or that raised while registering (the next call tries
-            again).
-    """
+            again)."""
     _PLUGINS.load()
 
 
@@ -225,8 +219,7 @@ def method_names() -> tuple[str, ...]:
     """Every registered method's name, the built-in ones first (plugins loaded first: :func:`load_method_plugins`).
 
     Raises:
-        MethodPluginError: a plugin that cannot be loaded.
-    """
+        MethodPluginError: a plugin that cannot be loaded."""
     load_method_plugins()
     return tuple(_REGISTRY)
 
@@ -237,8 +230,7 @@ def registered_name(method: str | Method, who: str = "method") -> str:
 
     Raises:
         ValueError: a name no one registered (the message lists the registered ones), or a built-in name for a
-            method of one's own.
-    """
+            method of one's own."""
     if isinstance(method, Method):
         if _REGISTRY.get(method.name) is not method:
             register_method(method, replace=True)
@@ -275,8 +267,7 @@ def get_method(name: str) -> Method:
 
     Raises:
         KeyError: no method of that name (the message lists the registered ones); MethodPluginError: a plugin that
-            cannot be loaded.
-    """
+            cannot be loaded."""
     return _PLUGINS.get(name)  # type: ignore[no-any-return]
 
 

@@ -81,8 +81,7 @@ class CrossEntropySettings:
     fit: ``lbfgs`` is L-BFGS with a strong-Wolfe line search (Nocedal & Wright, "Numerical Optimization", 2006,
         Alg. 7.5).
     fit_precision: the parameters and every weight stay float64, so it moves the proposal, never the unbiasedness.
-    fit_rows: a weighted systematic subsample keeps the expected CE objective, so a fit costs the same at any N.
-    """
+    fit_rows: a weighted systematic subsample keeps the expected CE objective, so a fit costs the same at any N."""
 
     n_stages: int = setting(
         10,

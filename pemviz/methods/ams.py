@@ -24,8 +24,7 @@ class AmsSettings:
     ams_score: what ranks the AMS particles: ``robustness`` (the formula's classic robustness) or ``committor``
         (-log of the scenario's learned probability of failure, where it has one: e.g. the cut-in).
     ams_replicas: R, whole splitting runs from streams of their own; the estimate is their mean, its interval from
-        their spread (:func:`pemviz.estimators.ams.replicas_estimate`); 1: one run and its genealogy's interval.
-    """
+        their spread (:func:`pemviz.estimators.ams.replicas_estimate`); 1: one run and its genealogy's interval."""
 
     ams_killed: int = 10
     ams_max_iterations: int = 10_000

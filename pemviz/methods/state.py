@@ -28,8 +28,7 @@ class StateSettings(CrossEntropySettings):
     state_model: ``network`` is :class:`pemviz.core.sampling.FeatureProposal`, ``glm``
         :class:`pemviz.estimators.state_glm.StateGLM`; the error shifts, where fitted, are linear either way.
     state_fit_errors: the shifts are :class:`pemviz.core.torch_fits.NoiseShift`. The defaults (``glm``, the PEM's
-        errors) are the variant measured closest to the answer on the crossing (the Validation page).
-    """
+        errors) are the variant measured closest to the answer on the crossing (the Validation page)."""
 
     state_share: float = setting(
         0.1,

@@ -1,8 +1,7 @@
 """The paper's B-NN baseline: a Bayesian PEM fitted by variational inference with pyro (Innes & Ramamoorthy 2022,
 Table I: the ML-NN's layers without BatchNorm, N(0, 1) priors, a low-rank multivariate normal guide), predicting the
 posterior predictive mean p(detect | x) = E_q[sigmoid(f_w(x))] over ~800 samples, kept in log space
-(``logsumexp_s(log sigmoid(+-l_s)) - log S``).
-"""
+(``logsumexp_s(log sigmoid(+-l_s)) - log S``)."""
 
 from __future__ import annotations
 
@@ -111,8 +110,7 @@ def train_bnn_pem(
     thread, ``pyro.set_rng_seed(seed)``.
 
     Raises:
-        ValueError: mismatched lengths, labels not in {0, 1}.
-    """
+        ValueError: mismatched lengths, labels not in {0, 1}."""
     import pyro
     import pyro.distributions as dist
     import torch
@@ -172,8 +170,7 @@ def _guide_weights(guide: Any, shapes: dict[str, tuple[int, ...]], n_samples: in
     flattens the sites in the model's sample order, checked against its own unpacking (its median).
 
     Raises:
-        RuntimeError: the guide's latent size or site order differs from the model's.
-    """
+        RuntimeError: the guide's latent size or site order differs from the model's."""
     import torch
 
     offsets = np.cumsum([0, *(math.prod(s) for s in shapes.values())])

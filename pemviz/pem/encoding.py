@@ -2,8 +2,7 @@
 
 Innes & Ramamoorthy 2022, Sec. IV-A (the authors' ``SalientObstacleDataset`` in ``pems.py``): one-hot class (7) +
 one-hot occlusion (3: none, partly, largely) + loc_x, loc_y, loc_z, rot_y (raw columns 7..10) z-scored with the
-mean and unbiased (n - 1) std of the full 37,498-row file.
-"""
+mean and unbiased (n - 1) std of the full 37,498-row file."""
 
 from __future__ import annotations
 
@@ -80,8 +79,7 @@ def fit_norm_stats(raw_inputs: np.ndarray) -> NormStats:
     code).
 
     Raises:
-        ValueError: fewer than 2 rows or not 11 columns.
-    """
+        ValueError: fewer than 2 rows or not 11 columns."""
     raw = _check_raw(raw_inputs)
     if raw.shape[0] < 2:
         raise ValueError(f"need at least 2 rows to fit z-score statistics, got {raw.shape[0]}")
@@ -100,8 +98,7 @@ def check_features(features: np.ndarray, kind: str = "PEM", rows: str = "N") -> 
     """Encoded features as float64 ``[rows, 14]`` (:func:`encode_salient`'s layout).
 
     Raises:
-        ValueError: another shape (the message names the ``kind`` of PEM).
-    """
+        ValueError: another shape (the message names the ``kind`` of PEM)."""
     x = np.asarray(features, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] != N_FEATURES:
         raise ValueError(f"{kind} features must have shape [{rows}, {N_FEATURES}], got {x.shape}")
@@ -112,8 +109,7 @@ def check_training_data(inputs: np.ndarray, labels: np.ndarray) -> tuple[np.ndar
     """Raw salient inputs float64 [N, 11] and labels float64 [N] in {0, 1}, checked for training.
 
     Raises:
-        ValueError: wrong input shape, NaN, mismatched lengths, or labels other than 0 and 1.
-    """
+        ValueError: wrong input shape, NaN, mismatched lengths, or labels other than 0 and 1."""
     raw = _check_raw(inputs)
     y = np.asarray(labels, dtype=np.float64).reshape(-1)
     if y.shape[0] != raw.shape[0]:
@@ -162,8 +158,7 @@ def codes_of_columns(columns: np.ndarray, norm: NormStats) -> SalientCodes:
 
     Raises:
         ValueError: a non-finite value, a class not an integer in 0..6 or an occlusion not an integer in 0..2 (the
-            message names the first bad row, 0-based).
-    """
+            message names the first bad row, 0-based)."""
     if not np.isfinite(columns).all():
         row = int(np.flatnonzero(~np.all(np.isfinite(columns), axis=0))[0])
         raise ValueError(f"raw salient inputs: non-finite value in row {row}")
@@ -203,8 +198,7 @@ def encode_salient(raw_inputs: np.ndarray, norm: NormStats) -> np.ndarray:
         float64 ``[N, 14]`` (the order of the authors' ``SalientObstacleDataset``).
     Raises:
         ValueError: wrong shape, non-finite values, a class not an integer in 0..6 or an occlusion not an
-            integer in 0..2 (the message names the first bad row, 0-based).
-    """
+            integer in 0..2 (the message names the first bad row, 0-based)."""
     return salient_codes(raw_inputs, norm).features()
 
 
@@ -215,8 +209,7 @@ def braking_salient_inputs(gap_m: np.ndarray) -> np.ndarray:
     Args:
         gap_m: gap from the ego's camera to the lead's rear, metres, any shape ``[...]``.
     Returns:
-        float64 ``[M, 11]`` with ``M = gap_m.size`` (flattened, C order).
-    """
+        float64 ``[M, 11]`` with ``M = gap_m.size`` (flattened, C order)."""
     gap = np.asarray(gap_m, dtype=np.float64).reshape(-1)
     raw = np.zeros((gap.shape[0], 11), dtype=np.float64)
     raw[:, CLASS_COLUMN] = CLASS_CAR
@@ -241,8 +234,7 @@ def braking_features_at_z(z_scored: np.ndarray, norm: NormStats) -> np.ndarray:
     """Encoded features ``[M, 14]`` of the braking scenario's lead car with the z-scored loc_z set directly.
 
     The encoding of :func:`braking_salient_inputs` with column :data:`BRAKING_Z_FEATURE` replaced by
-    ``z_scored`` ``[M]``: lets a PEM tabulate itself along the gap without rounding loc_z twice.
-    """
+    ``z_scored`` ``[M]``: lets a PEM tabulate itself along the gap without rounding loc_z twice."""
     zn = np.asarray(z_scored, dtype=np.float64).reshape(-1)
     feats = np.repeat(encode_salient(braking_salient_inputs(np.zeros(1)), norm), zn.shape[0], axis=0)
     feats[:, BRAKING_Z_FEATURE] = zn

@@ -104,8 +104,7 @@ def save_ensemble(
     """Write an ensemble file atomically (see the module docstring).
 
     Raises:
-        OSError: the folder is not writable (nothing is left behind).
-    """
+        OSError: the folder is not writable (nothing is left behind)."""
     payload = {
         "format": ENSEMBLE_TAG,
         "version": ENSEMBLE_VERSION,
@@ -120,8 +119,7 @@ def load_ensemble(path: str | os.PathLike[str]) -> list[AnyPEM]:
     """The members of an ensemble file.
 
     Raises:
-        FileNotFoundError: no such file; PemFormatError: not an ensemble file, or damaged.
-    """
+        FileNotFoundError: no such file; PemFormatError: not an ensemble file, or damaged."""
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(

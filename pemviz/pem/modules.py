@@ -1,6 +1,5 @@
 """The torch modules of the PEMs, for training: the ML-NN network (:class:`MLNN`) and the noise PEM's loss
-(:class:`NoiseNLL`). Imports torch; evaluating or loading a PEM does not need it (:mod:`pemviz.pem.network`).
-"""
+(:class:`NoiseNLL`). Imports torch; evaluating or loading a PEM does not need it (:mod:`pemviz.pem.network`)."""
 
 from __future__ import annotations
 
@@ -19,8 +18,7 @@ class MLNN(nn.Module):
     :mod:`pemviz.pem.noise`).
 
     With ``hidden=(20, 20)``, ``batch_norm=True``, ``dropout=0`` the state-dict keys are the authors'
-    (``ff_nn.{0,1,3,4,6}.*``), so their weights load directly; :func:`pemviz.pem.network.mlnn_shapes` lists them.
-    """
+    (``ff_nn.{0,1,3,4,6}.*``), so their weights load directly; :func:`pemviz.pem.network.mlnn_shapes` lists them."""
 
     def __init__(
         self,
@@ -56,8 +54,7 @@ class NoiseNLL(nn.Module):
     ``DF_MIN + softplus(df_raw)`` are trained with the network).
 
     Raises:
-        ValueError: a family not in ``FAMILIES``.
-    """
+        ValueError: a family not in ``FAMILIES``."""
 
     FAMILIES: ClassVar[tuple[str, ...]] = ("normal", "laplace", "student-t")
     """:data:`pemviz.pem.noise.FAMILIES` (that module does not import this one; a test keeps the two equal)."""

@@ -155,8 +155,7 @@ class GridMLP:
     weights are rounded to :func:`pemviz.core.exact.grid_bits` (K) bits of their largest magnitude (block floating
     point; Wilkinson 1963), so the integer products are exact in any order (:mod:`pemviz.core.exact`): float32's
     precision, which the networks were trained in. Build with :meth:`of`; call with float64 ``[N, K]`` for ``[N,
-    out]``.
-    """
+    out]``."""
 
     weights: tuple[np.ndarray, ...]
     """Per layer: integer-valued float64 ``[out, in]``, the weights over their layer's power of two."""
@@ -214,8 +213,7 @@ class GridMLP:
 
         ``first``: (:class:`OneHotColumns` of this network, code int [n]): the input rows also hold one-hot columns
         (exactly one 1 per group; ``code`` says which), and ``xt`` holds the other columns only, ``[in - C, n]``;
-        ``largest`` counts the ones. The result is bit for bit that of the whole input rows.
-        """
+        ``largest`` counts the ones. The result is bit for bit that of the whole input rows."""
         h = xt
         for i, (wi, scale, b, bits) in enumerate(zip(self.weights, self.scales, self.biases, self.bits, strict=False)):
             if i:
@@ -269,8 +267,7 @@ def _piecewise_linear_pieces(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact pieces of a ReLU network of one scalar input ``g`` (first pre-activation ``slope0 * g + offset0`` [H1],
     later layers ``layers[1:]``), by splitting intervals of ``g`` where a unit crosses zero: ``knots`` [K] and the
-    output's ``slopes``, ``intercepts`` [K + 1] on each interval.
-    """
+    output's ``slopes``, ``intercepts`` [K + 1] on each interval."""
     intervals = [(-math.inf, math.inf, slope0, offset0)]
     for w, b in layers[1:]:
         split: list[tuple[float, float, np.ndarray, np.ndarray]] = []
@@ -306,8 +303,7 @@ class PEM:
 
     Raises:
         ValueError: a temperature not finite and > 0; PemFormatError: weights that do not fit ``hidden`` and
-            ``batch_norm``.
-    """
+            ``batch_norm``."""
 
     kind: ClassVar[str] = "mlp"
 
@@ -420,8 +416,7 @@ class PEM:
         Returns:
             float64 ``[N]``, nats (log-odds); ``log p = -softplus(-logit)``, ``log(1-p) = -softplus(logit)``.
         Raises:
-            ValueError: see :func:`encode_salient`.
-        """
+            ValueError: see :func:`encode_salient`."""
         return self._mlp(encode_salient(raw_inputs, self.norm))
 
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:

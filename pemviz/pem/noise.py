@@ -63,8 +63,7 @@ class NoiseModel:
     parameters of :meth:`noise_params` (defined by each kind).
 
     Attributes: ``name``; ``norm`` (the z-score statistics of the 14-dim encoding); ``family`` (one of
-    :data:`FAMILIES`); ``df`` float64 ``[2]`` (Student-t only, else None); ``metadata`` (plain values).
-    """
+    :data:`FAMILIES`); ``df`` float64 ``[2]`` (Student-t only, else None); ``metadata`` (plain values)."""
 
     kind: ClassVar[str] = ""
 
@@ -81,8 +80,7 @@ class NoiseModel:
         """``(loc [R, 2], log_scale [R, 2])``, float64 (metres; log metres) of encoded features ``[R, 14]``.
 
         Raises:
-            ValueError: features not of shape ``[R, 14]``.
-        """
+            ValueError: features not of shape ``[R, 14]``."""
         raise NotImplementedError
 
     def noise_params_codes(self, codes: SalientCodes) -> tuple[np.ndarray, np.ndarray]:
@@ -109,8 +107,7 @@ class NoiseModel:
         """log density of each error dimension, float64 ``[R, 2]`` (nats; errors ``[R, 2]`` in metres).
 
         Raises:
-            ValueError: features not ``[R, 14]`` or errors not ``[R, 2]``.
-        """
+            ValueError: features not ``[R, 14]`` or errors not ``[R, 2]``."""
         x = check_features(features, "noise PEM", "R")
         return self.distribution(x).logpdf(_check_errors(errors, x.shape[0]))
 
@@ -118,8 +115,7 @@ class NoiseModel:
         """log p(errors | features), float64 ``[R]`` (nats; the sum over the two independent dimensions).
 
         Raises:
-            ValueError: features not ``[R, 14]`` or errors not ``[R, 2]``.
-        """
+            ValueError: features not ``[R, 14]`` or errors not ``[R, 2]``."""
         return self.log_prob_dims(features, errors).sum(axis=1)
 
     def cdf(self, features: np.ndarray, errors: np.ndarray) -> np.ndarray:
@@ -132,8 +128,7 @@ class NoiseModel:
         """The central predictive interval of probability ``level`` in (0, 1): ``(low [R, 2], high [R, 2])``, metres.
 
         Raises:
-            ValueError: ``level`` outside (0, 1).
-        """
+            ValueError: ``level`` outside (0, 1)."""
         if not 0.0 < level < 1.0:
             raise ValueError(f"interval level must be in (0, 1), got {level}")
         return self.distribution(check_features(features, "noise PEM", "R")).interval(level)
@@ -153,8 +148,7 @@ class NoisePEM(NoiseModel):
 
     Raises:
         ValueError: a target scale not 2 finite values > 0, or a bad family; PemFormatError: weights that do not fit
-            ``hidden``.
-    """
+            ``hidden``."""
 
     kind: ClassVar[str] = "mlp"
 
@@ -241,8 +235,7 @@ def noise_training_data(inputs: np.ndarray, label_table: np.ndarray, *, seed: in
         label_table: the label file ``[N, 9]`` (:func:`pemviz.io.data.load_salient_label_table`).
         seed: seed of the dequantisation noise.
     Raises:
-        ValueError: shapes other than ``[N, 11]`` and ``[N, 9]``, or no row left.
-    """
+        ValueError: shapes other than ``[N, 11]`` and ``[N, 9]``, or no row left."""
     raw = np.asarray(inputs, dtype=np.float64)
     labels = np.asarray(label_table, dtype=np.float64)
     if raw.ndim != 2 or raw.shape[1] != 11 or labels.shape != (raw.shape[0], 9):
@@ -349,8 +342,7 @@ def fit_homoscedastic(
 
     Raises:
         ValueError: shapes other than ``[M, 11]`` / ``[M, 2]``, an unknown family, or a linear mean with a family
-            other than normal.
-    """
+            other than normal."""
     raw = np.asarray(inputs, dtype=np.float64)
     norm = norm if norm is not None else fit_norm_stats(raw)
     x = encode_salient(raw, norm)

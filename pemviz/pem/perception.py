@@ -1,8 +1,7 @@
 """A perception model with two heads: whether an obstacle is detected, and if so how wrong its measurement is: p(a,
 e | x) = p_PEM(a | x) * p_noise(e | x)^a, a in {0, 1}, e = (dZ, dX) metres, x the 14-dim encoding; the detection
 head any PEM (Innes & Ramamoorthy 2022, Sec. IV-A), the noise head a :class:`pemviz.pem.noise.NoiseModel`.
-``pemviz.pem.store`` saves the pair as one file.
-"""
+``pemviz.pem.store`` saves the pair as one file."""
 
 from __future__ import annotations
 
@@ -27,8 +26,7 @@ class NoisyPEM:
     (:meth:`features`) feeds both.
 
     Raises:
-        ValueError: the heads' z-score statistics differ.
-    """
+        ValueError: the heads' z-score statistics differ."""
 
     detect: PEM | TreePEM
     noise: NoiseModel
@@ -68,8 +66,7 @@ class NoisyPEM:
             detected: bool ``[R]``.
             errors: ``[R, 2]`` (range, lateral; metres); ignored (may be NaN) where not detected.
         Raises:
-            ValueError: shapes other than ``[R, 14]``, ``[R]`` and ``[R, 2]``.
-        """
+            ValueError: shapes other than ``[R, 14]``, ``[R]`` and ``[R, 2]``."""
         x = np.asarray(features, dtype=np.float64)
         hit = np.asarray(detected, dtype=bool)
         err = np.asarray(errors, dtype=np.float64)
@@ -85,8 +82,7 @@ class NoisyPEM:
 
     def sample(self, features: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """One perception per row: ``(detected bool [R], errors float64 [R, 2])`` (metres; 0 where missed); the
-        errors' uniforms are drawn whatever is detected (common random numbers).
-        """
+        errors' uniforms are drawn whatever is detected (common random numbers)."""
         x = np.asarray(features, dtype=np.float64)
         detected = rng.random(x.shape[0]) < expit(self.logit(x))
         errors = self.noise.sample(x, rng)
@@ -106,8 +102,7 @@ class SalientDetector:
         salient: the row columns of the 11 raw salient inputs (a slice or indices).
         noise: the noise PEM (:class:`pemviz.pem.noise.NoiseModel`), or None: detections measure exactly.
         noise_names: the error components' names (range, lateral), with ``noise``.
-        visible: the row column of the 0/1 visibility flag, or None: every object can be seen.
-    """
+        visible: the row column of the 0/1 visibility flag, or None: every object can be seen."""
 
     detect: Any
     salient: Any
@@ -232,8 +227,7 @@ class SalientDetector:
             u: float64 [H, D] uniforms in (0, 1) of the H rows of ``hit``, in order.
             hit: bool [R], the rows measured (detected).
         Returns:
-            (errors float64 [H, D] in metres, log density float64 [H] in nats).
-        """
+            (errors float64 [H, D] in metres, log density float64 [H] in nats)."""
         kept = self._step
         if (
             kept is not None
@@ -283,8 +277,7 @@ def repeated_rows(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """``(first [D], inverse [S])`` with ``columns[:, first][:, inverse] == columns`` when the S rows (float64 ``[K,
     S]``, feature by feature) hold few distinct ones, else None: :data:`PROBE_ROWS` rows are probed first (more than
     :data:`PROBE_DISTINCT` distinct: None), then rows are grouped by a float64 key and checked equal to their
-    group's first.
-    """
+    group's first."""
     s = columns.shape[1]
     if s < 4 * PROBE_ROWS:
         return None

@@ -1,8 +1,7 @@
 """Named PEMs: how ``pemviz pem train --model NAME`` (re)trains each shipped PEM: ``ml-nn`` (the paper's ML-NN,
 Innes & Ramamoorthy (2022), Table I), ``gbt`` (gradient-boosted trees, the best by pemviz's 5-fold cross-validation)
 and the noise PEM ``hetero-t`` (a heteroscedastic Student-t, chosen by cross-validated NLL), in ``pemviz/assets/``.
-``seed`` is the shipped weights'; ``pemviz/assets/README.md`` says why each was chosen.
-"""
+``seed`` is the shipped weights'; ``pemviz/assets/README.md`` says why each was chosen."""
 
 from __future__ import annotations
 

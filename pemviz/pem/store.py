@@ -42,8 +42,7 @@ AnyPEM = PEM | TreePEM
 
 def assets_dir() -> Path:
     """``$PEMVIZ_ASSETS_DIR`` if set, else the package's own ``pemviz/assets`` folder (package data, found by a
-    wheel install too).
-    """
+    wheel install too)."""
     env = os.environ.get(ASSETS_DIR_ENV)
     if env:
         return Path(env).expanduser()
@@ -79,8 +78,7 @@ def save_pem(pem: AnyPEM, path: str | os.PathLike[str]) -> Path:
 
     Raises:
         OSError: the folder is not writable (nothing is left behind).
-        TypeError: ``pem`` is not a :class:`PEM` or :class:`TreePEM`.
-    """
+        TypeError: ``pem`` is not a :class:`PEM` or :class:`TreePEM`."""
     return _save(_pem_payload(pem), path)
 
 
@@ -105,8 +103,7 @@ def _array(value: Any) -> np.ndarray:
     """A payload's tensor, read as a numpy array (:func:`pemviz.core.torch_payload.load_payload`).
 
     Raises:
-        TypeError: anything else (the file is damaged).
-    """
+        TypeError: anything else (the file is damaged)."""
     if not isinstance(value, np.ndarray):
         raise TypeError(f"a {type(value).__name__} where an array belongs")
     return value
@@ -157,8 +154,7 @@ def load_pem(path: str | os.PathLike[str] | None = None) -> AnyPEM:
         A :class:`PEM` (kind ``mlp``) or a :class:`TreePEM` (kind ``gbt``).
     Raises:
         FileNotFoundError: no such file (the message lists the shipped PEMs).
-        PemFormatError: the file is not a pemviz PEM or is damaged.
-    """
+        PemFormatError: the file is not a pemviz PEM or is damaged."""
     p = _pem_file(DEFAULT_PEM_NAME if path is None else path)
     return _pem_from_payload(_load_payload(p, FORMAT_TAG, FORMAT_VERSION, "PEM"), p)
 
@@ -208,8 +204,7 @@ def resolve_pem(ref: str | os.PathLike[str] | None) -> str | os.PathLike[str] | 
     folder, :func:`shipped_pems`) or a PEM file, returned as given; None (the shipped default) stays None.
 
     Raises:
-        FileNotFoundError: neither a shipped PEM nor a file; the message lists the shipped PEMs.
-    """
+        FileNotFoundError: neither a shipped PEM nor a file; the message lists the shipped PEMs."""
     if ref is not None:
         _pem_file(ref)
     return ref
@@ -257,8 +252,7 @@ def _unpack_trees(packed: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     threshold 0, children -1).
 
     Raises:
-        KeyError, TypeError, ValueError: a field missing, not an array, or of another length (a damaged file).
-    """
+        KeyError, TypeError, ValueError: a field missing, not an array, or of another length (a damaged file)."""
     is_leaf = _array(packed["is_leaf"]).astype(bool)
     internal = ~is_leaf
     m = is_leaf.shape[0]
@@ -295,8 +289,7 @@ def load_reference_pem(folder: str | os.PathLike[str] | None = None) -> PEM:
     :func:`pemviz.core.torch_payload.load_payload`.
 
     Raises:
-        FileNotFoundError: the folder or one of its three files is missing.
-    """
+        FileNotFoundError: the folder or one of its three files is missing."""
     d = Path(folder) if folder is not None else reference_pem_dir()
     files = [d / "pem_class_train_full.pt", d / "norm_stats_mu.pt", d / "norm_stats_std.pt"]
     missing = [str(f) for f in files if not f.is_file()]
@@ -401,8 +394,7 @@ def save_noise_pem(model: NoiseModel, path: str | os.PathLike[str]) -> Path:
 
     Raises:
         OSError: the folder is not writable (nothing is left behind).
-        TypeError: ``model`` is not a :class:`NoisePEM` or :class:`HomoscedasticNoise`.
-    """
+        TypeError: ``model`` is not a :class:`NoisePEM` or :class:`HomoscedasticNoise`."""
     return _save(_noise_payload(model), path)
 
 
@@ -412,8 +404,7 @@ def load_noise_pem(path: str | os.PathLike[str] | None = None) -> NoiseModel:
 
     Raises:
         FileNotFoundError: no such file (the message lists the shipped noise PEMs).
-        PemFormatError: the file is not a pemviz noise PEM or is damaged.
-    """
+        PemFormatError: the file is not a pemviz noise PEM or is damaged."""
     p = _model_file(DEFAULT_NOISE_NAME if path is None else path, noise_pem_path, shipped_noise_pems, "noise PEM")
     return _noise_from_payload(_load_payload(p, NOISE_FORMAT_TAG, NOISE_FORMAT_VERSION, "noise PEM"), p)
 
@@ -423,8 +414,7 @@ def save_noisy_pem(model: NoisyPEM, path: str | os.PathLike[str]) -> Path:
 
     Raises:
         OSError: the folder is not writable (nothing is left behind).
-        TypeError: a head of a kind that cannot be saved.
-    """
+        TypeError: a head of a kind that cannot be saved."""
     return _save(
         {
             "format": NOISY_FORMAT_TAG,
@@ -441,8 +431,7 @@ def load_noisy_pem(path: str | os.PathLike[str]) -> NoisyPEM:
 
     Raises:
         FileNotFoundError: no such file.
-        PemFormatError: the file is not a pemviz perception model, is damaged, or its heads disagree on the encoding.
-    """
+        PemFormatError: the file is not a pemviz perception model, is damaged, or its heads disagree on the encoding."""
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"{p}: no such perception model file")

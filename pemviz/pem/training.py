@@ -1,8 +1,7 @@
 """Training the network PEMs: the recipes' shared part (:class:`Recipe`, :class:`NetworkRecipe`), the paper's ML-NN
 (:class:`PemRecipe`, :func:`train_pem`; Innes & Ramamoorthy 2022, Sec. IV-A, the authors' ``train_tp_pem_det.py``)
 and the training loop :func:`fit_network` the noise PEM shares. Imports torch; the returned
-:class:`~pemviz.pem.network.PEM` is evaluated without it.
-"""
+:class:`~pemviz.pem.network.PEM` is evaluated without it."""
 
 from __future__ import annotations
 
@@ -109,8 +108,7 @@ def train_pem(
     Returns:
         The trained :class:`PEM` (eval mode).
     Raises:
-        ValueError: mismatched lengths, labels not in {0, 1}, bad encodings, epochs < 1 or batch_size < 2.
-    """
+        ValueError: mismatched lengths, labels not in {0, 1}, bad encodings, epochs < 1 or batch_size < 2."""
     import torch
     from torch import nn
 
@@ -143,8 +141,7 @@ def fit_network(
     """The training loop of :func:`train_pem` and the noise PEM: an :class:`MLNN` with ``out_dim`` outputs on
     float32 ``x [N, 14]`` and targets ``t [N, ...]`` minimising ``loss_fn(module(x[batch]), t[batch])`` by Adam over
     the network's and the loss's parameters, seeded shuffles and weights, one CPU thread. Returns the module in eval
-    mode, the last epoch's mean loss and the settings as metadata.
-    """
+    mode, the last epoch's mean loss and the settings as metadata."""
     import torch
     from tqdm.auto import tqdm
 

@@ -38,8 +38,7 @@ class TreePEM:
     Arrays over all nodes of all trees (``M`` nodes, ``T`` trees): ``feature`` int64 ``[M]`` (index into the
     14 features), ``threshold`` float64 ``[M]`` (go left when ``x[feature] <= threshold``), ``left``,
     ``right`` int64 ``[M]`` (global node indices), ``is_leaf`` bool ``[M]``, ``value`` float64 ``[M]``
-    (leaf values, nats), ``roots`` int64 ``[T]``.
-    """
+    (leaf values, nats), ``roots`` int64 ``[T]``."""
 
     kind: ClassVar[str] = "gbt"
 
@@ -125,14 +124,12 @@ class TreePEM:
         """Logit of p(detect) for raw salient inputs ``[N, 11]`` (KITTI layout), float64 ``[N]``.
 
         Raises:
-            ValueError: see :func:`pemviz.pem.encode_salient`.
-        """
+            ValueError: see :func:`pemviz.pem.encode_salient`."""
         return self.logit_features(encode_salient(raw_inputs, self.norm))
 
     def logit_at_gap(self, gap_m: np.ndarray) -> np.ndarray:
         """Logit of p(detect) of the braking scenario's lead car at ``gap_m`` metres (any shape; same shape out):
-        exactly ``self.logit(braking_salient_inputs(gap_m))``, looked up in the precomputed step table.
-        """
+        exactly ``self.logit(braking_salient_inputs(gap_m))``, looked up in the precomputed step table."""
         zn = braking_z_scored(gap_m, self.norm)
         return self._gap_values[np.searchsorted(self._gap_z_thresholds, zn, side="left")]
 
@@ -172,8 +169,7 @@ def export_hist_gradient_boosting(
     ``decision_function``.
 
     Raises:
-        ValueError: a multi-class model or categorical splits.
-    """
+        ValueError: a multi-class model or categorical splits."""
     predictors = model._predictors  # noqa: SLF001 (the fitted trees; no public accessor)
     if any(len(p) != 1 for p in predictors):
         raise ValueError("only binary classifiers can be exported")
@@ -243,8 +239,7 @@ def train_tree_pem(
         norm: z-score statistics (default: fitted on ``inputs``; pemviz uses the full file's).
         metadata: extra provenance stored with the model.
     Raises:
-        ValueError: mismatched lengths or labels not in {0, 1}.
-    """
+        ValueError: mismatched lengths or labels not in {0, 1}."""
     from sklearn.ensemble import HistGradientBoostingClassifier
     from threadpoolctl import threadpool_limits
 

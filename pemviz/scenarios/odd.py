@@ -1,8 +1,7 @@
 """A scenario's parameters over an operating design domain: ``pemviz run --param NAME~DIST`` (``gap0_m~uniform(10,
 14)``) draws the parameter of each rollout from a distribution (:mod:`pemviz.core.odd`), where the scenario allows
 it (:attr:`pemviz.scenarios.registry.Scenario.random_params`); a drawn parameter travels as ``(name, "~uniform(10,
-14)")``, checked by :func:`odd_value` and separated by :func:`split_odd`.
-"""
+14)")``, checked by :func:`odd_value` and separated by :func:`split_odd`."""
 
 from __future__ import annotations
 
@@ -32,8 +31,7 @@ def odd_value(scenario: str, name: str, text: str, allowed: tuple[str, ...]) -> 
             (:attr:`pemviz.scenarios.registry.Scenario.random_params`).
     Raises:
         ValueError: one line: a parameter the scenario does not draw per rollout (its random parameters listed), an
-            unknown distribution, bad arguments, an empty support.
-    """
+            unknown distribution, bad arguments, an empty support."""
     if name not in allowed:
         which = (
             f"its parameters that can be drawn: {', '.join(allowed)}"

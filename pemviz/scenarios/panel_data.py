@@ -1,8 +1,7 @@
 """What a scenario's panel hooks return (:class:`pemviz.app.drawing.PanelDrawing`): plain data, no viser, no
 colours: a :class:`LaneScene` (the ego and one object ahead, zones ahead of the sensor, a ruler, the rollout
 explained step by step) or an :class:`ObjectsScene` (several objects on a road of lanes); the panel colours by
-:attr:`Zone.role` and :attr:`Series.role`.
-"""
+:attr:`Zone.role` and :attr:`Series.role`."""
 
 from __future__ import annotations
 
@@ -20,8 +19,7 @@ class Zone:
         length_m: how far ahead of the sensor it reaches (metres).
         role: ``window`` (where a detection changes what the ego does) or ``margin`` (the failure margin): the panel
             colours it by its role.
-        legend: what it means, for the zones' label (may hold ``\n``).
-    """
+        legend: what it means, for the zones' label (may hold ``\n``)."""
 
     name: str
     length_m: float
@@ -42,8 +40,7 @@ class LaneScene:
         ruler_label: what the ruler measures, before its value (``<label> 3.20 m``).
         breach_label: the breach gate's label, before its time.
         n_steps: T, the steps of a rollout.
-        strip_title: the title of the first strip chart of a rollout (its :class:`Series`).
-    """
+        strip_title: the title of the first strip chart of a rollout (its :class:`Series`)."""
 
     ego_length_m: float
     object_length_m: float
@@ -79,8 +76,7 @@ class ObjectsScene:
             object in object order; the idle scene draws them before any rollout is chosen (empty: the road alone).
         object_labels: what each object is called in the idle scene (empty: ``object m``).
 
-    A scene of no lanes (``n_lanes`` 0) is open ground: the panel draws a plain floor with a 10 m grid, not a road.
-    """
+    A scene of no lanes (``n_lanes`` 0) is open ground: the panel draws a plain floor with a 10 m grid, not a road."""
 
     car_length_m: float
     car_width_m: float
@@ -100,8 +96,7 @@ class Series:
         label: its legend, with its unit.
         values: float64 [T].
         role: ``main`` (the quantity the failure is about: drawn bold, the marker follows it), ``ego`` (the ego's
-            speed) or ``object`` (the object's speed): the panel colours it by its role.
-    """
+            speed) or ``object`` (the object's speed): the panel colours it by its role."""
 
     label: str
     values: np.ndarray
@@ -115,8 +110,7 @@ class CurveAxis:
     Attributes:
         series_label: the legend of the x values.
         label: the axis title, with its unit.
-        y_label: the y axis' title (``p(detect | d)``).
-    """
+        y_label: the y axis' title (``p(detect | d)``)."""
 
     series_label: str
     label: str
@@ -139,8 +133,7 @@ class ViewAxis:
         view_object: None: the batch's own signal (one object a step); else the object whose detections the view
             follows among several.
         distance_column, visible_column: the object rows' columns that place the followed object and say whether
-            the sensor can see it (a view of one object among several).
-    """
+            the sensor can see it (a view of one object among several)."""
 
     label: str
     subject: str

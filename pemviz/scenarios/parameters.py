@@ -68,8 +68,7 @@ class Parameter:
         name: the dataclass field (``cut_in_gap_m``).
         kind: ``float``, ``int`` or ``bool`` (the field's type).
         default: the scenario's value when the parameter is not set.
-        unit: of the value (``m``, ``m/s``, ``s``, ``m/s^2``, ...; ``""``: a count, a flag or a fraction).
-    """
+        unit: of the value (``m``, ``m/s``, ``s``, ``m/s^2``, ...; ``""``: a count, a flag or a fraction)."""
 
     name: str
     kind: str
@@ -82,8 +81,7 @@ class Parameter:
         here (:func:`apply_parameters`).
 
         Raises:
-            ParameterError: ``text`` is not a value of :attr:`kind` (not finite, not whole, not a truth value).
-        """
+            ParameterError: ``text`` is not a value of :attr:`kind` (not finite, not whole, not a truth value)."""
         raw = str(text).strip()
         if self.kind == "bool":
             if raw.lower() in _TRUE + _FALSE:
@@ -125,8 +123,7 @@ def default_params(scenario: str) -> BrakingParams | CutInParams | DataclassInst
     :mod:`pemviz.scenarios.registry`) at its defaults; None for a registered scenario without parameters.
 
     Raises:
-        ParameterError: an unknown scenario.
-    """
+        ParameterError: an unknown scenario."""
     if scenario in _REGISTERED_DEFAULTS:  # every scenario of the registry, built-in or a plugin's: its own defaults
         return _REGISTERED_DEFAULTS[scenario]()
     raise ParameterError(f"unknown scenario {scenario!r}; use one of {', '.join(scenario_names())}")
@@ -161,8 +158,7 @@ def scenario_parameters(scenario: str) -> tuple[Parameter, ...]:
     scenario's default and the unit of :func:`unit_of`.
 
     Raises:
-        ParameterError: an unknown scenario.
-    """
+        ParameterError: an unknown scenario."""
     params = default_params(scenario)
     if params is None:  # a registered scenario without parameters
         return ()
@@ -181,8 +177,7 @@ def parameter(scenario: str, name: str) -> Parameter:
     """The parameter ``name`` of ``scenario``.
 
     Raises:
-        ParameterError: not one of the scenario's; the message lists them all.
-    """
+        ParameterError: not one of the scenario's; the message lists them all."""
     found = {p.name: p for p in scenario_parameters(scenario)}
     if name not in found:
         raise ParameterError(
@@ -196,8 +191,7 @@ def parse_assignment(scenario: str, text: str) -> tuple[str, PairValue]:
     (:meth:`Parameter.parse`); its range is checked by :func:`apply_parameters`.
 
     Raises:
-        ParameterError: no ``=``, an unknown name (the message lists the allowed ones) or a value not of its kind.
-    """
+        ParameterError: no ``=``, an unknown name (the message lists the allowed ones) or a value not of its kind."""
     head = str(text).split("=", 1)[0]
     if "~" in head:  # NAME~DIST: drawn per rollout from a distribution (pemviz.scenarios.odd)
         from pemviz.scenarios.odd import law_of, odd_value
@@ -226,8 +220,7 @@ def parse_assignments(scenario: str, texts: Iterable[str]) -> tuple[tuple[str, P
     """The pairs of every ``NAME=VALUE`` of ``texts`` (:func:`parse_assignment`), in the order given.
 
     Raises:
-        ParameterError: one of them is not valid, or a name given twice.
-    """
+        ParameterError: one of them is not valid, or a name given twice."""
     pairs = tuple(parse_assignment(scenario, text) for text in texts)
     check_pairs(scenario, pairs)
     return pairs
@@ -238,8 +231,7 @@ def check_pairs(scenario: str, pairs: object) -> tuple[tuple[str, PairValue], ..
     of its kind and the dataclass built from them valid (:func:`apply_parameters`).
 
     Raises:
-        ParameterError: the first thing wrong, in one line.
-    """
+        ParameterError: the first thing wrong, in one line."""
     if not isinstance(pairs, tuple) or not all(isinstance(x, tuple) and len(x) == 2 for x in pairs):
         raise ParameterError(f"{pairs!r} is not a tuple of (name, value) pairs")
     seen = set()
@@ -297,8 +289,7 @@ def apply_parameters(scenario: str, values: Mapping[str, object]) -> BrakingPara
     Raises:
         ParameterError: an unknown name (the message lists the allowed ones), a value not of its field's kind, or a
             value the dataclass refuses (its message, led by the scenario's name instead of the dataclass's: the
-            field, what is allowed and what was given).
-    """
+            field, what is allowed and what was given)."""
     changes: dict[str, Any] = {}  # the fields' own kinds, each checked by Parameter.check
     for name, value in values.items():
         if not isinstance(name, str):

@@ -61,8 +61,7 @@ def build_problem(name: str, pem_path: str | None = None) -> Problem:
     ``pem_path`` the braking problems' PEM (None: the shipped default).
 
     Raises:
-        ValueError: an unknown name (allowed: :data:`PROBLEMS`).
-    """
+        ValueError: an unknown name (allowed: :data:`PROBLEMS`)."""
     if name in TOY_PROBLEMS:
         return toy_problem(TOY_PROBLEMS[name], name=name)
     if name in CROWD_PROBLEMS:
@@ -79,8 +78,7 @@ def problem_for(config: Any) -> Problem:
 
     Raises:
         pemviz.pem.network.PemFormatError, OSError: a PEM file that cannot be read.
-        ValueError: parameters the scenario's dataclass refuses (the config checks them first).
-    """
+        ValueError: parameters the scenario's dataclass refuses (the config checks them first)."""
     from pemviz.scenarios.registry import problem_for as registered
 
     return cast(Problem, registered(config))
@@ -128,8 +126,7 @@ def with_alternatives(problem: Problem, config: Any) -> Problem:
     answer where known (:func:`pemviz.scenarios.braking.truth_known.known_log_failure_probability`).
 
     Raises:
-        FileNotFoundError, pemviz.pem.network.PemFormatError: no ensemble for the PEM, or a damaged one.
-    """
+        FileNotFoundError, pemviz.pem.network.PemFormatError: no ensemble for the PEM, or a damaged one."""
     from pemviz.core.reweight import ShiftedDetector, with_pem
 
     shifts = list(PEM_SHIFTS) if config.perception.pem_uncertainty else []

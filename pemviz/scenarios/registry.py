@@ -152,8 +152,7 @@ class Scenario:
         Raises:
             ParameterError: a ValueError: an unknown name (the message lists the scenario's), a value not of its
                 field's kind, or a value the dataclass refuses (its own message, led by the scenario's name:
-                :func:`pemviz.scenarios.parameters.refusal`).
-        """
+                :func:`pemviz.scenarios.parameters.refusal`)."""
         values = dict(values or {})
         found = {p.name: p for p in self.parameters()}
         changes = {}
@@ -226,8 +225,7 @@ def register(scenario: Scenario, *, replace: bool = False) -> Scenario:
 
     Raises:
         TypeError: not a :class:`Scenario`.
-        ValueError: the name is taken and ``replace`` is not given.
-    """
+        ValueError: the name is taken and ``replace`` is not given."""
     if not isinstance(scenario, Scenario):
         raise TypeError(f"register: a Scenario is needed, got {type(scenario).__name__}")
     if scenario.name in _REGISTRY and not replace:
@@ -248,8 +246,7 @@ def unregister(name: str) -> None:
     """Remove the scenario ``name`` from the registry (e.g. one a test registered).
 
     Raises:
-        KeyError: no scenario of that name.
-    """
+        KeyError: no scenario of that name."""
     if name not in _REGISTRY:
         raise KeyError(f"unregister: no scenario named {name!r}; registered: {', '.join(_REGISTRY)}")
     del _REGISTRY[name]
@@ -281,8 +278,7 @@ def load_plugins() -> None:
 
     Raises:
         ScenarioPluginError: a plugin that cannot be imported or that raised while registering (the next call tries
-            again).
-    """
+            again)."""
     _PLUGINS.load()
 
 
@@ -296,8 +292,7 @@ def registered() -> tuple[str, ...]:
     loaded first: :func:`load_plugins`).
 
     Raises:
-        ScenarioPluginError: a plugin that cannot be loaded.
-    """
+        ScenarioPluginError: a plugin that cannot be loaded."""
     load_plugins()
     return tuple(_REGISTRY)
 
@@ -331,8 +326,7 @@ def get(name: str) -> Scenario:
 
     Raises:
         KeyError: no scenario of that name (the message lists the registered ones).
-        ScenarioPluginError: a plugin that cannot be loaded.
-    """
+        ScenarioPluginError: a plugin that cannot be loaded."""
     return _PLUGINS.get(name)  # type: ignore[no-any-return]
 
 
@@ -367,8 +361,7 @@ def problem_for(config: Any) -> Any:
 
     Raises:
         KeyError: an unregistered scenario; ScenarioPluginError: a plugin that cannot be loaded; what
-            :meth:`Scenario.problem` raises (parameters refused, a PEM that cannot be read).
-    """
+            :meth:`Scenario.problem` raises (parameters refused, a PEM that cannot be read)."""
     return get(config.scenario).problem(config)
 
 

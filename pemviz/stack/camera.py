@@ -51,8 +51,7 @@ class ObjectKind:
         kitti_class: a key of :data:`KITTI_CLASSES` (``pedestrian``, ``car``, ``cyclist`` ...).
         height_m, width_m, length_m: the box (KITTI's h, w, l; e.g. a pedestrian 1.75, 0.6, 0.8).
     Raises:
-        ValueError: an unknown class, or a dimension not in (0, 30] m.
-    """
+        ValueError: an unknown class, or a dimension not in (0, 30] m."""
 
     kitti_class: str
     height_m: float
@@ -86,8 +85,7 @@ class ImageBox:
 
     Attributes:
         u_lo, u_hi: the left and right edges.
-        v_top, v_bot: the top and bottom edges (``v_top < v_bot``).
-    """
+        v_top, v_bot: the top and bottom edges (``v_top < v_bot``)."""
 
     u_lo: np.ndarray
     u_hi: np.ndarray
@@ -192,8 +190,7 @@ class CameraView:
         truncation: the share of the 2D box outside the image, in [0, 1].
         visible: bool, whether the camera can see it at all (a PEM detector should never detect an object that is
             not: :func:`pemviz.stack.detector.camera_detector` gives it logit -inf).
-        occluded: the share of the 2D box covered by nearer objects (:func:`occluded_share`; 0 from :func:`view`).
-    """
+        occluded: the share of the 2D box covered by nearer objects (:func:`occluded_share`; 0 from :func:`view`)."""
 
     salient: np.ndarray
     range_m: np.ndarray
@@ -224,8 +221,7 @@ def view(
     Returns:
         :class:`CameraView`.
     Raises:
-        ValueError: ``camera_height_m`` not in (0, 10] m.
-    """
+        ValueError: ``camera_height_m`` not in (0, 10] m."""
     if not 0.0 < camera_height_m <= 10.0:
         raise ValueError(f"view: camera_height_m must be in (0, 10] m, got {camera_height_m}")
     x = np.asarray(loc_x_m, dtype=np.float64)
@@ -319,8 +315,7 @@ def measure(
         :data:`MIN_RANGE_M`: the pinhole reads no range behind the camera); the true values where not measured, so
         that every entry is finite.
     Raises:
-        ValueError: ``noise`` not of shape ``S + [2]``.
-    """
+        ValueError: ``noise`` not of shape ``S + [2]``."""
     x = np.asarray(loc_x_m, dtype=np.float64)
     z_true = np.maximum(np.asarray(loc_z_m, dtype=np.float64), MIN_RANGE_M)
     if noise is None:

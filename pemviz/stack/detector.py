@@ -35,8 +35,7 @@ def _salient_index(names: tuple[str, ...], who: str) -> list[int]:
     ``names``, in the PEMs' order.
 
     Raises:
-        ValueError: one of them missing (``who`` names the caller).
-    """
+        ValueError: one of them missing (``who`` names the caller)."""
     missing = [c for c in INPUT_COLUMNS if c not in names]
     if missing:
         raise ValueError(
@@ -52,8 +51,7 @@ def ahead_rows(object_names: Sequence[str], kind: Any, camera_height_m: float = 
     ``visible`` 1, the first column the range, other columns 0).
 
     Raises:
-        ValueError: ``object_names`` without the 11 salient variables.
-    """
+        ValueError: ``object_names`` without the 11 salient variables."""
     from pemviz.stack.camera import view
 
     names = tuple(object_names)
@@ -122,8 +120,7 @@ class Perception:
 
     Attributes:
         detected: bool [R]; noise: float64 [R, D] the errors (metres; 0 where missed), or None;
-        log_probs: their :class:`EventLogProbs` [R] under the detector that drew them.
-    """
+        log_probs: their :class:`EventLogProbs` [R] under the detector that drew them."""
 
     detected: np.ndarray
     noise: np.ndarray | None
@@ -136,8 +133,7 @@ def perceive(detector: Any, rows: np.ndarray, rng: np.random.Generator) -> Perce
     CDF. For trying a scene by hand.
 
     Returns:
-        :class:`Perception`.
-    """
+        :class:`Perception`."""
     rows = np.asarray(rows, dtype=np.float64)
     n_errors = len(getattr(detector, "noise_names", ()) or ())
     u = rng.random((rows.shape[0], 1 + n_errors))

@@ -97,8 +97,7 @@ class Tracks:
         active: bool, whether the object has a track.
         confirmed: bool, whether that track has been updated since it started (the controller uses only these).
         coast: int64, predictions since the last update.
-        age: int64, predictions since the track started (or restarted); 0 where no track.
-    """
+        age: int64, predictions since the track started (or restarted); 0 where no track."""
 
     x: np.ndarray
     vx: np.ndarray
@@ -172,8 +171,7 @@ def predict(tracks: Tracks, dt: float, params: TrackerParams) -> Tracks:
     more than ``max_coast_steps`` predictions without an update are dropped.
 
     Returns:
-        new :class:`Tracks` (the input is not modified).
-    """
+        new :class:`Tracks` (the input is not modified)."""
     along = _predict_axis(tracks.x, tracks.vx, tracks.pxx, tracks.pxv, tracks.pvvx, dt, params.accel_std_x_mps2)
     across = _predict_axis(tracks.y, tracks.vy, tracks.pyy, tracks.pyv, tracks.pvvy, dt, params.accel_std_y_mps2)
     coast = tracks.coast + 1
@@ -215,8 +213,7 @@ def update(
         params: the noise model and track management (:class:`TrackerParams`).
     Returns:
         new :class:`Tracks`: objects whose measurement was accepted (now confirmed), or that start (or restart) a
-        tentative track, have ``coast = 0``; a measurement outside the gate leaves its track as predicted.
-    """
+        tentative track, have ``coast = 0``; a measurement outside the gate leaves its track as predicted."""
     r_x, r_y = params.measurement_variances(range_m)
     y_x, y_y = z_x - tracks.x, z_y - tracks.y
     s_x, s_y = tracks.pxx + r_x, tracks.pyy + r_y
@@ -284,8 +281,7 @@ def start_confirmed(
     Returns:
         new :class:`Tracks` (the input is not modified).
     Raises:
-        ValueError: a non-finite value, or a variance not > 0, where ``where``.
-    """
+        ValueError: a non-finite value, or a variance not > 0, where ``where``."""
     shape = tracks.x.shape
     mask = np.broadcast_to(np.asarray(where, dtype=bool), shape)
     values = {}
@@ -365,8 +361,7 @@ def features(
     Returns:
         float64 ``[N, M, G]``, finite where the tracks are.
     Raises:
-        ValueError: ``ttc_cap_s`` not finite and > 0.
-    """
+        ValueError: ``ttc_cap_s`` not finite and > 0."""
     if not (np.isfinite(ttc_cap_s) and ttc_cap_s > 0):
         raise ValueError(f"tracker.features: ttc_cap_s must be finite and > 0, got {ttc_cap_s!r}")
     on = tracks.active

@@ -1,8 +1,7 @@
 """Batched sliding-window kernels over the time axis (axis 0 of time-major [L, n] arrays), numpy or torch.
 
 No Python loop runs over traces; loops run over log2(window) doubling levels or, for the until of AGM and
-smooth-cumulative, over the window offsets (each step vectorised over traces x output times).
-"""
+smooth-cumulative, over the window offsets (each step vectorised over traces x output times)."""
 
 from __future__ import annotations
 
@@ -221,8 +220,7 @@ def pad_right(ops: Any, x: Array, length: int, value: float) -> Array:
 
 def sliding_idempotent(ops: Any, x: Array, width: int, n_out: int, op: Callable[[Array, Array], Array]) -> Array:
     """out[i] = op-reduce of x[i : i + width] for i < n_out (rows), x with >= n_out + width - 1 rows; ``op``
-    idempotent (min, max): log-doubling, ceil(log2 width) passes.
-    """
+    idempotent (min, max): log-doubling, ceil(log2 width) passes."""
     if width == 1:
         return x[:n_out]
     y = x[: n_out + width - 1]
@@ -240,8 +238,7 @@ Elems = tuple  # tuple of arrays, one monoid element per time step
 
 def sliding_monoid(xs: Elems, width: int, n_out: int, combine: Callable[[Elems, Elems], Elems]) -> Elems:
     """out[i] = combine-reduce of steps i .. i + width - 1, in order, for an associative ``combine`` over a tuple
-    ``xs`` of [L, n] arrays: power-of-two segments, O(L log width) work.
-    """
+    ``xs`` of [L, n] arrays: power-of-two segments, O(L log width) work."""
     level = tuple(e[: n_out + width - 1] for e in xs)
     size = 1
     offset = 0

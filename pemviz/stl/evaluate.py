@@ -113,8 +113,7 @@ def robustness_signal(
 ) -> Any:
     """Robustness of ``formula`` at every step: float64 [N, T] (``[T]`` for [T] inputs); column t is
     :func:`robustness` at ``time=t``, windows cut at the trace end (so ``trace_end="error"`` passes only formulas
-    without temporal operators).
-    """
+    without temporal operators)."""
     job = _Job(formula, signals, semantics, temperature, signal_ranges, trace_end)
     out = job.run(0, job.T - 1)
     return job.finish(out[0] if job.single else out)
@@ -390,8 +389,7 @@ def first_violation(formula: Formula | str, signals: Mapping[str, Any], level: f
     else T; importance weights and NLLs stop there.
 
     Raises:
-        ValueError: if the formula is not ``G[a,b](operand)`` with an operand of horizon 0.
-    """
+        ValueError: if the formula is not ``G[a,b](operand)`` with an operand of horizon 0."""
     f = parse(formula) if isinstance(formula, str) else formula
     if not isinstance(f, Always) or f.operand.horizon() != 0:
         raise ValueError(f"a failure step needs a safety formula G[a,b](state predicate), got {f}")

@@ -2,8 +2,7 @@
 
 ``signal("d") - 2`` is a :class:`BinaryExpr`; comparing an expression with ``>=``, ``>``, ``<=``, ``<`` makes a
 :class:`~pemviz.stl.formula.Predicate`. Expressions must be affine in the signals (``(d - 2) / 13``,
-``2 * v + vl``): their value is ``sum_i c_i * x_i + k`` with the signal arrays x_i [N, T] in their own units.
-"""
+``2 * v + vl``): their value is ``sum_i c_i * x_i + k`` with the signal arrays x_i [N, T] in their own units."""
 
 from __future__ import annotations
 
@@ -72,8 +71,7 @@ class Expr:
 
         Raises:
             ValueError: the expression is not affine (a product of two signal terms, division by a signal
-                or by zero), with its column when parsed from text.
-        """
+                or by zero), with its column when parsed from text."""
         raise NotImplementedError
 
     def signals(self) -> frozenset[str]:

@@ -52,8 +52,7 @@ class Formula:
     def horizon(self) -> int | None:
         """Steps after the evaluation time the formula looks at (``None``: open-ended, to the trace end).
 
-        ``G[0,150](d < 5 -> F[0,20](v <= 0.1))`` has horizon 170: evaluated at time 0 it needs 171 steps.
-        """
+        ``G[0,150](d < 5 -> F[0,20](v <= 0.1))`` has horizon 170: evaluated at time 0 it needs 171 steps."""
         hs = [c.horizon() for c in self.children]
         if any(h is None for h in hs):
             return None
@@ -115,8 +114,7 @@ def _paren(f: Formula, min_prec: int) -> str:
 class Predicate(Formula):
     """``lhs op rhs`` with op in ``>= > <= <``; robustness value ``lhs - rhs`` (``>=``, ``>``) or ``rhs - lhs``.
 
-    Strict and non-strict comparisons have the same robustness (as in rtamt and Donze & Maler 2010).
-    """
+    Strict and non-strict comparisons have the same robustness (as in rtamt and Donze & Maler 2010)."""
 
     lhs: Expr
     op: str
@@ -239,8 +237,7 @@ class Temporal(Formula):
     inclusive, 0 <= start <= end, ``end`` None to the trace end (``inf``); subclasses set ``symbol``.
 
     Raises (on construction): TypeError for a non-int bound or a non-formula operand, ValueError for start < 0 or
-    end < start (with the column when parsed from text).
-    """
+    end < start (with the column when parsed from text)."""
 
     symbol = ""
     start: int
@@ -261,8 +258,7 @@ class Temporal(Formula):
 @dataclass(frozen=True, eq=True)
 class UnaryTemporal(Temporal):
     """``G`` or ``F`` over ``[t+start, t+end]`` (cut at the trace end): ``conjunctive`` True (``G``) reduces the
-    window like ``&``, False (``F``) like ``|``, as each semantics defines (:mod:`pemviz.stl.semantics`).
-    """
+    window like ``&``, False (``F``) like ``|``, as each semantics defines (:mod:`pemviz.stl.semantics`)."""
 
     operand: Formula
     start: int = 0

@@ -4,8 +4,7 @@ Spellings (canonical first): ``!``/``~``/``not``, ``&``/``&&``/``and``, ``|``/``
 ``G``/``always``, ``F``/``eventually``, ``U``/``until``; intervals ``[a,b]``, ``[a:b]``, ``[a,inf]``, ``[a,inf)``
 (none: ``[0,inf]``). Precedence, loosest first: ``->`` (right-assoc), ``|``, ``&``, ``U`` (non-assoc), unary ``! G
 F``. Numbers are ASCII digits, at most :data:`MAX_NUMBER_CHARS` characters; bounds at most :data:`MAX_STEP`; nesting
-at most :data:`MAX_DEPTH`. Every failure is an :class:`STLSyntaxError` with its column.
-"""
+at most :data:`MAX_DEPTH`. Every failure is an :class:`STLSyntaxError` with its column."""
 
 from __future__ import annotations
 
@@ -405,8 +404,7 @@ def parse(text: str) -> Formula:
 
     Raises:
         STLSyntaxError (a ValueError): malformed text, with the column and a caret under the position.
-        TypeError: ``text`` is not a str.
-    """
+        TypeError: ``text`` is not a str."""
     if not isinstance(text, str):
         raise TypeError(f"parse expects the formula text as a str, got {type(text).__name__}")
     p = _Parser(text)

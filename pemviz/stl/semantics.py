@@ -74,8 +74,7 @@ class Semantics(ABC):
 
     ``pol`` is the polarity of the evaluation: +1 for rho (cumulative: rho+), -1 for the negative cumulative
     robustness rho- under an odd number of ``!`` (Haghighi et al. 2019, Def. 3); only
-    :class:`SmoothCumulative` tells them apart.
-    """
+    :class:`SmoothCumulative` tells them apart."""
 
     name: str = ""
     """The name the sampler and the recordings use, one of :data:`SEMANTICS`."""
@@ -102,8 +101,7 @@ class Semantics(ABC):
         """G (``conjunctive``) or F over the windows [i, i + w - 1] of r [L, n], for i < n_out: [n_out, n].
 
         Windows are cut at row L (the trace end); an empty one is vacuous. With n_out == 1 the whole of r
-        is the window, reduced along ``axis`` (1: r is trace-major [n, L]); the result is then [1, n].
-        """
+        is the window, reduced along ``axis`` (1: r is trace-major [n, L]); the result is then [1, n]."""
 
     @abstractmethod
     def until(self, ops: Ops, left: Array, right: Array, a: int, be: int, n_out: int, room: int) -> Array:
@@ -111,8 +109,7 @@ class Semantics(ABC):
 
         ``left`` [>= n_out + be - 1 rows] holds the left operand from the first t on, ``right`` the right
         operand from the first t + a on (both cut at the trace end); ``room`` = T - 1 - (first t) is the
-        number of steps after the first t inside the trace.
-        """
+        number of steps after the first t inside the trace."""
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
@@ -177,8 +174,7 @@ class AGM(Semantics):
         signal_ranges: ``{"d": (lo, hi)}`` per signal (its units): each predicate is divided by
             :func:`agm_scale` and clipped to [-1, 1]; None: predicates must already lie in [-1, 1].
     Raises:
-        TypeError: ``signal_ranges`` is not a mapping.
-    """
+        TypeError: ``signal_ranges`` is not a mapping."""
 
     name = "agm"
 
@@ -332,8 +328,7 @@ class SmoothCumulative(Semantics):
     Args:
         temperature: b of the softplus and the soft min/max, finite and > 0 (larger is closer to min/max).
     Raises:
-        ValueError: ``temperature`` is not a finite number > 0.
-    """
+        ValueError: ``temperature`` is not a finite number > 0."""
 
     name = "smooth-cumulative"
 
@@ -424,8 +419,7 @@ def semantics_from_name(
 
     Raises:
         ValueError: unknown name (lists the allowed ones); a bad temperature for ``"smooth-cumulative"``.
-        TypeError: ``signal_ranges`` is not a mapping, for ``"agm"``.
-    """
+        TypeError: ``signal_ranges`` is not a mapping, for ``"agm"``."""
     if name not in _BY_NAME:
         raise ValueError(f"unknown robustness semantics {name!r}; allowed: " + ", ".join(repr(s) for s in SEMANTICS))
     if name == AGM.name:
@@ -453,8 +447,7 @@ def agm_scale(predicate: Predicate, signal_ranges: Mapping[str, tuple[float, flo
 
     Raises:
         ValueError: a signal of the predicate has no range, a range is not finite with lo < hi, or the
-            predicate is 0 over the whole box.
-    """
+            predicate is 0 over the whole box."""
     hmin = hmax = predicate.offset
     for name, c in predicate.coefficients.items():
         if name not in signal_ranges:

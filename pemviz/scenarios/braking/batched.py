@@ -39,8 +39,7 @@ class BatchedBraking:
     """N rollouts of the braking scenario stepped together; the vectorised :class:`BrakingScenario`.
 
     Usage: ``obs = sim.observation()`` (float64 [N, 4], :data:`OBSERVATION_NAMES`), ask a detector, then
-    ``sim.step(detected)`` with bool [N]; after ``params.n_steps`` steps the rollouts are over.
-    """
+    ``sim.step(detected)`` with bool [N]; after ``params.n_steps`` steps the rollouts are over."""
 
     observation_names = OBSERVATION_NAMES
 
@@ -86,8 +85,7 @@ class BatchedBraking:
         lead speeds (m/s), brake pending (1.0 or 0.0).
 
         Args:
-            out: optional float64 [N, 4] array to write into (returned).
-        """
+            out: optional float64 [N, 4] array to write into (returned)."""
         o = np.empty((self.n, len(OBSERVATION_NAMES))) if out is None else out
         o[:, 0] = self._gap = self.gap_m
         o[:, 1] = self.ego_speed_mps
@@ -121,8 +119,7 @@ class BatchedBraking:
         """Put back a :meth:`snapshot` (copied, so the snapshot can be restored again).
 
         Raises:
-            ValueError: a snapshot of another number of rollouts.
-        """
+            ValueError: a snapshot of another number of rollouts."""
         if state["ego_x_m"].shape != (self.n,):
             raise ValueError(
                 f"BatchedBraking.restore: a snapshot of {state['ego_x_m'].size} rollouts, " f"this has {self.n}"
@@ -141,8 +138,7 @@ class BatchedBraking:
             noise: unused (the detector only detects); must be None.
         Raises:
             RuntimeError: if the rollouts are over (``n_steps`` steps taken).
-            ValueError: if ``detected`` is not of shape [N] or [N, 1], or a ``noise`` is given.
-        """
+            ValueError: if ``detected`` is not of shape [N] or [N, 1], or a ``noise`` is given."""
         p = self.params
         if self.done:
             raise RuntimeError(f"BatchedBraking.step: rollouts over after {p.n_steps} steps; call reset()")
@@ -175,8 +171,7 @@ def replay(params: BrakingParams | None, detected: np.ndarray) -> np.ndarray:
         float64 [N, T, 3] observations (gap_m, ego speed, lead speed) before each step, as
         :class:`BrakingScenario` reports them.
     Raises:
-        ValueError: if ``detected`` is not 2-D or has more steps than ``params.n_steps``.
-    """
+        ValueError: if ``detected`` is not 2-D or has more steps than ``params.n_steps``."""
     p = params or BrakingParams()
     detected = np.asarray(detected, dtype=bool)
     if detected.ndim != 2 or detected.shape[0] < 1 or detected.shape[1] > p.n_steps:
@@ -212,8 +207,7 @@ def iter_batched(
     advanced past all ``n * T`` draws once the last chunk is out.
 
     Raises:
-        ValueError: for ``n`` or ``chunk_size`` not an integer >= 1.
-    """
+        ValueError: for ``n`` or ``chunk_size`` not an integer >= 1."""
     p = params or BrakingParams()
     return iter_rollouts(lambda m: BatchedBraking(p, m), n, p.n_steps, sampler, target, rng, chunk_size=chunk_size)
 
@@ -246,8 +240,7 @@ class RolloutSummary:
         log_weight: float64 [N] importance log-weights ``sum_t log p - log q`` over T - 1 steps (nats).
         log_p_total: float64 [N] ``sum_t log p_target(a_t | s_t)`` over T - 1 steps (nats), for the NLL.
         failed: bool [N] failure indicator.
-        min_gap_m: float64 [N] the smallest gap of each rollout (metres).
-    """
+        min_gap_m: float64 [N] the smallest gap of each rollout (metres)."""
 
     log_weight: np.ndarray
     log_p_total: np.ndarray

@@ -26,8 +26,7 @@ class BrakingDrawing(BrakingRecording, BrakingPanel):
     """The braking scenario's drawing object.
 
     Attributes:
-        params: the scenario's constants (car sizes, camera offset, thresholds, dt).
-    """
+        params: the scenario's constants (car sizes, camera offset, thresholds, dt)."""
 
     params: BrakingParams = field(default_factory=BrakingParams)
 
@@ -40,8 +39,7 @@ class BrakingDrawing(BrakingRecording, BrakingPanel):
         metres).
 
         Raises:
-            ValueError: the batch has no ``gap_m`` column.
-        """
+            ValueError: the batch has no ``gap_m`` column."""
         from pemviz.scenarios.braking.failures import severity
 
         if "gap_m" not in batch.observation_names:
@@ -55,8 +53,7 @@ class BrakingDrawing(BrakingRecording, BrakingPanel):
         Args:
             detected: bool [F, T] the failures' detections.
         Returns:
-            (what the groups are, one key per failure (the step; -1: no single detection saves it), key -> label).
-        """
+            (what the groups are, one key per failure (the step; -1: no single detection saves it), key -> label)."""
         from pemviz.scenarios.braking.failures import last_saving_steps
 
         keys = last_saving_steps(detected, self.params).tolist() if len(detected) else []

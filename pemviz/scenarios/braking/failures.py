@@ -47,8 +47,7 @@ class Severity:
         contact_step: the first step with gap <= ``contact_gap_m`` (None: no contact).
         contact_speed_mps: closing speed over the step into contact: the impact speed (m/s; nan without contact).
         crash_gap_m, contact_gap_m: the thresholds used (metres).
-        dt_s: the step (seconds).
-    """
+        dt_s: the step (seconds)."""
 
     min_gap_m: float
     min_gap_step: int
@@ -141,8 +140,7 @@ class ControllerTrace:
         brake_command: bool [T] the emergency brake commanded at step t (the lead detected within
             ``braking_distance_m``); with the actuation lag it acts at step t + 1.
         brake_applied: bool [T] the emergency brake acting at step t (the observation's ``brake_pending``).
-        accel_mps2: float64 [T] the ego's acceleration over step t (m/s^2; negative: braking).
-    """
+        accel_mps2: float64 [T] the ego's acceleration over step t (m/s^2; negative: braking)."""
 
     time_s: np.ndarray
     gap_m: np.ndarray
@@ -160,8 +158,7 @@ def controller_trace(detected: np.ndarray, params: BrakingParams | None = None) 
         detected: bool [T] the detector's output at each step, T <= ``params.n_steps``.
         params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Raises:
-        ValueError: ``detected`` not 1-D or longer than the scenario.
-    """
+        ValueError: ``detected`` not 1-D or longer than the scenario."""
     p = params or BrakingParams()
     d = np.asarray(detected, dtype=bool)
     if d.ndim != 1 or d.size > p.n_steps:
@@ -188,8 +185,7 @@ def min_gaps(detected: np.ndarray, params: BrakingParams | None = None) -> np.nd
 
     Args:
         detected: bool [N, T] detection sequences, T <= ``params.n_steps``.
-        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
-    """
+        params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`)."""
     p = params or BrakingParams()
     d = np.asarray(detected, dtype=bool)
     out = np.empty(d.shape[0])
@@ -297,8 +293,7 @@ def counterfactual(detected: np.ndarray, params: BrakingParams | None = None) ->
         detected: bool [T] the rollout's detections, T <= ``params.n_steps``.
         params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Raises:
-        ValueError: ``detected`` not 1-D or longer than the scenario.
-    """
+        ValueError: ``detected`` not 1-D or longer than the scenario."""
     p = params or BrakingParams()
     d = np.asarray(detected, dtype=bool)
     if d.ndim != 1 or d.size == 0 or d.size > p.n_steps:
@@ -351,8 +346,7 @@ def last_saving_steps(detected: np.ndarray, params: BrakingParams | None = None)
     Returns:
         int [F]: the step, -1 where no single detection saves the rollout or where it does not fail.
     Raises:
-        ValueError: ``detected`` not 2-D or longer than the scenario.
-    """
+        ValueError: ``detected`` not 2-D or longer than the scenario."""
     p = params or BrakingParams()
     d = np.asarray(detected, dtype=bool)
     if d.ndim != 2 or d.shape[1] > p.n_steps:
@@ -489,8 +483,7 @@ def story(gap_m: np.ndarray, detected: np.ndarray, params: BrakingParams | None 
         detected: bool [T] the recorded detections, T <= ``params.n_steps``.
         params: the scenario's constants (None: :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Raises:
-        ValueError: the arrays are not 1-D of one length, or longer than the scenario.
-    """
+        ValueError: the arrays are not 1-D of one length, or longer than the scenario."""
     p = params or BrakingParams()
     gap, d = np.asarray(gap_m, dtype=np.float64), np.asarray(detected, dtype=bool)
     if gap.shape != d.shape:

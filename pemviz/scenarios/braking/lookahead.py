@@ -46,8 +46,7 @@ def start_steps(gap_m: np.ndarray, start_gap_m: float) -> np.ndarray:
 
     Args:
         gap_m: float64 [N, T] gaps (metres).
-        start_gap_m: the start gap (metres) below which the enumeration takes over.
-    """
+        start_gap_m: the start gap (metres) below which the enumeration takes over."""
     below = np.asarray(gap_m) < start_gap_m
     return np.where(below.any(axis=1), below.argmax(axis=1), below.shape[1])
 

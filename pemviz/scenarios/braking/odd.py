@@ -1,8 +1,7 @@
 """The braking scenario over an operating design domain: each rollout's start gap and ego speed (``gap0_m``,
 ``ego_speed0_mps``) drawn from distributions (``pemviz run --param gap0_m~uniform(10, 14)``), the batched twin
 starting each rollout there (``starts``); the problem is the braking one without the exact answer and the
-look-ahead.
-"""
+look-ahead."""
 
 from __future__ import annotations
 
@@ -24,8 +23,7 @@ def braking_odd_problem(config: Any, params: BrakingParams | None, odd: ODD) -> 
 
     Raises:
         ValueError: another parameter in the ODD, or the highway-env back-end (``config.sim``), which starts every
-            rollout alike.
-    """
+            rollout alike."""
     from pemviz.pem import load_pem
     from pemviz.scenarios.braking.problem import braking_problem
 

@@ -41,8 +41,7 @@ class BrakingExplanation:
         severity: how bad the outcome was (:class:`pemviz.scenarios.braking.failures.Severity`).
         controller: the controller's signals along the rollout (brake command, brake applied, acceleration).
         counterfactual: the minimal miss set, the last saving step and the recovery step.
-        sentence: what happened, in plain words (:func:`pemviz.scenarios.braking.failures.describe`).
-    """
+        sentence: what happened, in plain words (:func:`pemviz.scenarios.braking.failures.describe`)."""
 
     time_s: np.ndarray
     p_detect: np.ndarray
@@ -111,8 +110,7 @@ def explain(
         params: the scenario's constants (crash gap, dt; default
             :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
     Raises:
-        ValueError: ``gap_m`` and ``detected`` not of one shape [T], or longer than the scenario.
-    """
+        ValueError: ``gap_m`` and ``detected`` not of one shape [T], or longer than the scenario."""
     from pemviz.scenarios.braking.simulator import BrakingParams
 
     p = params or BrakingParams()

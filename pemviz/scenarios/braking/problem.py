@@ -69,8 +69,7 @@ def braking_problem(pem: GapModel, params: BrakingParams | None = None, sim: str
     """The automated-braking scenario of Innes & Ramamoorthy (2022) with the given PEM as target detector.
 
     Raises:
-        ValueError: for an unknown ``sim`` (allowed: :data:`SIMULATORS`).
-    """
+        ValueError: for an unknown ``sim`` (allowed: :data:`SIMULATORS`)."""
     p = params or BrakingParams()
     if sim not in SIMULATORS:
         raise ValueError(f"unknown simulator {sim!r}; use one of {', '.join(SIMULATORS)}")

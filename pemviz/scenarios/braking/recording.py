@@ -28,8 +28,7 @@ def car_positions(
     Args:
         gap_m: float64 [T] gaps (metres).
         ego_speed_mps: float64 [T] ego speeds (m/s).
-        params: the scenario's constants (default :class:`~pemviz.scenarios.braking.simulator.BrakingParams`).
-    """
+        params: the scenario's constants (default :class:`~pemviz.scenarios.braking.simulator.BrakingParams`)."""
     p = params or BrakingParams()
     v = np.nan_to_num(np.asarray(ego_speed_mps, dtype=np.float64), nan=0.0)
     ego_x = p.dt_s * np.concatenate([[0.0], np.cumsum(v[:-1])])
@@ -106,8 +105,7 @@ class BrakingRecording:
 
     Attributes:
         draws_scene: True: each stage's least robust rollouts are lanes of a scene seen from above.
-        object_words: ``the lead``.
-    """
+        object_words: ``the lead``."""
 
     params: BrakingParams
     outcome: Callable[[RolloutBatch, int], Severity]  # the drawing object's (BrakingDrawing.outcome)

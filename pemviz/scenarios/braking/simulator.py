@@ -52,8 +52,7 @@ class BrakingParams:
     no impact speed (:func:`pemviz.core.severity.severity_of_signal`).
 
     Raises:
-        ValueError: a value outside its range (the message names the field, what is allowed and what was given).
-    """
+        ValueError: a value outside its range (the message names the field, what is allowed and what was given)."""
 
     dt_s: float = 0.05
     n_steps: int = 100
@@ -167,8 +166,7 @@ def ego_acceleration(
         In contact with the lead (gap <= ``contact_gap_m``) the ego is stopped, as after a CARLA collision.
 
     Source: Innes & Ramamoorthy (2022), Sec. V (CARLA BasicAgent emergency stop + PIDLongitudinalController, K_P 1.0,
-    K_I 0.05, K_D 0 on the km/h error, max throttle 0.75, PID brake at most 0.3).
-    """
+    K_I 0.05, K_D 0 on the km/h error, max throttle 0.75, PID brake at most 0.3)."""
     p = params
     integral, full_brake, accel_pid = ego_commands(p, ego_speed_mps, ctrl.integral_kmh_s)
     emergency = np.asarray(detected, dtype=bool) & (gap_m < p.braking_distance_m)
@@ -190,8 +188,7 @@ def ego_commands(
         integral_kmh_s: [N] the PID integral before this step (km/h s).
     Returns:
         (the PID integral after this step [N] (km/h s), the full brake's deceleration [N] (m/s^2, >= 0), the PID's
-        acceleration [N] (m/s^2): throttle minus its brake).
-    """
+        acceleration [N] (m/s^2): throttle minus its brake)."""
     p = params
     v = ego_speed_mps
     error = p.target_speed_kmh - 3.6 * v
@@ -212,8 +209,7 @@ def ego_limited(params: BrakingParams, gap_m: np.ndarray, ego_speed_mps: np.ndar
         params: the scenario's constants.
         gap_m: [N] gap (metres).
         ego_speed_mps: [N] ego speed (m/s).
-        accel: [N] the commanded acceleration (m/s^2): the full brake's or the PID's (:func:`ego_commands`).
-    """
+        accel: [N] the commanded acceleration (m/s^2): the full brake's or the PID's (:func:`ego_commands`)."""
     stop = -ego_speed_mps / params.dt_s
     accel = np.maximum(accel, stop)
     return np.where(gap_m <= params.contact_gap_m, stop, accel)
@@ -261,8 +257,7 @@ def braking_step(
     Returns:
         the state at the next step (same shapes): gap' = gap + (v_lead - v) dt; v' = max(v + a dt, 0).
     Source: :func:`ego_step` (:func:`ego_acceleration` and highway-env ``Vehicle.step``), written on the gap
-    instead of positions; it replays highway-env rollouts to ~1e-13 m (``tests/scenarios/test_truth.py``).
-    """
+    instead of positions; it replays highway-env rollouts to ~1e-13 m (``tests/scenarios/test_truth.py``)."""
     shape = np.shape(gap_m)
     g = np.asarray(gap_m, dtype=np.float64).ravel()
     v = np.asarray(speed_mps, dtype=np.float64).ravel()
@@ -279,8 +274,7 @@ def braking_replay(params: BrakingParams, detected: np.ndarray) -> np.ndarray:
 
     Args:
         params: the scenario's constants.
-        detected: bool [N, T] (or [N, <T]: missing steps count as misses).
-    """
+        detected: bool [N, T] (or [N, <T]: missing steps count as misses)."""
     detected = np.atleast_2d(np.asarray(detected, dtype=bool))
     n, T = detected.shape[0], params.n_steps
     vl = lead_speeds(params)
@@ -299,8 +293,7 @@ def braking_replay(params: BrakingParams, detected: np.ndarray) -> np.ndarray:
 class BrakingScenario:
     """One rollout of the braking scenario on highway-env vehicles, stepped as a black box: ``obs =
     sim.observation()`` (float64 [4], :data:`OBSERVATION_NAMES`), ask a detector, ``sim.step(detected)``, for
-    ``params.n_steps`` steps.
-    """
+    ``params.n_steps`` steps."""
 
     observation_names = OBSERVATION_NAMES
 
@@ -363,8 +356,7 @@ class BrakingScenario:
         """Advance one step of ``dt`` seconds given the detector's output at the current state.
 
         Raises:
-            RuntimeError: if the rollout is already over (``n_steps`` steps taken).
-        """
+            RuntimeError: if the rollout is already over (``n_steps`` steps taken)."""
         if self.done:
             raise RuntimeError(f"BrakingScenario.step: rollout over after {self.params.n_steps} steps; call reset()")
         accel, self._ctrl = ego_acceleration(

@@ -74,8 +74,7 @@ class GridCommittor:
         log_v: float64 [T + 1, 2, G, S] log V (nats) at the nodes, per step 0..T and pending flag (0, 1);
             :data:`LOG_V_FLOOR` before the first step solved, at step T and where no crash can follow.
         first_step: the first step solved (the branching start: the gap first below the braking distance).
-        steps: the steps of the scene's dynamics the solve evaluated.
-    """
+        steps: the steps of the scene's dynamics the solve evaluated."""
 
     params: BrakingParams
     gap_axis: np.ndarray = field(repr=False)
@@ -151,8 +150,7 @@ def solve_committor(
         n_speed: the grid's nodes along the ego's speed (>= 2).
     Raises:
         ValueError: fewer than 2 nodes on an axis; a scene whose gap never drops below the braking distance
-            (:func:`~pemviz.scenarios.braking.truth.branching_start`: nothing is random).
-    """
+            (:func:`~pemviz.scenarios.braking.truth.branching_start`: nothing is random)."""
     if not (isinstance(n_gap, int) and isinstance(n_speed, int) and n_gap >= 2 and n_speed >= 2):
         raise ValueError(
             f"the braking committor's grid needs at least 2 gap and 2 speed nodes, got {n_gap!r} x " f"{n_speed!r}"
@@ -276,8 +274,7 @@ class BrakingTilt:
         n_gap, n_speed: the committor's grid (:data:`TILT_GAPS`, :data:`TILT_SPEEDS`).
         eps: the PEM's share of each step's proposal, in (0, 1].
     Raises:
-        ValueError: ``eps`` outside (0, 1].
-    """
+        ValueError: ``eps`` outside (0, 1]."""
 
     def __init__(
         self,
@@ -326,8 +323,7 @@ class BrakingCommittorScore(StateScore):
         committor: the solved committor.
         problem: the braking problem of the same scene and PEM.
         steps: the steps of the committor's solve when this run solved it (0: reused), the run's cost besides its
-            rollouts (:attr:`steps`).
-    """
+            rollouts (:attr:`steps`)."""
 
     def __init__(self, committor: GridCommittor, problem: Problem, steps: int = 0) -> None:
         self.committor, self.problem, self.steps = committor, problem, steps

@@ -34,8 +34,7 @@ class BrakingStart:
     """The scenario's state at the first step where a detection can matter (gap < braking distance).
 
     Every step before ``step`` has gap >= the braking distance, where both detector outputs lead to the
-    same next state: the prefix is deterministic.
-    """
+    same next state: the prefix is deterministic."""
 
     step: int
     gap_m: float
@@ -48,8 +47,7 @@ def branching_start(params: BrakingParams) -> BrakingStart:
     """Run the deterministic prefix until the gap first drops below the braking distance.
 
     Raises:
-        ValueError: if that never happens within the episode (nothing random: p_fail is 0 or 1).
-    """
+        ValueError: if that never happens within the episode (nothing random: p_fail is 0 or 1)."""
     vl = lead_speeds(params)
     g, v, i, b = (np.array([params.gap0_m]), np.array([params.ego_speed0_mps]), np.zeros(1), np.zeros(1, bool))
     for t in range(params.n_steps):
@@ -65,8 +63,7 @@ def branching_start(params: BrakingParams) -> BrakingStart:
 def _relaxed_step(params: BrakingParams, lead_speed_mps: float, gap_m, speed_mps, pending, detected):
     """:func:`braking_step` of a controller that is never gentler (the PID integral at its largest, no PID brake):
     its next speed is at least the true one, and it is monotone in the speed (tests/scenarios/test_truth.py), so a
-    state no safer stays no safer under the same action, which :class:`MissBound` rests on.
-    """
+    state no safer stays no safer under the same action, which :class:`MissBound` rests on."""
     relaxed = dataclasses.replace(params, max_pid_brake=0.0)
     i_max = np.full(np.shape(gap_m), params.target_speed_kmh * params.dt_s / (1.0 - params.integral_leak))
     g2, v2, _, b2 = braking_step(relaxed, lead_speed_mps, gap_m, speed_mps, i_max, pending, detected)
@@ -80,8 +77,7 @@ class MissBound:
 
     Attributes:
         gap_axis, speed_axis: the grid (metres, m/s), uniform.
-        table: int32 [T, 2, G, S]: the bound at grid nodes per step and pending flag.
-    """
+        table: int32 [T, 2, G, S]: the bound at grid nodes per step and pending flag."""
 
     gap_axis: np.ndarray
     speed_axis: np.ndarray
@@ -94,8 +90,7 @@ class MissBound:
         the next larger speed (a state at least as dangerous), so it never exceeds the true number.
 
         Raises:
-            ValueError: if a speed lies above the grid (the bound would not be valid).
-        """
+            ValueError: if a speed lies above the grid (the bound would not be valid)."""
         g0, dg = self.gap_axis[0], self.gap_axis[1] - self.gap_axis[0]
         dv = self.speed_axis[1] - self.speed_axis[0]
         if np.any(speed_mps > self.speed_axis[-1]):
@@ -123,8 +118,7 @@ def miss_bound(params: BrakingParams, start: BrakingStart, n_grid: int = 401) ->
 
     Raises:
         ValueError: if the gap can come back to the braking distance after ``start`` (then missing is not
-            always a cost and the order argument fails), or ``n_grid`` < 2.
-    """
+            always a cost and the order argument fails), or ``n_grid`` < 2."""
     if n_grid < 2:
         raise ValueError(f"miss_bound: n_grid must be >= 2, got {n_grid}")
     if params.crash_gap_m < MISS_BOUND_MIN_GAP_M:
@@ -165,8 +159,7 @@ def exact_bound(params: BrakingParams, start: BrakingStart, bound_grid: int = 40
     ``bound_grid - 1`` cells.
 
     Raises:
-        ValueError: see :func:`miss_bound` and :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`.
-    """
+        ValueError: see :func:`miss_bound` and :func:`~pemviz.scenarios.braking.truth_cells.cell_miss_bound`."""
     if params.crash_gap_m >= MISS_BOUND_MIN_GAP_M:
         return miss_bound(params, start, bound_grid)
     cells = max(bound_grid - 1, 1)
@@ -197,8 +190,7 @@ class ExactResult:
         min_misses: the bound on misses needed to crash at the start (a crash needs at least this many).
         max_paths: largest number of live sequences at one step.
         n_crash_paths: crashing sequences enumerated.
-        start: where the branching starts; wall_s: seconds taken.
-    """
+        start: where the branching starts; wall_s: seconds taken."""
 
     log_p_fail: float
     log_pruned_bound: float
@@ -318,8 +310,7 @@ class Refinement:
 
     Attributes:
         results: one :class:`ExactResult` per threshold, in the order run.
-        tolerance: the target relative width (upper - lower) / lower.
-    """
+        tolerance: the target relative width (upper - lower) / lower."""
 
     results: tuple[ExactResult, ...]
     tolerance: float
@@ -372,8 +363,7 @@ def braking_truth(
 ) -> Refinement:
     """Refine :func:`braking_exact` over ``log_prunes`` until (upper - lower) / lower < ``tolerance`` (the miss
     bound computed once and shared); returns every step of the refinement, ``converged`` False if the thresholds ran
-    out first (timings: docs/validation.md).
-    """
+    out first (timings: docs/validation.md)."""
     p = params or BrakingParams()
     start = branching_start(p)
     bound = exact_bound(p, start, bound_grid)

@@ -36,8 +36,7 @@ def largest_gap_after(params: BrakingParams, step: int, gap_m: float, who: str) 
 
     Raises:
         ValueError: naming ``who``, if that gap reaches the braking distance (then a miss is not always a cost and
-            the order argument of the bounds fails).
-    """
+            the order argument of the bounds fails)."""
     gap_hi = gap_m + params.dt_s * float(np.sum(lead_speeds(params)[step:]))
     if gap_hi >= params.braking_distance_m:
         raise ValueError(
@@ -53,8 +52,7 @@ def integral_range(params: BrakingParams, start_integral: float, speed_top_mps: 
     leak)`` at the two ends (and the start).
 
     Raises:
-        ValueError: ``integral_leak`` = 1 (no bounded range).
-    """
+        ValueError: ``integral_leak`` = 1 (no bounded range)."""
     p = params
     if p.integral_leak >= 1.0:
         raise ValueError("integral_range: integral_leak = 1 leaves the PID integral unbounded")
@@ -67,8 +65,7 @@ def speed_lipschitz(params: BrakingParams, speed_top_mps: float) -> float:
     """A bound on |d v' / d v| of the ego's one-step speed map (:func:`braking_step`) for speeds in [0,
     ``speed_top_mps``], any integral, command and detector output, inside the braking distance and above the contact
     gap: ``1 + dt (|a'_throttle| + |a'_pid| + |decel'|)``, each slope bounded from its formula (clipping only
-    flattens).
-    """
+    flattens)."""
     p = params
     kc = 3.6 * (p.kp + p.ki * p.dt_s)  # |dc/dv|
     a_top = max(abs(p.throttle_accel0_mps2), abs(p.throttle_accel0_mps2 - p.throttle_accel_slope_per_s * speed_top_mps))
@@ -174,8 +171,7 @@ class CellMissBound:
         gap_edges: cell edges over the gaps above max(crash gap, contact gap) (metres), uniform, float64 [G + 1].
         speed_edges: cell edges over [0, top] (m/s), uniform, float64 [S + 1].
         table: int16 [T - first_step, 2, G, S]: the bound per step from ``first_step``, pending flag and cell
-            (30000: no crash).
-    """
+            (30000: no crash)."""
 
     params: BrakingParams
     first_step: int
@@ -191,8 +187,7 @@ class CellMissBound:
         ``NO_CRASH``), one below the crash gap is 0.
 
         Raises:
-            ValueError: a step before :attr:`first_step`, or a state above the grid (the bound would not hold).
-        """
+            ValueError: a step before :attr:`first_step`, or a state above the grid (the bound would not hold)."""
         p = self.params
         if step < self.first_step:
             raise ValueError(f"CellMissBound: step {step} is before the table's first step {self.first_step}")

@@ -1,8 +1,7 @@
 """Exact answers of the braking scenarios known without computing them: the main scenario's answers for the shipped
 PEMs by PEM fingerprint (:data:`KNOWN_BRAKING_LOG_P`, :data:`KNOWN_BRAKING_MARGIN_LOG_P`, :func:`pem_fingerprint`),
 from :func:`pemviz.scenarios.braking.truth.braking_truth` and recomputed by ``tests/scenarios/test_truth.py`` and
-the benchmarks, and :func:`known_log_failure_probability`.
-"""
+the benchmarks, and :func:`known_log_failure_probability`."""
 
 from __future__ import annotations
 
@@ -74,8 +73,7 @@ def pem_fingerprint(logit_at_gap: LogitFn) -> str:
 def known_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams | None = None) -> float | None:
     """The exact log p_fail (nats) of a braking problem when it is cheap to know, else None: the latched scenario
     computed (:func:`latched_log_failure_probability`), the main scenario looked up by PEM fingerprint in
-    :data:`KNOWN_BRAKING_LOG_P` or, with another crash gap, :data:`KNOWN_BRAKING_MARGIN_LOG_P`.
-    """
+    :data:`KNOWN_BRAKING_LOG_P` or, with another crash gap, :data:`KNOWN_BRAKING_MARGIN_LOG_P`."""
     p = params or BrakingParams()
     if p.latched_brake:
         return latched_log_failure_probability(logit_at_gap, p).log_p_fail

@@ -1,8 +1,7 @@
 """The latched-brake braking scenario's exact answer: its failure probability in closed form
 (:func:`latched_log_failure_probability`: the first effective detection decides everything, a finite sum of
 deterministic replays) and its value function V (:func:`latched_value`); and :data:`LogitFn`, the detector curve
-every exact answer takes. Natural logs in float64.
-"""
+every exact answer takes. Natural logs in float64."""
 
 from __future__ import annotations
 
@@ -32,8 +31,7 @@ class LatchedTruth:
             crash: p_fail = prod over this window of (1 - p_PEM(d_t)) when the crash set is exactly
             "no detection in the window" (``window_exact``).
         window_exact: True if the sum over first-detection steps reduces to that single product.
-        crash_step: first step with d < 2 when nothing is ever detected (None if never).
-    """
+        crash_step: first step with d < 2 when nothing is ever detected (None if never)."""
 
     log_p_fail: float
     first_step: int
@@ -84,8 +82,7 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
 
     Args:
         logit_at_gap: logit p_PEM(detect | gap) (e.g. ``pem.logit_at_gap``).
-        params: braking parameters; ``latched_brake`` is forced to True.
-    """
+        params: braking parameters; ``latched_brake`` is forced to True."""
     p = BrakingParams(latched_brake=True) if params is None else dataclasses.replace(params, latched_brake=True)
     path = _latched_path(p)
     all_miss, c, eff, crash_after = path.gaps, path.crash_step, path.effective, path.crash_after
@@ -160,8 +157,7 @@ def latched_value(logit_at_gap: LogitFn, params: BrakingParams | None = None) ->
     Raises:
         ValueError: if two steps of the all-miss path look the same but have different V, or if a state one step
             after a detection that q* can draw looks like an all-miss state where q* differs from p (then the
-            observation does not carry enough state for q*).
-    """
+            observation does not carry enough state for q*)."""
     p = BrakingParams(latched_brake=True) if params is None else dataclasses.replace(params, latched_brake=True)
     T = p.n_steps
     path = _latched_path(p)

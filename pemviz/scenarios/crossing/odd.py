@@ -1,8 +1,7 @@
 """The crossing scenario over an operating design domain: each rollout's AEB trigger and deceleration (``brake_ttc_s``,
 ``brake_mps2``) drawn from distributions (``pemviz run --scenario crossing --param "brake_ttc_s~uniform(1.3,
 1.5)"``), the batched scene braking by each rollout's own (:data:`pemviz.scenarios.crossing.scene.PER_ROLLOUT`); the
-problem is the crossing's without its reference.
-"""
+problem is the crossing's without its reference."""
 
 from __future__ import annotations
 
@@ -21,8 +20,7 @@ def crossing_odd_problem(config: Any, params: CrossingParams | None, odd: ODD) -
     others at ``params`` (None: the defaults), the PEM ``config.perception.pem`` (None: the shipped one).
 
     Raises:
-        ValueError: another parameter in the ODD.
-    """
+        ValueError: another parameter in the ODD."""
     from pemviz.scenarios.crossing.problem import crossing
 
     p = params or CrossingParams()

@@ -68,8 +68,7 @@ class CrossingParams:
     """The crossing scenario's constants (module docstring).
 
     Raises:
-        ValueError: a value out of its range.
-    """
+        ValueError: a value out of its range."""
 
     ego_speed_mps: float = 12.0
     crossing_m: float = 40.0
@@ -142,8 +141,7 @@ class BatchedCrossing:
     :data:`PER_ROLLOUT` parameters (float64 [n]; absent: ``params``').
 
     Raises:
-        ValueError: ``n`` < 1, or another parameter in ``per_rollout``.
-    """
+        ValueError: ``n`` < 1, or another parameter in ``per_rollout``."""
 
     observation_names = OBSERVATION_NAMES
     object_names = OBJECT_NAMES
@@ -226,8 +224,7 @@ class BatchedCrossing:
 
         Args:
             detected: bool [n, M] the pedestrians detected.
-            noise: float64 [n, M, 2] (range, lateral error; metres) or None.
-        """
+            noise: float64 [n, M, 2] (range, lateral error; metres) or None."""
         p = self.p
         loc_x, loc_z, view, _ = self._view()
         measured = np.asarray(detected, dtype=bool).T & view.visible

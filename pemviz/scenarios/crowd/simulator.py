@@ -47,8 +47,7 @@ class CrowdParams:
         offsets: each obstacle's distance beyond the nearest (units, >= 0, the first 0): M = len(offsets).
         noise_sd: the standard deviation of a detected obstacle's distance error (units, >= 0; 0: exact).
     Raises:
-        ValueError: parameters outside these ranges.
-    """
+        ValueError: parameters outside these ranges."""
 
     total: int = 20
     braking: int = 8

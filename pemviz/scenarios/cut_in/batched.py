@@ -247,8 +247,7 @@ class BatchedCutIn:
             noise: float64 ``[N, M, 2]`` (range, lateral error; metres; read where detected) or None (no error).
         Raises:
             RuntimeError: the rollouts are over.
-            ValueError: ``detected`` or ``noise`` of the wrong shape.
-        """
+            ValueError: ``detected`` or ``noise`` of the wrong shape."""
         p, s = self.params, self.state
         if self.done:
             raise RuntimeError(f"BatchedCutIn.step: rollouts over after {p.n_steps} steps; call reset()")
@@ -290,8 +289,7 @@ class BatchedCutIn:
         """Put back a :meth:`snapshot` of a batch of the same N (copied again, so it can be restored more than once).
 
         Raises:
-            ValueError: a snapshot of another batch size.
-        """
+            ValueError: a snapshot of another batch size."""
         if state.ego_x_m.shape != (self.n,):
             raise ValueError(
                 f"BatchedCutIn.restore: snapshot of {state.ego_x_m.shape[0]} rollouts, this batch has " f"{self.n}"
@@ -312,8 +310,7 @@ def replay(
     Returns:
         ``(observations float64 [N, T, F], objects float64 [N, T, M, G])``, before each step.
     Raises:
-        ValueError: shapes other than these.
-    """
+        ValueError: shapes other than these."""
     p = params or CutInParams()
     detected = np.asarray(detected, dtype=bool)
     if detected.ndim != 3 or detected.shape[0] < 1 or detected.shape[1] > p.n_steps or detected.shape[2] != p.n_objects:

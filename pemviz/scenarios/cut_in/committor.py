@@ -6,8 +6,7 @@ The zero-variance change of measure draws each step's events x from q(x | s) = p
 Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2); L'Ecuyer & Tuffin 2008, WSC); here Q is U_{t+1} at the level
 and regime an event leads to, an approximation that costs variance only.
 
-Units: metres; levels count steps of late braking (:data:`STEP_M`); probabilities in nats where logged.
-"""
+Units: metres; levels count steps of late braking (:data:`STEP_M`); probabilities in nats where logged."""
 
 from __future__ import annotations
 
@@ -70,8 +69,7 @@ def continuous_level(lv: np.ndarray, inside_m: np.ndarray, step_m: np.ndarray) -
     Args:
         lv: levels (:func:`level`).
         inside_m: the track's margin outside the lane's 2 m band at the follow step (metres, <= 0 inside).
-        step_m: the track's lateral speed times dt there (metres).
-    """
+        step_m: the track's lateral speed times dt there (metres)."""
     d = np.maximum(-inside_m, 0.0)
     frac = np.clip(d / np.maximum(step_m, 1e-9), 0.0, 1.0)
     return np.where(lv == 0, 0.0, lv - 1.0 + frac)
@@ -101,8 +99,7 @@ class Grid:
     look-ahead tries: 0 a miss, 1 the central draw, then each error's low and high edges (the other error central).
 
     Args:
-        masses: the tail masses of the edges, ascending, in (0, 0.5) (e.g. ``GRIDS["lean"]``).
-    """
+        masses: the tail masses of the edges, ascending, in (0, 0.5) (e.g. ``GRIDS["lean"]``)."""
 
     def __init__(self, masses: np.ndarray) -> None:
         self.masses = np.asarray(masses, dtype=np.float64)
@@ -210,8 +207,7 @@ class LevelChain:
         h, gmax: the grid of g (levels).
         g_nom: step -> the nominal path's G (for reports).
         states: step -> the representatives looked ahead (for reports).
-        bin_width: the width of a cell's bin of g (None: one bin).
-    """
+        bin_width: the width of a cell's bin of g (None: one bin)."""
 
     def __init__(
         self,

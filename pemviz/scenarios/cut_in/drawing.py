@@ -22,8 +22,7 @@ class CutInDrawing(CutInRecording, CutInPanel):
     """The cut-in scenario's drawing object.
 
     Attributes:
-        params: the scenario's constants (cars, lanes, dt).
-    """
+        params: the scenario's constants (cars, lanes, dt)."""
 
     params: CutInParams = field(default_factory=CutInParams)
 
@@ -36,8 +35,7 @@ class CutInDrawing(CutInRecording, CutInPanel):
         signals and object rows).
 
         Raises:
-            ValueError: the rollouts lack the columns the story reads.
-        """
+            ValueError: the rollouts lack the columns the story reads."""
         from pemviz.scenarios.cut_in.story import cut_in_severity, has_story_columns
 
         names = tuple(batch.observation_names)

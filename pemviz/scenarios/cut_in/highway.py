@@ -48,8 +48,7 @@ def build_road(params: CutInParams, with_ego: bool = True) -> tuple[Road, Vehicl
     """A fresh highway-env road with the traffic at t = 0 (and the ego at x = 0 in the middle lane).
 
     Returns:
-        ``(road, ego or None, [vehicle 0 (the cut-in), vehicle 1, ...])``.
-    """
+        ``(road, ego or None, [vehicle 0 (the cut-in), vehicle 1, ...])``."""
     from highway_env.road.road import Road, RoadNetwork
     from highway_env.vehicle.controller import ControlledVehicle
     from highway_env.vehicle.kinematics import Vehicle
@@ -126,8 +125,7 @@ class CutInScenario:
 
     Protocol: ``objects()`` float64 ``[M, G]`` (:data:`OBJECT_NAMES`), ``observation()`` float64 ``[F]``
     (:data:`OBSERVATION_NAMES`), then ``step(detected bool [M], noise float64 [M, 2] | None)``
-    (:data:`NOISE_NAMES`: range and lateral errors, metres, used where detected); ``params.n_steps`` steps.
-    """
+    (:data:`NOISE_NAMES`: range and lateral errors, metres, used where detected); ``params.n_steps`` steps."""
 
     observation_names = OBSERVATION_NAMES
     object_names = OBJECT_NAMES
@@ -188,8 +186,7 @@ class CutInScenario:
             noise: float64 ``[M, 2]`` (range, lateral error; metres) or None (no error).
         Raises:
             RuntimeError: the rollout is over (``n_steps`` steps taken).
-            ValueError: ``detected`` or ``noise`` of the wrong shape.
-        """
+            ValueError: ``detected`` or ``noise`` of the wrong shape."""
         p = self.params
         if self.done:
             raise RuntimeError(f"CutInScenario.step: rollout over after {p.n_steps} steps; call reset()")

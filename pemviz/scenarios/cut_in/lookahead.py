@@ -73,8 +73,7 @@ def features(state: CutInBatchState, traffic: Any, errors: bool = False) -> np.n
     Args:
         state: N rollouts' state.
         traffic: the step's true traffic (:class:`pemviz.scenarios.cut_in.highway.TrafficTrajectory` entry).
-        errors: append the track's errors against the car's true state (metres, m/s along and across the road).
-    """
+        errors: append the track's errors against the car's true state (metres, m/s along and across the road)."""
     tr = state.tracks
     log = exact.log  # the same on every CPU: the regimes and the effect model's splits read these
     cols = [
@@ -156,8 +155,7 @@ class CutInLookAhead:
         error_buckets: (feature column, ascending bounds) that split the regimes further.
         dp_mass: the tail mass of the beam's (and the study's event sequences') range errors: beyond the tracker's
             gate.
-        effect_model: fit the regression of the events' shifts of G in :meth:`solve_beam`.
-    """
+        effect_model: fit the regression of the events' shifts of G in :meth:`solve_beam`."""
 
     def __init__(
         self,
@@ -295,8 +293,7 @@ class CutInLookAhead:
             prefix_min: each rollout's operand minimum so far [N] (metres).
             reps: the branches' uniforms of the cut-in car [B, 3] (None: the grid's NBRANCH).
             keep_states: leave the branches' states after their step in :attr:`branch_states` (row i B + b: rollout
-                ``idx[i]``, branch b).
-        """
+                ``idx[i]``, branch b)."""
         target, m, g = self.target, rows.shape[1], self.grid
         reps = g.reps if reps is None else reps
         k, kk = idx.size, reps.shape[0]
@@ -357,8 +354,7 @@ class CutInLookAhead:
         counts (:attr:`steps`).
 
         Raises:
-            ValueError: not ``one_car`` (the representatives are states of the cut-in car alone).
-        """
+            ValueError: not ``one_car`` (the representatives are states of the cut-in car alone)."""
         if not self.one_car:
             raise ValueError("the beam's representatives are states of the cut-in car alone: it needs one_car")
         p, target, g = self.params, self.target, self.grid

@@ -35,8 +35,7 @@ def cut_in_odd_problem(config: Any, params: CutInParams | None, odd: ODD) -> Pro
 
     Raises:
         ValueError: another parameter in the ODD; a support where the cut-in vehicle's trajectory is not the moved one
-            (it would meet the other traffic: say which end and by how much).
-    """
+            (it would meet the other traffic: say which end and by how much)."""
     from pemviz.pem import load_pem
     from pemviz.scenarios.cut_in.problem import cut_in_problem
 

@@ -47,8 +47,7 @@ def cut_in_params(setting: str) -> CutInParams:
     ``moderate``, ``rare``).
 
     Raises:
-        ValueError: an unknown setting.
-    """
+        ValueError: an unknown setting."""
     if setting not in RARITY_SETTINGS:
         raise ValueError(f"unknown cut-in setting {setting!r}; use one of {', '.join(RARITY_SETTINGS)}")
     return CutInParams(**RARITY_SETTINGS[setting])
@@ -68,8 +67,7 @@ def cut_in_problem(
         pem: the detection PEM (``pemviz.pem.load_pem()``).
         params: the scenario (default: the ``moderate`` setting, about 9e-5).
         noise: the noise PEM (default: the shipped ``hetero-t``).
-        name: the problem's name (the scenario's registered name).
-    """
+        name: the problem's name (the scenario's registered name)."""
     from pemviz.pem.perception import SalientDetector
     from pemviz.pem.store import load_noise_pem
 

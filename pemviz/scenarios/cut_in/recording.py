@@ -18,8 +18,7 @@ class CutInRecording:
 
     Attributes:
         draws_scene: False: the scene is drawn from the object rows.
-        object_words: ``the car ahead`` (a sentence on one object; the cut-in's rollouts have several).
-    """
+        object_words: ``the car ahead`` (a sentence on one object; the cut-in's rollouts have several)."""
 
     outcome: Callable[[RolloutBatch, int], CutInSeverity]  # the drawing object's (CutInDrawing.outcome)
     draws_scene = False

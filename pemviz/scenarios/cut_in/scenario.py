@@ -125,8 +125,7 @@ its set speed whatever the camera reports of the other lanes; the sixth is a lea
 class IDMParams:
     """highway-env's ``IDMVehicle`` constants (``highway_env/vehicle/behavior.py``, 1.12), the ACC's defaults.
 
-    ``distance_wanted_m`` is centre to centre (highway-env: 5 m + a vehicle length); accelerations in m/s^2.
-    """
+    ``distance_wanted_m`` is centre to centre (highway-env: 5 m + a vehicle length); accelerations in m/s^2."""
 
     comfort_acc_max_mps2: float = 3.0
     comfort_acc_min_mps2: float = -5.0
@@ -323,8 +322,7 @@ def safe_distance(params: CutInParams, ego_speed_mps: np.ndarray, front_speed_mp
     Keeping at least this gap lets the ego stop behind the vehicle in front if it brakes fully after its reaction
     time. Source: Maierhofer et al. 2020, "Formalization of Interstate Traffic Rules in Temporal Logic", IEEE IV,
     rule R_G1's ``keeps_safe_distance_prec``, with the parameters of the authors' CommonRoad monitor
-    (commonroad-stl-monitor, ``crmonitor/config.yaml``).
-    """
+    (commonroad-stl-monitor, ``crmonitor/config.yaml``)."""
     v, vf = ego_speed_mps, front_speed_mps
     ego_stop = v * v / (2.0 * -params.ego_a_min_mps2)
     return ego_stop - vf * vf / (2.0 * -params.other_a_min_mps2) + v * params.reaction_time_s
@@ -385,8 +383,7 @@ def acc_control(
         ego_speed_mps: float64 ``[N]`` its speed (m/s).
     Returns:
         (followed int64 ``[N]``: the object followed, -1 when none; acceleration float64 ``[N]``, m/s^2, never below
-        ``-speed / dt`` so that the ego does not reverse).
-    """
+        ``-speed / dt`` so that the ego does not reverse)."""
     ahead = track_x - ego_x_m
     candidate = active & (np.abs(track_y - params.ego_y_m) < LANE_WIDTH_M / 2) & (ahead > 0.0)
     distance = np.where(candidate, ahead, np.inf)

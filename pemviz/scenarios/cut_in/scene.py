@@ -108,8 +108,7 @@ def traffic_at(
 ) -> tuple[Traffic, CutInMemory]:
     """The :class:`Traffic` of vehicles in the given state (float64 ``[M]`` each) at ``step``, and the cut-in memory
     for the next step: a cut-in begins where ``cutting_in`` rises and is recent while ``step - start <=
-    cut_in_grace_steps`` (R_G1's ``once[0, t_c](cut_in & prev(!cut_in))``).
-    """
+    cut_in_grace_steps`` (R_G1's ``once[0, t_c](cut_in & prev(!cut_in))``)."""
     x, y, h, s = (np.asarray(a, dtype=np.float64) for a in (x_m, y_m, heading_rad, speed_mps))
     cos, sin = np.cos(h), np.sin(h)
     half_l, half_w = params.vehicle_length_m / 2.0, params.vehicle_width_m / 2.0
@@ -166,8 +165,7 @@ class CameraView:
         loc_z_m: camera-frame centre forward.
         truncation, occluded_fraction: shares of the 2D box outside the image and covered by nearer objects.
         inside: area of the 2D box inside the image (normalised image units).
-        visible: bool.
-    """
+        visible: bool."""
 
     loc_x_m: np.ndarray
     loc_z_m: np.ndarray
@@ -186,8 +184,7 @@ def _column(x: np.ndarray) -> np.ndarray:
 def camera_view(params: CutInParams, traffic: Traffic, ego_x_m: np.ndarray) -> CameraView:
     """The camera's view of the traffic from ego positions ``ego_x_m`` ``[N]`` (module docstring), the 2D box that
     of the vehicle's axis-aligned footprint (:attr:`Traffic.half_x_m`, ``half_y_m``): ``u_hi = max(X_hi / Z_near,
-    X_hi / Z_far)``, ``u_lo = min(X_lo / Z_near, X_lo / Z_far)``.
-    """
+    X_hi / Z_far)``, ``u_lo = min(X_lo / Z_near, X_lo / Z_far)``."""
     cam_x = ego_x_m + params.camera_offset_m
     loc_z = _column(traffic.x_m) - cam_x
     z_near = np.maximum(loc_z - traffic.half_x_m[:, None], _MIN_DEPTH_M)
@@ -222,8 +219,7 @@ def measure(
     Returns:
         ``(z_x, z_y, z_range)``: the measured centre along and across the road (m) and the measured range ``Z_m``
         along the camera axis (at least :data:`MIN_RANGE_M`: the pinhole reads no range behind the camera); the true
-        values (no error) where not measured, so that every entry is finite.
-    """
+        values (no error) where not measured, so that every entry is finite."""
     d_range = np.where(measured, noise[..., 0], 0.0)
     d_lat = np.where(measured, noise[..., 1], 0.0)
     z_true = np.maximum(view.loc_z_m, MIN_RANGE_M)
@@ -254,8 +250,7 @@ def object_rows(
         ego_speed_mps: float64 ``[N]`` its speed (m/s).
         ego_accel_mps2: float64 ``[N]`` its acceleration (m/s^2).
         tracks: the trackers' predictions ``[M, N]`` for this step.
-        followed: int ``[N]``, the object the ACC followed at the last step (-1 none).
-    """
+        followed: int ``[N]``, the object the ACC followed at the last step (-1 none)."""
     m, n = view.loc_z_m.shape
     cols = np.empty((len(OBJECT_NAMES), n, m)).transpose(0, 2, 1)  # [G, M, N] views of [N, M] columns
     loc_x, loc_z = view.loc_x_m, view.loc_z_m
@@ -299,8 +294,7 @@ def scene_signals(
 ) -> np.ndarray:
     """The scene signals ``[N, F]`` (:data:`~pemviz.scenarios.cut_in.scenario.OBSERVATION_NAMES`) at this step.
 
-    Args: as :func:`object_rows`; ``out``: optional float64 ``[N, F]`` to fill.
-    """
+    Args: as :func:`object_rows`; ``out``: optional float64 ``[N, F]`` to fill."""
     n = ego_x_m.shape[0]
     obs = np.empty((n, len(OBSERVATION_NAMES))) if out is None else out
     rows = np.arange(n)
@@ -351,8 +345,7 @@ def decide(
         detected: bool ``[M, N]`` the objects detected.
         noise: float64 ``[M, N, 2]`` measurement errors (metres; read where detected), or None (no error).
     Returns:
-        (the tracks after the update, followed int64 ``[N]`` (-1 none), the ACC's acceleration ``[N]`` in m/s^2).
-    """
+        (the tracks after the update, followed int64 ``[N]`` (-1 none), the ACC's acceleration ``[N]`` in m/s^2)."""
     measured = detected & view.visible
     if noise is None:
         noise = np.zeros(measured.shape + (2,))

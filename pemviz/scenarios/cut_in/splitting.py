@@ -32,8 +32,7 @@ class CommittorScore:
 
     Args:
         tilt: the cut-in's :class:`~pemviz.scenarios.cut_in.tilt.CutInTilt` (solved here if it is not).
-        problem: the cut-in problem of the same scene and PEMs (its formula's robustness marks the failures).
-    """
+        problem: the cut-in problem of the same scene and PEMs (its formula's robustness marks the failures)."""
 
     def __init__(self, tilt: Any, problem: Problem) -> None:
         self.tilt, self.problem = tilt, problem

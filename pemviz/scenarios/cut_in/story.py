@@ -67,8 +67,7 @@ class AccTrace:
     Attributes:
         time_s: float64 [T - 1] the time of each decision (seconds).
         accel_mps2: float64 [T - 1] the acceleration it commanded, applied over the next step (m/s^2).
-        followed: int [T - 1] the object whose track it followed (IDM on its estimated distance), -1 none.
-    """
+        followed: int [T - 1] the object whose track it followed (IDM on its estimated distance), -1 none."""
 
     time_s: np.ndarray
     accel_mps2: np.ndarray
@@ -90,8 +89,7 @@ class CutInSeverity:
         contact_step: the first step with a negative clearance (None: no contact).
         closing_speed_mps: at contact, the ego's speed minus that of the vehicle in front over the step that made
             contact (m/s); nan without contact, or without a vehicle in front then (a contact beside the ego).
-        dt_s: seconds per step.
-    """
+        dt_s: seconds per step."""
 
     min_clearance_m: float
     min_clearance_step: int
@@ -260,8 +258,7 @@ def cut_in_story(
         obj: the cut-in car's index among the M objects.
         name: its name in the sentences.
     Raises:
-        ValueError: a column the story reads is missing (:func:`has_story_columns`).
-    """
+        ValueError: a column the story reads is missing (:func:`has_story_columns`)."""
     if not has_story_columns(tuple(observation_names), tuple(object_names)):
         raise ValueError(
             f"cut_in_story: needs the scene signals {OBSERVATION_COLUMNS} and the object columns " f"{OBJECT_COLUMNS}"

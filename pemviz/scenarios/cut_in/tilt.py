@@ -85,8 +85,7 @@ class CutInTilt(CutInLookAhead):
             :data:`TILT_BETA`, :data:`TILT_EPS`.
         options: the look-ahead's (:class:`~pemviz.scenarios.cut_in.lookahead.CutInLookAhead`).
     Raises:
-        ValueError: a window that does not fit the scene, eps outside (0, 1], beta outside (0, 1].
-    """
+        ValueError: a window that does not fit the scene, eps outside (0, 1], beta outside (0, 1]."""
 
     def __init__(
         self,
@@ -165,8 +164,7 @@ class CutInTilt(CutInLookAhead):
             rows: its object rows [N, M, G].
             prefix_min: the operand's minimum so far [N] (metres).
             sfeat: :func:`~pemviz.scenarios.cut_in.lookahead.features` of the rollouts [k, F].
-            p0: the cut-in car's p(detect) [k].
-        """
+            p0: the cut-in car's p(detect) [k]."""
         assert self.chain is not None, "solve() before stage()"
         r, bfeat = self.look_ahead(sim, idx, u, rows, prefix_min, self.grid.reps[1:2])
         g0 = continuous_level(level(r[:, 0]), bfeat[:, 0, -2], bfeat[:, 0, -1])
@@ -191,8 +189,7 @@ class CutInTilt(CutInLookAhead):
             given: float64 [T, n, M, 3]: replay these uniforms (their classes scored, nothing drawn).
         Returns:
             (the batch, whose ``log_q`` is the proposal's: log p less each step's log p(c) / q(c); the log importance
-            weights [n] (nats, summed over the whole rollout); the look-ahead steps simulated).
-        """
+            weights [n] (nats, summed over the whole rollout); the look-ahead steps simulated)."""
         p, target, g = self.params, self.target, self.grid
         m, w0, w1 = p.n_objects, *self.window
         sim = BatchedCutIn(p, n)

@@ -36,8 +36,7 @@ def toy_odd_log_failure_probability(params: ToyParams, odd: ODD) -> float:
     probability.
 
     Raises:
-        ValueError: an ODD that is not one choice over ``braking``.
-    """
+        ValueError: an ODD that is not one choice over ``braking``."""
     ((name, law),) = odd.parameters
     if name != "braking" or not law.discrete:
         raise ValueError("the toy's exact answer over an ODD needs braking ~ choice(...)")
@@ -49,8 +48,7 @@ def toy_odd_problem(config: Any, params: ToyParams | None, odd: ODD) -> Problem:
     """The toy over ``odd`` (its braking distance drawn per rollout), with the exact p_ODD.
 
     Raises:
-        ValueError: another parameter in the ODD, or a braking distance the toy refuses.
-    """
+        ValueError: another parameter in the ODD, or a braking distance the toy refuses."""
     p = params or ToyParams()
     if odd.names != ("braking",):
         raise ValueError(f"the toy draws only its braking distance per rollout, not {list(odd.names)}")

@@ -28,8 +28,7 @@ if TYPE_CHECKING:
 def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Problem:
     """The toy as a :class:`Problem`: failure = classic robustness of
     ``G[0,T-1](d >= safe)`` below 0; the proposal sees h(s) = distance / total (as the authors'
-    ``FFPolicy`` norm); curves are reported at the integer distances ``safe - 1 .. total``.
-    """
+    ``FFPolicy`` norm); curves are reported at the integer distances ``safe - 1 .. total``."""
     p = params or ToyParams()
     formula = stl.parse(f"G[0,{p.steps - 1}](d >= {p.safe})")
 

@@ -43,8 +43,7 @@ class ToyParams:
             be observed plus one (a failing rollout ends at its failure, as in the authors' ``car_rollout``);
             at least that.
     Raises:
-        ValueError: for parameters outside these ranges.
-    """
+        ValueError: for parameters outside these ranges."""
 
     total: int = 100
     braking: int = 50
@@ -81,8 +80,7 @@ class ToyParams:
         """p(detect | distance), float64 of the shape of ``distance``.
 
         Raises:
-            ValueError: if a callable ``p_detect`` returns values outside (0, 1) or of the wrong shape.
-        """
+            ValueError: if a callable ``p_detect`` returns values outside (0, 1) or of the wrong shape."""
         d = np.asarray(distance, dtype=np.float64)
         if not callable(self.p_detect):
             return np.full(d.shape, float(self.p_detect))
@@ -195,8 +193,7 @@ def simulate_toy(
     Returns:
         :class:`~pemviz.core.rollouts.RolloutBatch` with observations [n, T, 2] (distance, stopped).
     Raises:
-        ValueError: if ``n < 1``.
-    """
+        ValueError: if ``n < 1``."""
     if n < 1:
         raise ValueError(f"simulate_toy: n must be >= 1, got {n}")
     uniforms = (rng.random(n) for _ in range(params.steps))
@@ -209,8 +206,7 @@ def simulate_toy(
 def toy_log_failure_probability(params: ToyParams) -> float:
     """log p_fail of the toy model, exact: ``sum_{d=safe}^{braking} log(1 - p(d))`` (nats); for constant p
     ``(braking - safe + 1) log(1 - p)``, e.g. (100, 50, 30, 0.9) gives log(1e-21). Source: the authors'
-    ``adaptiveImportanceSampler.py``.
-    """
+    ``adaptiveImportanceSampler.py``."""
     d = np.arange(params.safe, params.braking + 1, dtype=np.float64)
     logit = params.detect_logit(d)
     return float(np.sum(log_expit(-logit)))
@@ -219,8 +215,7 @@ def toy_log_failure_probability(params: ToyParams) -> float:
 @dataclass(frozen=True)
 class ToyValue:
     """V of the toy in closed form, the zero-variance proposal's value: a moving car at distance d >= safe fails
-    with ``V(d) = prod_{k=safe}^{min(d, braking)} (1 - p(k))`` (1 when d < safe); a stopped car never fails (V = 0).
-    """
+    with ``V(d) = prod_{k=safe}^{min(d, braking)} (1 - p(k))`` (1 when d < safe); a stopped car never fails (V = 0)."""
 
     params: ToyParams
     log_v_moving: np.ndarray = field(init=False, repr=False)
@@ -239,8 +234,7 @@ class ToyValue:
         stopped) of :data:`OBSERVATION_NAMES`.
 
         Raises:
-            ValueError: a distance that is not an integer in [0, total].
-        """
+            ValueError: a distance that is not an integer in [0, total]."""
         p = self.params
         obs = np.asarray(obs, dtype=np.float64)
         d = np.rint(obs[:, 0]).astype(np.int64)

@@ -2,8 +2,7 @@
 estimator is unbiased whatever its V (:func:`pemviz.testing.check_estimator`). :class:`ToyTilt` tilts by a V that is
 wrong on purpose (p(detect) guessed as :data:`P_GUESS`, a stopped car's V taken as :data:`STOPPED_V`, not 0), mixed
 with a share :data:`EPS` of the PEM (Kollman, Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2); Hesterberg 1995,
-Technometrics 37(2)); its exact weights p / q keep its estimates unbiased, only more variable.
-"""
+Technometrics 37(2)); its exact weights p / q keep its estimates unbiased, only more variable."""
 
 from __future__ import annotations
 
