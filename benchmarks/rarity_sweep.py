@@ -3,7 +3,7 @@
 Problems (each with its exact p_fail):
 - ``toy-m<M>-<p>``: toys whose failure needs M misses in a row at a constant p(detect) (closed form (1 - p)^M);
 - ``latched<shift>``: the latched-brake braking scenario with the PEM's logit moved by ``shift`` nats
-  (:class:`pemviz.core.problems.ShiftedPEM`; exact from the deterministic simulator);
+  (``ShiftedPEM`` of ``research/zero_variance.py``; exact from the deterministic simulator);
 - ``main<shift>``: the braking scenario itself with the shifted PEM (exact enumeration,
   :func:`pemviz.scenarios.braking.truth.braking_truth`);
 - ``cut-in-moderate``: the cut-in scenario of several cars, missed and mislocated, at its moderate setting (no closed
@@ -14,7 +14,7 @@ Methods (:func:`methods_at`, a list of (label, config fields); add a line for a 
 ``ExperimentConfig.of()`` (2,100 simulations; ``--n-final 100``: 1,200), the ``paper`` preset with its final batch
 set to the same budget, adaptive multilevel splitting with budget / 4 particles (when
 :data:`pemviz.methods.BUILTIN_METHODS` has ``ams``), plain Monte Carlo with that many rollouts, and the exact
-zero-variance sampler q* (:class:`pemviz.estimators.optimal.ZeroVarianceDetector`) where V is known (toys, latched).
+zero-variance sampler q* (``ZeroVarianceDetector`` of ``research/zero_variance.py``) where V is known (toys, latched).
 
 Outputs under ``--out`` (default ``recordings/sweep/``; an existing file is never replaced without ``--overwrite``):
 ``runs.jsonl`` (one line per run, appended as it ends: ``--resume`` continues a killed sweep), ``sweep.md`` and
@@ -51,11 +51,10 @@ from pemviz.core.confidence import clopper_pearson
 from pemviz.core.detectors import Detector
 from pemviz.core.estimate import relative_error
 from pemviz.core.files import atomic_write
-from pemviz.core.problems import Problem, ShiftedPEM
+from pemviz.core.problems import Problem
 from pemviz.engine.events import RunFinished
 from pemviz.engine.experiment import Experiment
 from pemviz.engine.resources import torch_threads
-from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, rollouts_for
 from pemviz.methods import BUILTIN_METHODS as CONFIG_METHODS
 from pemviz.presets import PRESETS
 from pemviz.scenarios.braking import truth, truth_known, truth_latched
@@ -63,10 +62,21 @@ from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.cut_in.problem import cut_in_params, cut_in_problem
 from pemviz.scenarios.cut_in.scenario import MONTE_CARLO_REFERENCE
-from pemviz.scenarios.toy import ToyParams, ToyValue
+from pemviz.scenarios.toy import ToyParams
 from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import toy_log_failure_probability
 from pemviz.studies.validation import all_fields, ams_fields
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "research"))  # the zero-variance sampler q*
+from zero_variance import (  # noqa: E402
+    ShiftedPEM,
+    ToyValue,
+    ZeroVarianceDetector,
+    draw_fixed,
+    latched_value,
+    relative_variance,
+    rollouts_for,
+)
 
 Q_STAR = "q*"
 """The label of the exact zero-variance sampler (not a config: built from the problem's exact V)."""
@@ -176,7 +186,7 @@ def build(spec: Spec) -> tuple[Problem, Detector | None]:
     pem = ShiftedPEM(_pem(), spec.shift)
     if spec.kind == "latched":
         problem = braking_problem(pem, BrakingParams(latched_brake=True))
-        value = truth_latched.latched_value(pem.logit_at_gap)
+        value = latched_value(pem.logit_at_gap)
         return problem, ZeroVarianceDetector(problem.target, value.log_value_next)
     return braking_problem(pem, BrakingParams()), None
 
@@ -496,7 +506,6 @@ def relative_variances(name: str, n_seeds: int) -> tuple[float, list[float]]:
     the defensive mixture included) on the named problem of :data:`pemviz.scenarios.problems.PROBLEMS`, one per seed,
     with the exact mu; returns (log mu, [relative variance per seed]). q* has 0, plain Monte Carlo (1 - mu) / mu."""
     from pemviz.engine.events import RolloutsSampled
-    from pemviz.estimators.optimal import relative_variance
     from pemviz.scenarios.problems import build_problem
 
     problem = build_problem(name)

@@ -1,12 +1,12 @@
 """Same seed, same run: the default braking and cut-in runs at chunk sizes 64, 1,000 and whole batches, serial and on
 a local Ray cluster, and the default braking run under every kernel-dispatch setting of
-:data:`pemviz.studies.reproducibility.DISPATCH_SETTINGS`; prints one row per run and whether the contract holds.
+``DISPATCH_SETTINGS`` of ``benchmarks/fingerprint.py``; prints one row per run and whether the contract holds.
 
     python benchmarks/reproducibility.py            # about 3 min on 2 cores
     python benchmarks/reproducibility.py --quick    # the braking rows only
 
-Each run is a fresh process (``python -m pemviz.studies.reproducibility``), as a user's would be. Exit 1 when a run
-breaks the contract (:func:`pemviz.studies.reproducibility.compare`).
+Each run is a fresh process (``python benchmarks/fingerprint.py``), as a user's would be. Exit 1 when a run
+breaks the contract (``compare`` of ``benchmarks/fingerprint.py``).
 """
 
 from __future__ import annotations
@@ -17,9 +17,10 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
-from pemviz.studies import reproducibility as rp
+import fingerprint as rp  # this folder's: python puts a script's folder first on sys.path
 
 CASES = {
     "braking": [],
@@ -29,7 +30,7 @@ CASES = {
 
 
 def fingerprint_in_subprocess(args: list[str], env: dict[str, str], timeout_s: float = 300.0) -> dict[str, Any]:
-    """:func:`pemviz.studies.reproducibility.fingerprint` of ``python -m pemviz.studies.reproducibility ARGS`` run
+    """``fingerprint`` of ``python benchmarks/fingerprint.py ARGS`` run
     with ``env`` added to this process's environment.
 
     Raises:
@@ -37,7 +38,7 @@ def fingerprint_in_subprocess(args: list[str], env: dict[str, str], timeout_s: f
         subprocess.TimeoutExpired: it ran past ``timeout_s`` seconds.
     """
     proc = subprocess.run(
-        [sys.executable, "-m", "pemviz.studies.reproducibility", *args],
+        [sys.executable, str(Path(__file__).with_name("fingerprint.py")), *args],
         capture_output=True,
         text=True,
         env={**os.environ, **env},

@@ -4,8 +4,8 @@ A :class:`Problem` bundles a black-box simulation (``simulate(n, sampler, target
 probabilities weight the rollouts (the PEM), the safety requirement as an STL formula over named signals, and the
 proposal's input scale. The failure event is always classic robustness below 0; the chosen metric only ranks
 rollouts and sets the adaptive thresholds (Innes & Ramamoorthy (2022), Sec. IV). Here: :class:`Problem` and its
-function types, a problem's functions for any batched simulator (:func:`rollout_functions`) and a PEM with a shifted
-logit (:class:`ShiftedPEM`); the built-in scenarios' problems are in :mod:`pemviz.scenarios.problems`."""
+function types and a problem's functions for any batched simulator (:func:`rollout_functions`); the built-in
+scenarios' problems are in :mod:`pemviz.scenarios.problems`."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import numpy as np
 from scipy.special import expit
 
 from pemviz import stl
-from pemviz.core.detectors import Detector, GapModel
+from pemviz.core.detectors import Detector
 from pemviz.core.estimate import Reference
 from pemviz.core.features import FeaturesFn, feature_replay
 from pemviz.core.lockstep import branch_rollouts, iter_rollouts, simulate_rollouts
@@ -243,21 +243,6 @@ def rollout_functions(make: Callable[[int], BatchedSimulator], n_steps: int) -> 
     stream.elides_rows = True  # type: ignore[attr-defined]  # it takes keep_rows=False (Experiment)
     run.state_features = feature_replay(make)  # type: ignore[attr-defined]  # the Problem's features (post_init)
     return run, stream, resume
-
-
-@dataclass(frozen=True)
-class ShiftedPEM:
-    """A PEM whose detection logit is moved by ``shift`` (nats) at every distance: ``logit p'(detect | d) = logit
-    p(detect | d) + shift``, so that p'(miss) ~ exp(-shift) p(miss) where misses are rare. A problem with it is as rare
-    as wanted, and where the PEM's exact answer is known by enumeration over ``logit_at_gap`` (e.g. the braking
-    scenario's, e.g. :mod:`pemviz.scenarios.braking.truth`), so is the shifted one's."""
-
-    pem: GapModel
-    shift: float
-
-    def logit_at_gap(self, distance: np.ndarray) -> np.ndarray:
-        """logit p'(detect | distance), float64 of the shape of ``distance`` (metres)."""
-        return np.asarray(self.pem.logit_at_gap(distance), dtype=np.float64) + self.shift
 
 
 def no_branch_message(problem: Problem) -> str:

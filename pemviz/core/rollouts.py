@@ -91,11 +91,6 @@ def reports_objects(sim: BatchedSimulator) -> TypeGuard[BatchedObjectsSimulator]
     return getattr(sim, "object_names", None) is not None
 
 
-def can_snapshot(sim: object) -> bool:
-    """Whether ``sim`` has the snapshot/restore capability (:class:`Snapshotting`)."""
-    return callable(getattr(sim, "snapshot", None)) and callable(getattr(sim, "restore", None))
-
-
 def n_objects_of(sim: object) -> int:
     """M, the objects a (batched) simulator reports each step (1 without ``n_objects``)."""
     return int(getattr(sim, "n_objects", 1))

@@ -141,10 +141,6 @@ class TreePEM:
         """p(detect) for raw salient inputs ``[N, 11]``, float64 ``[N]``."""
         return expit(self.logit(raw_inputs))
 
-    @property
-    def n_trees(self) -> int:
-        return int(self.roots.shape[0])
-
     def arrays(self) -> dict[str, np.ndarray]:
         """The node arrays by name (what :func:`pemviz.pem.save_pem` stores)."""
         return {k: getattr(self, k) for k in TREE_ARRAYS}

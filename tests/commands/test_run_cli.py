@@ -72,7 +72,7 @@ def without_times(line: str) -> str:
 
 def test_the_readme_sample_output_is_what_the_command_prints(default_run):
     # every line the README shows (stage rows, the final row, both mu_hat lines), to the printed precision, but the
-    # wall times: the same seed gives the same run on any CPU (pemviz.studies.reproducibility)
+    # wall times: the same seed gives the same run on any CPU (benchmarks/fingerprint.py)
     proc, _ = default_run
     printed = [without_times(ln) for ln in proc.stdout.splitlines()]
     shown = readme_sample_lines()

@@ -1,5 +1,5 @@
 """A seed gives the same run whatever the chunk size, the executor and the CPU's kernel dispatch (the contract of
-pemviz.studies.reproducibility, which the user guide's Reproducibility section states)."""
+benchmarks/fingerprint.py, which the user guide's Reproducibility section states)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,10 @@ import sys
 
 import pytest
 from pemviz.config import ExperimentConfig
-from pemviz.studies import reproducibility as rp
+
+from conftest import REPO, load_script
+
+rp = load_script(REPO / "benchmarks" / "fingerprint.py")
 
 BRAKING = dict(n_stages=3, n_per_stage=100, n_final=300, plain_fallback=0)
 """A short default run: pretraining, 3 CE stages of 100, a final batch of 300 (the default sampler's stages alone: the
@@ -75,7 +78,8 @@ def fingerprints_in_subprocess(env: dict[str, str]) -> dict[str, dict]:
         "import json, sys\n"
         "from pemviz.config import ExperimentConfig\n"
         "from pemviz.engine.executors import close_executors\n"
-        "from pemviz.studies.reproducibility import fingerprint\n"
+        f"sys.path.insert(0, {str(REPO / 'benchmarks')!r})\n"
+        "from fingerprint import fingerprint\n"
         "runs = json.loads(sys.argv[1])\n"
         "out = {s: fingerprint(ExperimentConfig.of(scenario=s, executor='serial', **f)) for s, f in runs.items()}\n"
         "close_executors()\n"

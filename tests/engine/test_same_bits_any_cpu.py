@@ -11,7 +11,10 @@ import subprocess
 import sys
 
 import pytest
-from pemviz.studies import reproducibility as rp
+
+from conftest import REPO, load_script
+
+rp = load_script(REPO / "benchmarks" / "fingerprint.py")
 
 CROSSING = dict(
     scenario="crossing", n_per_stage=60, n_stages=2, n_final=60, pretrain_rollouts=20, plain_fallback=0, seed=1
@@ -25,14 +28,16 @@ rows and, through the ego's speed, every later step."""
 
 WITHOUT_AVX512 = rp.DISPATCH_SETTINGS["numpy without AVX-512"]["NPY_DISABLE_CPU_FEATURES"]
 
-CHILD = """
+CHILD = (
+    f"import sys\nsys.path.insert(0, {str(REPO / 'benchmarks')!r})\n"
+    + """
 import hashlib, json, sys
 import numpy as np
 from pemviz.config import ExperimentConfig
 from pemviz.engine.events import RolloutChunk
 from pemviz.engine.experiment import Experiment
 from pemviz.scenarios.problems import problem_for
-from pemviz.studies.reproducibility import numpy_dispatch
+from fingerprint import numpy_dispatch
 
 cfg = ExperimentConfig.of(**json.loads(sys.argv[1]))
 digests = {k: hashlib.sha256() for k in ("observations", "detected", "noise", "log_p", "log_q")}
@@ -51,6 +56,7 @@ Experiment(cfg, [listen], problem=problem_for(cfg)).run()
 print(json.dumps({"digests": {k: h.hexdigest() for k, h in digests.items()}, "sizes": sizes,
                   "numpy": numpy_dispatch()[1]}))
 """
+)
 
 
 def rollouts_in_subprocess(config: dict, env: dict[str, str]) -> dict:

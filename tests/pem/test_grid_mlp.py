@@ -17,9 +17,10 @@ from pemviz.pem import load_pem
 from pemviz.pem.encoding import salient_codes
 from pemviz.pem.network import MLP_BLOCK, GridMLP
 from pemviz.pem.store import load_noise_pem
-from pemviz.studies import reproducibility as rp
 
-from conftest import float64_network
+from conftest import REPO, float64_network, load_script
+
+rp = load_script(REPO / "benchmarks" / "fingerprint.py")
 
 
 def raw_rows(n: int, seed: int = 0) -> np.ndarray:

@@ -368,7 +368,7 @@ def small_hgb():
 def test_exported_trees_equal_scikit_learn_decision_function(small_hgb) -> None:
     model, norm, raw = small_hgb
     tree = export_hist_gradient_boosting(model, norm, name="t")
-    assert tree.n_trees == 40
+    assert tree.roots.shape[0] == 40
     np.testing.assert_allclose(
         tree.logit(raw), model.decision_function(pem.encode_salient(raw, norm)), rtol=0, atol=1e-10
     )
@@ -405,7 +405,7 @@ def test_tree_pem_round_trips_through_a_compact_weights_only_file(small_hgb, tmp
 
 def test_shipped_gbt_pem_curve_and_full_data_fit(salient) -> None:
     gbt = pem.load_pem(BEST_PEM_NAME)
-    assert isinstance(gbt, pem.TreePEM) and gbt.n_trees == 300
+    assert isinstance(gbt, pem.TreePEM) and gbt.roots.shape[0] == 300
     p = gbt.prob_at_gap(GAPS_INSIDE_10_M)
     assert p.min() >= 0.98 and p.max() <= 0.999, (p.min(), p.max())
     assert gbt.metadata["command"].startswith("pemviz pem train --model gbt")

@@ -20,7 +20,6 @@ from pemviz.scenarios.braking.batched import (
     iter_batched,
     replay,
     simulate_batched,
-    summarise_batched,
 )
 from pemviz.scenarios.braking.simulator import BrakingParams, BrakingScenario
 from pemviz.scenarios.problems import problem_for
@@ -164,29 +163,6 @@ def test_generators_that_cannot_jump_draw_chunk_after_chunk(pem):
     assert_same_batch(chunked, one_by_one)
 
 
-def test_summary_keeps_the_weights_failures_and_estimate_of_the_full_batch(pem):
-    problem = problems.braking_problem(pem, sim="batched")
-    mixed = WindowDetector(ConstantDetector(0.5), problem.target, 10.0)
-    full = simulate_batched(None, 2000, mixed, problem.target, np.random.default_rng(9))
-    summary = summarise_batched(
-        None, 2000, mixed, problem.target, np.random.default_rng(9), failed=problem.failed, chunk_size=300
-    )
-    failed = full.signal("gap_m").min(axis=1) < 2.0  # the gap drops below the 2 m crash gap: G[0,99](d >= 2) violated
-    assert 1000 < failed.sum() < 1600  # mixed-50 crashes in ~65-75 % of rollouts
-    assert np.array_equal(summary.failed, failed)
-    assert np.array_equal(summary.log_weight, full.log_weight())
-    assert np.array_equal(summary.log_p_total, full.log_p[:, :-1].sum(axis=1))
-    assert np.array_equal(summary.min_gap_m, full.signal("gap_m").min(axis=1))
-    by_stl = summarise_batched(
-        None, 2000, mixed, problem.target, np.random.default_rng(9), failed=problem.failed, chunk_size=512
-    )
-    assert np.array_equal(by_stl.failed, failed)
-    from pemviz.core.estimate import estimate
-
-    expected = estimate(full.log_weight(), failed, full.log_p[:, :-1].sum(axis=1))
-    assert np.isfinite(expected.log_mu_hat) and expected.log_mu_hat < np.log(1e-3)  # weighted back to the PEM
-
-
 # -- bad input -----------------------------------------------------------------------------------------
 
 
@@ -196,11 +172,9 @@ def test_bad_arguments_raise_one_clear_error(pem):
     with pytest.raises(ValueError, match="n must be an integer >= 1, got 0"):
         simulate_batched(None, 0, det, det, rng)
     with pytest.raises(ValueError, match="chunk_size must be an integer >= 1, got 0"):
-        summarise_batched(None, 5, det, det, rng, failed=lambda b: np.zeros(b.n, dtype=bool), chunk_size=0)
+        simulate_batched(None, 5, det, det, rng, chunk_size=0)
     with pytest.raises(ValueError, match=r"detected must be bool \[N >= 1, T <= 100\]"):
         replay(None, np.zeros((2, 101), dtype=bool))
-    with pytest.raises(ValueError, match="failed\\(batch\\) must be bool \\[5\\]"):
-        summarise_batched(None, 5, det, det, rng, failed=lambda b: np.zeros(3, dtype=bool))
     sim = BatchedBraking(BrakingParams(n_steps=1), 3)
     with pytest.raises(ValueError, match=r"shape \(3,\)"):
         sim.step(np.zeros(2, dtype=bool))

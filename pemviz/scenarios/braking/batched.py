@@ -16,13 +16,12 @@ Units: metres, seconds, m/s; log-probabilities in nats."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 
 import numpy as np
 
 from pemviz.core.detectors import Detector
-from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, check_counts, iter_rollouts, simulate_rollouts
+from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, iter_rollouts, simulate_rollouts
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.scenarios.braking.simulator import (
     OBSERVATION_NAMES,
@@ -229,68 +228,3 @@ def simulate_batched(
         ValueError: for ``n`` or ``chunk_size`` not an integer >= 1."""
     p = params or BrakingParams()
     return simulate_rollouts(lambda m: BatchedBraking(p, m), n, p.n_steps, sampler, target, rng, chunk_size=chunk_size)
-
-
-@dataclass(frozen=True)
-class RolloutSummary:
-    """What an estimate needs of N rollouts, without their trajectories (16 + 8 + 1 + 8 bytes a rollout): give
-    ``log_weight``, ``failed`` and ``log_p_total`` to :func:`pemviz.core.estimate.estimate`.
-
-    Attributes:
-        log_weight: float64 [N] importance log-weights ``sum_t log p - log q`` over T - 1 steps (nats).
-        log_p_total: float64 [N] ``sum_t log p_target(a_t | s_t)`` over T - 1 steps (nats), for the NLL.
-        failed: bool [N] failure indicator.
-        min_gap_m: float64 [N] the smallest gap of each rollout (metres)."""
-
-    log_weight: np.ndarray
-    log_p_total: np.ndarray
-    failed: np.ndarray
-    min_gap_m: np.ndarray
-
-    @property
-    def n(self) -> int:
-        return int(self.failed.size)
-
-
-def summarise_batched(
-    params: BrakingParams | None,
-    n: int,
-    sampler: Detector,
-    target: Detector,
-    rng: np.random.Generator,
-    *,
-    failed: Callable[[RolloutBatch], np.ndarray],
-    chunk_size: int = DEFAULT_CHUNK_SIZE,
-) -> RolloutSummary:
-    """Simulate ``n`` rollouts in chunks and keep per rollout only what an estimate needs (one chunk plus 33 bytes a
-    rollout); the rollouts are those of :func:`simulate_batched` with the same ``rng``.
-
-    Args:
-        params: scenario constants (None: :class:`BrakingParams` defaults).
-        n: number of rollouts (>= 1).
-        sampler: the detector that draws the actions.
-        target: the PEM whose probabilities weight the rollouts.
-        rng: numpy Generator, consumed as :func:`simulate_batched` consumes it.
-        failed: the problem's failure event on a chunk, bool [m] (:meth:`pemviz.core.problems.Problem.failed`).
-        chunk_size: rollouts simulated together (bounds the working memory).
-    Returns:
-        :class:`RolloutSummary` of the n rollouts, in order.
-    Raises:
-        ValueError: for ``n`` or ``chunk_size`` not an integer >= 1, or a ``failed`` of the wrong shape."""
-    check_counts("summarise_batched", n=n, chunk_size=chunk_size)
-    p = params or BrakingParams()
-    n = int(n)
-    log_weight, log_p_total, fail, min_gap = np.empty(n), np.empty(n), np.empty(n, dtype=bool), np.empty(n)
-    start = 0
-    for batch in iter_batched(p, n, sampler, target, rng, chunk_size=chunk_size):
-        s = slice(start, start + batch.n)
-        start += batch.n
-        k = batch.n_steps - 1
-        log_weight[s] = batch.log_weight(k)
-        log_p_total[s] = batch.log_p[:, :k].sum(axis=1)
-        min_gap[s] = batch.signal("gap_m").min(axis=1)
-        f = np.asarray(failed(batch), dtype=bool)
-        if f.shape != (batch.n,):
-            raise ValueError(f"summarise_batched: failed(batch) must be bool [{batch.n}], got shape {f.shape}")
-        fail[s] = f
-    return RolloutSummary(log_weight, log_p_total, fail, min_gap)

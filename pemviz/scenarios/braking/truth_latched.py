@@ -1,20 +1,17 @@
 """The latched-brake braking scenario's exact answer: its failure probability in closed form
 (:func:`latched_log_failure_probability`: the first effective detection decides everything, a finite sum of
-deterministic replays) and its value function V (:func:`latched_value`); and :data:`LogitFn`, the detector curve
-every exact answer takes. Natural logs in float64."""
+deterministic replays); and :data:`LogitFn`, the detector curve every exact answer takes. Natural logs in float64."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import log_expit, logsumexp
 
-# the latched path: the batched simulator's observations bit for bit
-from pemviz.scenarios.braking.batched import replay
 from pemviz.scenarios.braking.simulator import BrakingParams, braking_replay
 
 LogitFn = Callable[[np.ndarray], np.ndarray]
@@ -106,89 +103,3 @@ def latched_log_failure_probability(logit_at_gap: LogitFn, params: BrakingParams
         and first == eff[0]
     )
     return LatchedTruth(float(log_p), first, last, bool(window_exact), c)
-
-
-# -- exact value functions: the zero-variance sampler ------------------------------------------------------------
-#
-# V(s) = P(failure | s) gives the zero-variance importance sampler q*(a | s) = p(a | s) V(s'_a) / V(s) (L'Ecuyer,
-# Mandjes & Tuffin, "Importance sampling in rare event simulation", in Rare Event Simulation using Monte Carlo
-# Methods, 2009, Sec. 2.3; :class:`pemviz.estimators.optimal.ZeroVarianceDetector`). Each class below gives, for the
-# observations a detector is asked about, log V of the state after a detection and after a miss (nats).
-
-
-@dataclass(frozen=True)
-class LatchedValue:
-    """V of the latched-brake scenario along its all-miss path: a detection at effective step t latches the brake, so V
-    = crash(t) in {0, 1} after it, and on the path ``V_t = p_t crash(t) + (1 - p_t) V_{t+1}`` at effective steps,
-    ``V_{t+1}`` elsewhere, 1 from the path's crash step on; ``V_0`` is :func:`latched_log_failure_probability`. A
-    state is on the path when its observation is within ``tolerance`` of the all-miss rollout's
-    (:func:`latched_value` checks that q* read from the observation stays zero-variance one step after a detection).
-
-    Attributes:
-        observations: the all-miss rollout's observations, float64 [T, F] (gap m, ego speed m/s, lead speed m/s).
-        log_v_detect, log_v_miss: log V after a detection / a miss at step t of the all-miss path, [T] (nats).
-        log_v0: log V at the start (= log p_fail).
-        tolerance: the largest difference per column that still counts as the same state."""
-
-    observations: np.ndarray = field(repr=False)
-    log_v_detect: np.ndarray = field(repr=False)
-    log_v_miss: np.ndarray = field(repr=False)
-    log_v0: float
-    tolerance: float = 1e-9
-
-    def path_step(self, obs: np.ndarray) -> np.ndarray:
-        """The all-miss step whose observation each row equals (within ``tolerance``), int [N] (-1: off the path)."""
-        obs = np.asarray(obs, dtype=np.float64)
-        same = np.all(np.abs(obs[:, None, :] - self.observations[None, :, :]) <= self.tolerance, axis=2)  # [N, T]
-        return np.where(same.any(axis=1), np.argmax(same, axis=1), -1)
-
-    def log_value_next(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(log V after a detection, log V after a miss), float64 [N] each, for observations [N, F]; equal (0, 0)
-        off the all-miss path, where the action changes nothing."""
-        k = self.path_step(obs)
-        on = k >= 0
-        kk = np.maximum(k, 0)
-        return np.where(on, self.log_v_detect[kk], 0.0), np.where(on, self.log_v_miss[kk], 0.0)
-
-
-def latched_value(logit_at_gap: LogitFn, params: BrakingParams | None = None) -> LatchedValue:
-    """:class:`LatchedValue` of the latched-brake scenario with ``logit_at_gap`` as the detector.
-
-    Raises:
-        ValueError: if two steps of the all-miss path look the same but have different V, or if a state one step
-            after a detection that q* can draw looks like an all-miss state where q* differs from p (then the
-            observation does not carry enough state for q*)."""
-    p = BrakingParams(latched_brake=True) if params is None else dataclasses.replace(params, latched_brake=True)
-    T = p.n_steps
-    path = _latched_path(p)
-    c = path.crash_step
-    logit = np.asarray(logit_at_gap(path.gaps), dtype=np.float64)
-    log_v = np.zeros(T + 1)  # V before the action of step t; V = 1 from the crash step on
-    end = c if c is not None else T - 1
-    log_v[end:] = 0.0 if c is not None else -math.inf
-    crash_after = dict(zip(path.effective, path.crash_after, strict=False))
-    log_v_detect = np.empty(T)
-    for t in range(T - 1, -1, -1):
-        if t >= end or t not in crash_after:
-            log_v_detect[t] = log_v[t + 1] if t < end else log_v[t]
-            log_v[t] = log_v[t + 1] if t < end else log_v[t]
-            continue
-        log_v_detect[t] = 0.0 if crash_after[t] else -math.inf
-        if log_v_detect[t] == log_v[t + 1]:  # both actions lead to the same V (exactly, not p + (1 - p) rounded)
-            log_v[t] = log_v[t + 1]
-        else:
-            log_v[t] = np.logaddexp(log_expit(logit[t]) + log_v_detect[t], log_expit(-logit[t]) + log_v[t + 1])
-    log_v_miss = np.where(np.arange(T) < end, log_v[1:], log_v[:T])
-    value = LatchedValue(replay(p, np.zeros((1, T), bool))[0], log_v_detect, log_v_miss, float(log_v[0]))
-    same_v = (log_v_detect == log_v_miss) | (np.isneginf(log_v_detect) & np.isneginf(log_v_miss))
-    k = value.path_step(value.observations)
-    if np.any((log_v_detect != log_v_detect[k]) | (log_v_miss != log_v_miss[k])):
-        raise ValueError("latched_value: two states of the all-miss path look alike but have different V")
-    if p.actuation_lag_steps == 1:
-        reachable = [t for t in path.effective if crash_after[t] and logit[t] > -np.inf]  # q*(detect at t) > 0
-        if any(t + 1 < T and not same_v[t + 1] for t in reachable):
-            raise ValueError(
-                "latched_value: a state one step after a detection looks like an all-miss state where "
-                "q* differs from p: the observation does not show the pending brake q* needs"
-            )
-    return value

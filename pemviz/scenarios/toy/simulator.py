@@ -14,7 +14,7 @@ column), one step per unit of travel."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import log_expit
@@ -210,40 +210,3 @@ def toy_log_failure_probability(params: ToyParams) -> float:
     d = np.arange(params.safe, params.braking + 1, dtype=np.float64)
     logit = params.detect_logit(d)
     return float(np.sum(log_expit(-logit)))
-
-
-@dataclass(frozen=True)
-class ToyValue:
-    """V of the toy in closed form, the zero-variance proposal's value: a moving car at distance d >= safe fails
-    with ``V(d) = prod_{k=safe}^{min(d, braking)} (1 - p(k))`` (1 when d < safe); a stopped car never fails (V = 0)."""
-
-    params: ToyParams
-    log_v_moving: np.ndarray = field(init=False, repr=False)
-    """log V(d, moving) at d = 0..total, float64 [total + 1] (nats)."""
-
-    def __post_init__(self) -> None:
-        p = self.params
-        d = np.arange(p.total + 1, dtype=np.float64)
-        inside = (d >= p.safe) & (d <= p.braking)
-        log_miss = np.where(inside, log_expit(-p.detect_logit(d)), 0.0)
-        log_miss[d < p.safe] = 0.0
-        object.__setattr__(self, "log_v_moving", np.cumsum(log_miss))  # sum over k = safe..min(d, braking)
-
-    def log_value_next(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(log V after a detection, log V after a miss), float64 [N] each, for observations [N, 2] (distance,
-        stopped) of :data:`OBSERVATION_NAMES`.
-
-        Raises:
-            ValueError: a distance that is not an integer in [0, total]."""
-        p = self.params
-        obs = np.asarray(obs, dtype=np.float64)
-        d = np.rint(obs[:, 0]).astype(np.int64)
-        if np.any(np.abs(obs[:, 0] - d) > 1e-9) or np.any((d < 0) | (d > p.total)):
-            raise ValueError(f"ToyValue: distances must be integers in [0, {p.total}]")
-        stopped = obs[:, 1] > 0.5
-        crashed = d < p.safe  # observed below the safe distance: failed, whatever comes next
-        miss = np.where(stopped, -np.inf, self.log_v_moving[np.maximum(d - 1, 0)])
-        miss = np.where(d - 1 < p.safe, 0.0, miss)
-        miss = np.where(stopped & ~crashed, -np.inf, miss)
-        detect = np.where((d >= p.safe) & (d <= p.braking), -np.inf, miss)
-        return np.where(crashed, 0.0, detect), np.where(crashed, 0.0, miss)

@@ -4,7 +4,8 @@ executors.
 The contract this module checks (:func:`compare`): on one machine any chunk size and executor give the same
 fingerprint, bit for bit; on any x86-64 CPU and dispatch setting (:data:`DISPATCH_SETTINGS`) the same rollouts,
 thresholds, elites and printed numbers, log mu_hat within :data:`LOG_MU_RTOL` relative (:mod:`pemviz.core.exact`).
-``python -m pemviz.studies.reproducibility --help`` runs one; ``benchmarks/reproducibility.py`` the matrix."""
+``python benchmarks/fingerprint.py --help`` runs one; ``benchmarks/reproducibility.py`` the matrix (both outside the
+package: they check it)."""
 
 from __future__ import annotations
 
@@ -83,7 +84,6 @@ def fingerprint(config: ExperimentConfig) -> dict[str, Any]:
     failures]), ``log_mu_hat`` (nats), ``failures``, ``n``, ``ess``, ``summary`` (the printed verdict line) and
     ``chunks`` (how many chunks the run's stages came in), ``dispatch`` (:func:`dispatch_in_use`)."""
     import numpy as np
-
     from pemviz.engine.events import RolloutChunk, RolloutsSampled, RunFinished
     from pemviz.engine.experiment import Experiment
     from pemviz.scenarios.problems import problem_for
@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> None:
     """Print one run's :func:`fingerprint` as JSON (the module docstring's command line)."""
     from pemviz.config import ExperimentConfig
 
-    p = argparse.ArgumentParser(prog="python -m pemviz.studies.reproducibility", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python benchmarks/fingerprint.py", description=__doc__.split("\n")[0])
     p.add_argument("--scenario", default="braking")
     p.add_argument("--k", type=int, help="cross-entropy stages K (default: the default config's)")
     p.add_argument("--n", type=int, help="rollouts per stage N")

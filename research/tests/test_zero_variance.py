@@ -1,4 +1,5 @@
-"""The zero-variance sampler q* built from exact value functions: every rollout fails with weight exactly mu."""
+"""The zero-variance sampler q* built from exact value functions (``research/zero_variance.py``): every rollout fails
+with weight exactly mu."""
 
 from __future__ import annotations
 
@@ -8,14 +9,23 @@ import math
 import numpy as np
 import pytest
 from pemviz.core.estimate import relative_error
-from pemviz.core.problems import ShiftedPEM
-from pemviz.estimators.optimal import ZeroVarianceDetector, draw_fixed, relative_variance, rollouts_for
 from pemviz.scenarios.braking import truth_latched
 from pemviz.scenarios.braking.problem import braking_problem
 from pemviz.scenarios.braking.simulator import BrakingParams
 from pemviz.scenarios.problems import build_problem
-from pemviz.scenarios.toy import ToyBraking, ToyParams, ToyValue
+from pemviz.scenarios.toy import ToyBraking, ToyParams
 from pemviz.scenarios.toy.problem import toy_problem
+
+from conftest import REPO, load_script
+
+zv = load_script(REPO / "research" / "zero_variance.py")
+ShiftedPEM, ToyValue, ZeroVarianceDetector = zv.ShiftedPEM, zv.ToyValue, zv.ZeroVarianceDetector
+draw_fixed, latched_value, relative_variance, rollouts_for = (
+    zv.draw_fixed,
+    zv.latched_value,
+    zv.relative_variance,
+    zv.rollouts_for,
+)
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +84,7 @@ def test_toy_value_equals_brute_force_enumeration_from_every_state():
 
 def test_latched_q_star_draws_only_failures_each_weighted_mu(pem):
     problem = build_problem("latched")
-    value = truth_latched.latched_value(pem.logit_at_gap)
+    value = latched_value(pem.logit_at_gap)
     assert value.log_v0 == pytest.approx(problem.exact_log_p, rel=1e-13)
     assert math.exp(problem.exact_log_p) == pytest.approx(3.3048e-24, rel=1e-4)
     assert_zero_variance(problem, ZeroVarianceDetector(problem.target, value.log_value_next), problem.exact_log_p)
@@ -85,7 +95,7 @@ def test_latched_q_star_with_a_shifted_pem(pem, shift):
     shifted = ShiftedPEM(pem, shift)
     problem = braking_problem(shifted, BrakingParams(latched_brake=True))
     log_mu = truth_latched.latched_log_failure_probability(shifted.logit_at_gap).log_p_fail
-    value = truth_latched.latched_value(shifted.logit_at_gap)
+    value = latched_value(shifted.logit_at_gap)
     assert value.log_v0 == pytest.approx(log_mu, rel=1e-13)
     assert_zero_variance(problem, ZeroVarianceDetector(problem.target, value.log_value_next), log_mu, n=200)
 
@@ -135,6 +145,6 @@ def test_toy_v_tilted_sampler_with_a_poor_v_stays_unbiased(miss_gap, relvar_rang
 
 def test_latched_v_tilted_sampler_with_a_poor_v_stays_unbiased(pem):
     problem = build_problem("latched")
-    value = truth_latched.latched_value(pem.logit_at_gap)
+    value = latched_value(pem.logit_at_gap)
     relvar = assert_unbiased(problem, poor_value(value.log_value_next, 3.0), problem.exact_log_p, n=10000)
     assert 5.0 < relvar < 200.0  # q* gives 0; plain Monte Carlo about 3e23
