@@ -225,15 +225,20 @@ def rollout_files(parquet: Path) -> list[tuple[str, Path]]:
     return files
 
 
-def input_files(cfg: ExperimentConfig) -> list[dict[str, str]]:
-    """The files a run reads, each ``{"what", "path", "sha256"}``: the detection PEM, and the noise PEM on a scene
-    with measurement errors (the cut-in)."""
+def input_files(cfg: ExperimentConfig, target: object) -> list[dict[str, str]]:
+    """The files a run reads, each ``{"what", "path", "sha256"}``: the detection PEM where the problem's ``target``
+    holds one (the braking scenario's, a scene on :func:`pemviz.stack.detector.camera_detector`), and the noise PEM
+    where it holds that too (the cut-in, the crossing); none for a scene whose detector is its own (the toys, a
+    user's camera model)."""
     from pemviz.io.data import sha256_file
+    from pemviz.pem.noise import NoiseModel
     from pemviz.pem.recipes import DEFAULT_PEM_NAME
     from pemviz.pem.store import _pem_file, noise_pem_path
 
-    files = [("detection PEM", _pem_file(cfg.perception.pem or DEFAULT_PEM_NAME))]
-    if cfg.scenario != "braking":
+    files = []
+    if getattr(target, "pem", None) is not None or getattr(target, "detect", None) is not None:
+        files.append(("detection PEM", _pem_file(cfg.perception.pem or DEFAULT_PEM_NAME)))
+    if isinstance(getattr(target, "noise", None), NoiseModel):
         files.append(("noise PEM", noise_pem_path()))
     return [{"what": what, "path": str(path), "sha256": sha256_file(path)} for what, path in files]
 
@@ -271,7 +276,7 @@ def result_lines(
         command=shlex.join(["pemviz", *sys.argv[1:]]),
         problem=problem,
         console=lines,
-        inputs=input_files(cfg),
+        inputs=input_files(cfg, problem.target),
         failures=failures,
     )
     return lines, doc

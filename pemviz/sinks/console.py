@@ -458,6 +458,22 @@ def _after_mc(
     return f"more rollouts: {command} samples until the interval is within {PERCENT} ({route.text(s_per, 'plain')})"
 
 
+ODD_STAGES_ALONE = (
+    "over an operating design domain the stages run alone: neither their retry nor plain Monte Carlo follows "
+    "(--plain-fallback acts on one scene), so this run's verdict is the stages'; plain Monte Carlo over the ODD: "
+    "--method mc --n N (a scene of your own may make it its default there: odd_defaults)"
+)
+
+
+def _stages_alone_over_odd(config: ExperimentConfig, e: Estimate) -> bool:
+    """Whether a run over an ODD ended without the interval it would have gone on for at one scene: a weighted
+    method whose stages a plain fallback follows at one scene (``Method.then``), its verdict not ``reliable``."""
+    method = config.method_record
+    return bool(
+        config.over_odd and e.verdict != "reliable" and method.then is not None and config.fallback.plain_fallback > 0
+    )
+
+
 def final_lines(
     event: FinalEstimate,
     config: ExperimentConfig | None = None,
@@ -492,6 +508,8 @@ def final_lines(
         lines += event.pem_spread.lines()
     if event.stop is not None:
         lines.append(f"stop: {event.stop}")
+    elif config is not None and _stages_alone_over_odd(config, e):
+        lines.append(f"stop: {ODD_STAGES_ALONE}")
     if event.prepared is not None:
         lines.append(f"proposal: {event.prepared}")
     advice = next_step(

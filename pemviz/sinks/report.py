@@ -344,8 +344,10 @@ def _rests_on(doc: dict[str, Any]) -> list[tuple[str, str]]:
     """The rows of :data:`RESTS_ON`: the PEM (file and sha256), p over the PEM's uncertainty (or that it was not
     computed), the scenario's parameters, the verdict's checks, a requirement's basis and the limits."""
     pems = [i for i in doc.get("inputs") or [] if "PEM" in i["what"] or "pem" in i["what"]]
+    named = str((doc.get("settings") or {}).get("pem") or "the shipped default")
+    own = "inputs" in doc and not pems  # a run that read no PEM file: the scene's detector is its own
     rows = [(f"PEM ({i['what']})", f"{i['path']}, sha256 {i['sha256']}") for i in pems] or [
-        ("PEM", str((doc.get("settings") or {}).get("pem") or "the shipped default"))
+        ("PEM", "the scenario's own detector (no PEM file read)" if own else named)
     ]
     rows.append(("p over the PEM's uncertainty", _spread_text(doc.get("pem_spread"))))
     params = (doc.get("settings") or {}).get("scenario_params") or []

@@ -366,3 +366,17 @@ def test_the_report_s_severity_rows_are_the_console_s(meant):
         assert "not reached" in shown and rows[0][1].split(" ")[1] == ">="  # the failure: its estimate and bound
     else:
         assert "estimate and its 95 % interval: reliable" in html_page
+
+
+def test_a_scene_with_its_own_detector_reads_no_pem_file(tmp_path):
+    """The toy's detector is its own closed form: the report names no PEM file as read (it listed the shipped detection
+    and noise PEMs for every scene but braking)."""
+    result, page = tmp_path / "toy.json", tmp_path / "toy.html"
+    args = ["run", "--scenario", "toy", "--method", "mc", "--n", "200", "--no-record", "--json", str(result)]
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert main([*args, "--report", str(page)]) == 0
+    doc = json.loads(result.read_text())
+    assert doc["inputs"] == []
+    text = page.with_suffix(".md").read_text()
+    assert "the scenario's own detector (no PEM file read)" in text
+    assert "pem_ml-nn.pt" not in text and "noise_hetero-t.pt" not in text

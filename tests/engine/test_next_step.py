@@ -462,3 +462,20 @@ def test_an_upper_estimate_blames_heavy_tails_only_where_the_weights_have_them()
     assert "an upper estimate: heavy-tailed weights make this run's estimate usually too low" in heavy
     unknown = next_step(made(math.log(3e-4), "doubtful", khat=math.nan), cfg, n_simulations=2100, wall_s=6.3)
     assert "heavy-tailed weights make this run's estimate usually too low" in unknown  # no tail fitted: not cleared
+
+
+def test_a_run_over_an_odd_whose_stages_back_no_interval_says_no_plain_monte_carlo_followed(capsys):
+    """Over an ODD the default sampler's stages run alone (no retry, no plain fallback): a run they leave `doubtful`
+    says so and names plain Monte Carlo over the ODD (a user's overtaking scene ended at 6e-15, doubtful, with p
+    about 3e-4, and nothing said that the fallback of the one-scene run had not run); a one-scene run does not."""
+    from pemviz.cli import main
+    from pemviz.sinks.console import ODD_STAGES_ALONE
+
+    toy = ["run", "--scenario", "toy", "--param", "total=10", "--param", "safe=3", "--k", "1", "--n", "20"]
+    assert main([*toy, "--param", "braking~choice(5, 6, 7)", "--n-final", "20", "--no-record"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"k-hat [^:]*: doubtful \(", out), out  # the stages' verdict: 3 distinct failing rollouts
+    assert f"stop: {ODD_STAGES_ALONE}" in out.splitlines()
+    assert_valid_flags("--method mc --n 1000")  # the flags the line names
+    assert main([*toy, "--param", "braking=5", "--n-final", "20", "--plain-fallback", "0", "--no-record"]) == 0
+    assert ODD_STAGES_ALONE not in capsys.readouterr().out
