@@ -235,12 +235,18 @@ def rollout_functions(make: Callable[[int], BatchedSimulator], n_steps: int) -> 
             yield batch
 
     def resume(
-        parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector, rng: np.random.Generator
+        parents: RolloutBatch,
+        parent: np.ndarray,
+        at: np.ndarray,
+        target: Detector,
+        rng: np.random.Generator,
+        events_only: bool = False,
     ) -> RolloutBatch:
         with threadpool_limits(1, user_api="blas"):
-            return branch_rollouts(make, parents, parent, at, target, rng)
+            return branch_rollouts(make, parents, parent, at, target, rng, events_only)
 
     stream.elides_rows = True  # type: ignore[attr-defined]  # it takes keep_rows=False (Experiment)
+    resume.events_only = True  # type: ignore[attr-defined]  # it takes events_only=True (the look-ahead score)
     run.state_features = feature_replay(make)  # type: ignore[attr-defined]  # the Problem's features (post_init)
     return run, stream, resume
 

@@ -98,9 +98,10 @@ class LookAheadScore:
         at = steps[which]
         # every scored step's look-ahead of every row in one batch: the runner's arithmetic is row by row, so a
         # row's look-ahead is the same bits in any batch, and the per-step cost is paid once, not once per step
+        light = {"events_only": True} if getattr(p.branch, "events_only", False) else {}
         for a in range(0, rows.size, LOOKAHEAD_BATCH):
             r, t = rows[a : a + LOOKAHEAD_BATCH], at[a : a + LOOKAHEAD_BATCH]
-            ahead = p.branch(batch, r, t, p.target, MedianUniforms())  # type: ignore[arg-type]
+            ahead = p.branch(batch, r, t, p.target, MedianUniforms(), **light)  # type: ignore[arg-type]
             rho = step_robustness(p, ahead)
             rho[np.arange(t_end)[None, :] < t[:, None]] = np.inf
             graded[r, t] = rho.min(axis=1)
