@@ -1,8 +1,8 @@
 """Whole splitting runs on the run's worker processes (``pemviz run --method ams --ams-replicas R``, executor
-``local`` with two or more workers): the R independent replicas run side by side, each drawn from its own streams
-(:func:`pemviz.estimators.ams.replica_streams`), and are shown to the engine afterwards stage by stage, replica after
-replica, as one process running them in turn shows them: the same particles, outcomes, estimate and cost, bit for
-bit, whatever the workers."""
+``local`` with two or more workers): replicas 1..R-1 run side by side in worker processes while replica 0 runs here,
+each drawn from its own streams (:func:`pemviz.estimators.ams.replica_streams`), and are shown to the engine after
+replica 0 stage by stage, replica after replica, as one process running them in turn shows them: the same particles,
+outcomes, estimate and cost, bit for bit, whatever the workers."""
 
 from __future__ import annotations
 
@@ -17,6 +17,10 @@ from pemviz.core.problems import Problem
 from pemviz.core.rollouts import RolloutBatch
 from pemviz.estimators.base import Check, StageOutcome
 from pemviz.plugins import resolve
+
+REPLICAS_PAY_S = 2.0
+"""CPU seconds of the replicas left from which they go to worker processes: a worker's start costs about 1 s (its
+imports and the problem's unpickling), and each replica is handed back once."""
 
 
 @dataclass(frozen=True)
@@ -80,13 +84,16 @@ def pooled_runs(
     run: Callable[[Problem, ExperimentConfig, int], ReplicaRun],
     problem: Problem,
     check: Check,
+    cpu_s: float,
 ) -> PooledRuns | None:
-    """``run(problem, config, r)`` for r < ``ams_replicas`` R >= 2 on the run's worker processes, where its executor
-    is ``local`` with two or more workers (:meth:`pemviz.engine.pool.LocalExecutor.submit`); else None (the runs are
-    made here, one after another)."""
-    if config.ams.ams_replicas < 2:
+    """``run(problem, config, r)`` for replicas r = 1..R-1 of ``ams_replicas`` R >= 2 on the run's worker processes,
+    while replica 0 goes on here: where the executor is ``local`` with two or more workers and the R - 1 replicas
+    take at least :data:`REPLICAS_PAY_S` at ``cpu_s`` CPU seconds each (replica 0's initial particles: a lower
+    bound); else None (the replicas are run here, one after another)."""
+    r = config.ams.ams_replicas
+    if r < 2 or (r - 1) * cpu_s < REPLICAS_PAY_S:
         return None
     executor: Any = resolve("pemviz.engine.experiment:run_executor")(config)
     if getattr(executor, "workers", 1) < 2 or not hasattr(executor, "submit"):
         return None
-    return PooledRuns([executor.submit(run, problem, config, r) for r in range(config.ams.ams_replicas)], check)
+    return PooledRuns([executor.submit(run, problem, config, i) for i in range(1, r)], check)
