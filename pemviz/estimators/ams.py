@@ -407,6 +407,7 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         self._showing = False
         """Whether the stage planned is a pooled replica's."""
         self._cpu0 = 0.0
+        """This process's CPU seconds when the stage was planned (replica 0's first stage prices the others)."""
 
     def _start_replica(self, r: int, score: GradedScore | None = None) -> None:
         """Replica r's splitting, drawn from :func:`replica_streams` and ranked by ``score`` (None: ``ams_score``)."""
