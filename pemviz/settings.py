@@ -441,8 +441,9 @@ _NAMED, _ADDED = _settings(
             choice_help=(("robustness", "the formula's classic robustness"),
                          ("lookahead", "the robustness of the nominal continuation from each step (any scene)"),
                          ("committor", "-log of the scenario's learned probability of failure (the cut-in's)"))),
-    Setting("ams_replicas", "the splitting runs R", "whole splitting runs from streams of their own: the estimate is "
-            "their mean, its interval from their spread (1: one run)", kind="int", symbol="R", lo=1,
+    Setting("ams_replicas", "the splitting runs R", "whole splitting runs from streams of their own, side by side on "
+            "the run's workers: the estimate is their mean, its interval from their spread (1: one run)", kind="int",
+            symbol="R", lo=1,
             owner=SPLITTING_METHOD, flags=("--ams-replicas",)),
 )  # fmt: skip  # a table: each setting in the few lines it reads best in, not one argument a line
 SETTINGS: dict[str, Setting] = {**_NAMED, **_ADDED}

@@ -11,7 +11,7 @@ from typing import cast
 import numpy as np
 
 from pemviz.core.detector_noise import noise_names_of
-from pemviz.core.detectors import Detector, draw_step, reads_state
+from pemviz.core.detectors import Detector, StepDraw, draw_step, reads_state
 from pemviz.core.exact import row_sum
 from pemviz.core.features import reports_features
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
@@ -67,6 +67,7 @@ def run_batched(
     uniforms: Iterable[np.ndarray],
     forced: tuple[np.ndarray, np.ndarray | None, np.ndarray] | None = None,
     keep_rows: bool = True,
+    replayed_densities: bool = True,
 ) -> RolloutBatch:
     """Simulate the ``n`` rollouts of ``sim`` for ``n_steps`` steps, each object's events drawn from ``sampler`` and
     scored under ``target`` (:func:`pemviz.core.detectors.draw_step`): the rollout runner of every simulator. A
@@ -84,6 +85,8 @@ def run_batched(
             events before ``until[i]`` (a replayed prefix).
         keep_rows: False: the object rows are not kept (``objects`` None; the caller attaches a
             :attr:`RolloutBatch.replay`).
+        replayed_densities: False: the detectors are not asked about the replayed rows (their events are
+            ``forced``'s), whose ``log_p`` and ``log_q`` are nan: the states and the drawn events are the same bits.
     Returns:
         :class:`RolloutBatch` [n, T]."""
     names = tuple(sim.observation_names)
@@ -116,9 +119,11 @@ def run_batched(
         if featured is not None:  # the step's state features, each object's then its rollout's ego's
             ego, per_object = (np.asarray(a, dtype=np.float64) for a in featured.state_features())
             state = np.concatenate([per_object.reshape(n * m, -1), np.repeat(ego, m, axis=0)], axis=1)
-        step = draw_step(
-            sampler, target, rows, np.asarray(u, dtype=np.float64).reshape(n * m, 1 + d), RQMC_BLOCK * m, f, m, state
-        )
+        u = np.asarray(u, dtype=np.float64).reshape(n * m, 1 + d)
+        if f is None or replayed_densities:
+            step = draw_step(sampler, target, rows, u, RQMC_BLOCK * m, f, m, state)
+        else:
+            step = _draw_unreplayed(sampler, target, rows, u, m, f, state)
         detected = step.detected.reshape(n, m)
         det[:, t] = detected
         if m == 1:
@@ -141,6 +146,33 @@ def run_batched(
         noise=noise,
         noise_names=noise_names,
     )
+
+
+def _draw_unreplayed(
+    sampler: Detector,
+    target: Detector,
+    rows: np.ndarray,
+    u: np.ndarray,
+    m: int,
+    forced: tuple[np.ndarray, np.ndarray | None, np.ndarray],
+    state: np.ndarray | None,
+) -> StepDraw:
+    """:func:`draw_step` of the rows [R, G] that ``forced`` does not give (row by row, the same bits as among all
+    rows); the given rows take ``forced``'s events and nan log-probabilities, no detector asked."""
+    given = forced[2]
+    detected = forced[0].copy()
+    d = u.shape[1] - 1
+    noise = None if not d else np.zeros((rows.shape[0], d)) if forced[1] is None else forced[1].copy()
+    log_q, log_p = np.full(rows.shape[0], np.nan), np.full(rows.shape[0], np.nan)
+    free = np.flatnonzero(~given)
+    if free.size:
+        own = None if state is None else state[free]
+        step = draw_step(sampler, target, rows[free], u[free], RQMC_BLOCK * m, None, m, own)
+        detected[free] = step.detected
+        if noise is not None and step.noise is not None:
+            noise[free] = step.noise
+        log_q[free], log_p[free] = step.log_q, step.log_p
+    return StepDraw(detected, noise, log_q, log_p)
 
 
 def replay_rows(make: Callable[[int], BatchedSimulator], detected: np.ndarray, noise: np.ndarray | None) -> np.ndarray:
@@ -266,10 +298,13 @@ def branch_rollouts(
     at: np.ndarray,
     target: Detector,
     rng: np.random.Generator,
+    events_only: bool = False,
 ) -> RolloutBatch:
     """:func:`branch` on a batched simulator (``make(K)``): new rollout i replays parent ``parent[i]``'s events
     before step ``at[i]`` (the state at a step is a function of the events before it) and draws the rest from
-    ``target``; one ``rng.random(K k)`` per step.
+    ``target``; one ``rng.random(K k)`` per step. With ``events_only`` the observations and events only, the same
+    bits for less: no object rows kept, the detectors not asked about the replayed steps (their ``log_p`` and
+    ``log_q`` nan).
 
     Returns:
         :class:`RolloutBatch` [K, T].
@@ -288,6 +323,8 @@ def branch_rollouts(
         target,
         (rng.random(k) for _ in range(parents.n_steps)),
         forced=(parents.detected[parent], noise, at),
+        keep_rows=not events_only,
+        replayed_densities=not events_only,
     )
 
 

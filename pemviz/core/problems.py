@@ -234,13 +234,14 @@ def rollout_functions(make: Callable[[int], BatchedSimulator], n_steps: int) -> 
                 return
             yield batch
 
-    def resume(
-        parents: RolloutBatch, parent: np.ndarray, at: np.ndarray, target: Detector, rng: np.random.Generator
-    ) -> RolloutBatch:
+    def resume(*args: Any, **kwargs: Any) -> RolloutBatch:
+        """:func:`pemviz.core.lockstep.branch_rollouts` of ``make`` (``parents, parent, at, target, rng,
+        events_only=False``)."""
         with threadpool_limits(1, user_api="blas"):
-            return branch_rollouts(make, parents, parent, at, target, rng)
+            return branch_rollouts(make, *args, **kwargs)
 
     stream.elides_rows = True  # type: ignore[attr-defined]  # it takes keep_rows=False (Experiment)
+    resume.events_only = True  # type: ignore[attr-defined]  # it takes events_only=True (the look-ahead score)
     run.state_features = feature_replay(make)  # type: ignore[attr-defined]  # the Problem's features (post_init)
     return run, stream, resume
 

@@ -71,6 +71,14 @@ def _task(
     return handoff.pack(out, folder)
 
 
+def _call(digest: str, blob: bytes, fn: Any, args: tuple[Any, ...]) -> Any:
+    """One worker's call ``fn(problem, *args)`` on one BLAS thread (:meth:`LocalExecutor.submit`)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        return fn(_problem(digest, blob), *args)
+
+
 def _worker_start(path: tuple[str, ...]) -> None:
     """A worker's start: the parent's import path (a scenario or method of one's own imported from a folder the
     parent put on ``sys.path`` is found), and Ctrl-C is the run's to handle (it shuts the pool down)."""
@@ -133,6 +141,13 @@ class LocalExecutor(Executor):
 
         blob = cloudpickle.dumps(problem)
         return hashlib.blake2b(blob, digest_size=16).hexdigest(), blob
+
+    def submit(self, fn: Any, problem: Any, *args: Any) -> Any:
+        """``fn(problem, *args)`` in a worker process, a ``concurrent.futures.Future`` of its result: ``fn`` a
+        module-level function, ``problem`` pickled by cloudpickle (unpickled once per worker), ``args`` and the result
+        picklable (e.g. whole splitting runs: :mod:`pemviz.estimators.ams`)."""
+        digest, blob = self._pickled(problem)
+        return self._executor().submit(_call, digest, blob, fn, args)
 
     def _simulated(self, problem: Any, n: int, sampler: Detector, target: Detector, state: Any) -> list[Block]:
         """The blocks' results in order: the first block here, timed, and the others in the pool where they pay for it

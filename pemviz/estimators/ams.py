@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -51,6 +52,7 @@ from pemviz.core.estimate import MIN_FAILURES, Estimate
 from pemviz.core.plan import RunPlan
 from pemviz.core.problems import Problem, no_branch_message, step_robustness
 from pemviz.core.rollouts import RolloutBatch
+from pemviz.estimators.ams_pool import PooledRuns, ReplicaRun, pooled_runs
 from pemviz.estimators.base import Check, OwnsSettings, StageOutcome, StagePlan, log_p_before_failure
 from pemviz.methods import SPLITTING_METHOD
 from pemviz.methods.ams import AMS_STAGE
@@ -400,6 +402,12 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         self._stage = self._first = -1
         self._initial: list[RolloutBatch] = []
         self._graded: np.ndarray | None = None
+        self._pooled: PooledRuns | None = None
+        """Replicas 1..R-1 on the run's worker processes (None: here, one after another)."""
+        self._showing = False
+        """Whether the stage planned is a pooled replica's."""
+        self._cpu0 = 0.0
+        """This process's CPU seconds when the stage was planned (replica 0's first stage prices the others)."""
 
     def _start_replica(self, r: int, score: GradedScore | None = None) -> None:
         """Replica r's splitting, drawn from :func:`replica_streams` and ranked by ``score`` (None: ``ams_score``)."""
@@ -411,7 +419,8 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
     @property
     def n_simulations(self) -> int:
         """Rollout-equivalents simulated (module docstring); the engine reports this, not its count of batches."""
-        return self.ams.n_simulations + sum(sims for _, sims in self.replicas)
+        pooled = self._pooled.n_simulations if self._pooled is not None else 0
+        return self.ams.n_simulations + pooled + sum(sims for _, sims in self.replicas)
 
     @staticmethod
     def run_plan(config: ExperimentConfig) -> RunPlan:
@@ -422,6 +431,13 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         return self.run_plan(self.config)
 
     def next_stage(self) -> StagePlan | None:
+        if self._pooled is not None and self.ams.stop:  # replica 0 shown: the others, as they ran in the pool
+            batch = self._pooled.next_batch()
+            if batch is None:
+                return None
+            self._stage, self._showing = self._stage + 1, True
+            return StagePlan(self._stage, AMS_STAGE, batch.n, self.problem.target, lambda _: batch)
+        self._cpu0 = time.process_time()
         if self._stage >= 0 and self.ams.stop:
             if len(self.replicas) + 1 >= self.config.ams.ams_replicas:
                 return None
@@ -455,24 +471,47 @@ class AdaptiveMultilevelSplitting(OwnsSettings):
         return self.ams.particles
 
     def observe(self, batch: RolloutBatch, failed: np.ndarray, robustness: np.ndarray | None) -> np.ndarray:
-        if self._is_first:  # the initial particles, possibly in chunks (a streamed stage)
+        if self._is_first and not self._showing:  # the initial particles, possibly in chunks (a streamed stage)
             self._initial.append(batch)
         return np.zeros(batch.n)  # drawn from the target itself: every importance weight is 1
 
     def finish(self) -> StageOutcome:
+        if self._showing:
+            return self._pooled.finish()  # type: ignore[union-attr]  # showing: pooled
         if self._is_first:
             self.ams.start(
                 RolloutBatch.concatenate(self._initial) if len(self._initial) > 1 else self._initial[0], self._graded
             )
             self._initial, self._graded = [], None
+            if self._stage == 0 and self.config.ams.ams_score != "committor":  # one committor, solved once, for all
+                cpu = time.process_time() - self._cpu0  # replica 0's initial particles: less than a whole replica
+                self._pooled = pooled_runs(self.config, run_replica, self.problem, self.check, cpu)
         nan = np.full(self.problem.curve_grid.size, np.nan)
         failed = self.ams.score < 0.0
         return StageOutcome(self.ams.level, int(failed.sum()), self.ams.estimate(), nan, nan)
 
     def result(self) -> tuple[Estimate, tuple[int, ...]]:
         """The run's estimate: its one splitting's, or the mean of ``ams_replicas`` (:func:`replicas_estimate`)."""
+        if self._pooled is not None:
+            return replicas_estimate([self.ams.estimate(), *(e for e, _ in self._pooled.done)]), (self._stage,)
         last = self.ams.estimate()
         return (replicas_estimate([*(e for e, _ in self.replicas), last]) if self.replicas else last), (self._stage,)
+
+
+def run_replica(problem: Problem, config: ExperimentConfig, r: int) -> ReplicaRun:
+    """Replica r of ``config``'s splitting run (:func:`replica_streams`) alone, each stage drawn as the engine draws
+    it (the initial particles by ``problem.simulate``: the same bits as on any executor), for a worker process
+    (:mod:`pemviz.estimators.ams_pool`): the same bits as one process running the replicas in turn."""
+    est = AdaptiveMultilevelSplitting(config.replace(ams_replicas=1), problem)
+    est._start_replica(r)
+    stages: list[tuple[RolloutBatch, StageOutcome, int]] = []
+    while not stages or not est.ams.stop:
+        plan = est.next_stage()
+        assert plan is not None  # the replica goes on
+        batch = plan.draw(est.rng) if plan.draw else problem.simulate(plan.n, plan.sampler, problem.target, est.rng)
+        est.observe(batch, np.zeros(batch.n, bool), None)
+        stages.append((batch, est.finish(), est.ams.n_simulations))
+    return ReplicaRun(tuple(stages), est.ams.estimate(), est.ams.n_simulations)
 
 
 def committor_score(problem: Problem, score: str) -> GradedScore | None:

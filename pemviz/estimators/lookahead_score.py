@@ -24,6 +24,9 @@ from pemviz.core.rollouts import RolloutBatch
 
 SCORED_STEPS = 25
 """About how many steps of a rollout are scored: the stride is ceil(T / SCORED_STEPS)."""
+LOOKAHEAD_BATCH = 2048
+"""The most look-aheads simulated together (rollouts of one ``branch``): the per-step cost spread over many rows,
+the batch's arrays a few tens of MB."""
 
 
 class MedianUniforms:
@@ -89,11 +92,18 @@ class LookAheadScore:
         near = np.ones((n, t_end), bool)
         if batch.objects is not None and math.isfinite(p.window):
             near = np.any(batch.objects[:, :, :, 0] <= p.window, axis=2)
-        for t in self.scored_steps(t_end):
-            rows = np.flatnonzero((t > first) & alive[:, t] & near[:, t])
-            if not rows.size:
-                continue
-            ahead = p.branch(batch, rows, np.full(rows.size, t), p.target, MedianUniforms())  # type: ignore[arg-type]
-            graded[rows, t] = step_robustness(p, ahead)[:, t:].min(axis=1)
-            self.steps += rows.size * (t_end - t)
+        steps = np.array(self.scored_steps(t_end))
+        scored = (steps[None, :] > first[:, None]) & alive[:, steps] & near[:, steps]
+        rows, which = np.nonzero(scored)
+        at = steps[which]
+        # every scored step's look-ahead of every row in one batch: the runner's arithmetic is row by row, so a
+        # row's look-ahead is the same bits in any batch, and the per-step cost is paid once, not once per step
+        light = {"events_only": True} if getattr(p.branch, "events_only", False) else {}
+        for a in range(0, rows.size, LOOKAHEAD_BATCH):
+            r, t = rows[a : a + LOOKAHEAD_BATCH], at[a : a + LOOKAHEAD_BATCH]
+            ahead = p.branch(batch, r, t, p.target, MedianUniforms(), **light)  # type: ignore[arg-type]
+            rho = step_robustness(p, ahead)
+            rho[np.arange(t_end)[None, :] < t[:, None]] = np.inf
+            graded[r, t] = rho.min(axis=1)
+        self.steps += int((t_end - at).sum())
         return graded

@@ -85,3 +85,24 @@ def test_the_runs_own_variances_floor_the_interval_by_hand():
     assert replicas_interval(wide, np.full(4, 0.1))[0] == replicas_interval(wide)[0]
     lo, hi = replicas_interval(wide, np.full(4, 0.25))[0]
     assert (hi - lo) / 2.0 == pytest.approx(3.1824 * math.sqrt(7.5) / 10.0, abs=1e-4)
+
+
+@pytest.mark.parametrize("score", ["robustness", "lookahead"])
+def test_replicas_on_worker_processes_give_the_one_process_run_bit_for_bit(score, monkeypatch):
+    """R = 4 with two worker processes (``workers = 2``: replicas 1-3 side by side in the pool, replica 0 here) and in
+    this process, one after another (``workers = 1``): every stage's level, failures and estimate, the final estimate
+    and the cost the same bits, the stages shown in the same order; the pool ran them (the toy's replicas are too quick
+    to pay for it: the threshold set to 0)."""
+    from pemviz.engine.executors import get_executor
+    from pemviz.estimators import ams_pool
+
+    monkeypatch.setattr(ams_pool, "REPLICAS_PAY_S", 0.0)
+
+    pb = build_problem("toy-1e-3")
+    cfg = ExperimentConfig.of(method="ams", n_per_stage=100, ams_killed=10, seed=3, ams_score=score, ams_replicas=4)
+    runs = [Experiment(cfg.replace(workers=w), problem=pb).run() for w in (1, 2)]
+    for a, b in zip(runs[0].stages, runs[1].stages, strict=True):
+        assert repr((a.stage, a.gamma, a.n_elites, a.estimate)) == repr((b.stage, b.gamma, b.n_elites, b.estimate))
+    assert repr(runs[0].final.estimate) == repr(runs[1].final.estimate)  # nan fields: their text
+    assert runs[0].final.n_simulations == runs[1].final.n_simulations
+    assert len(runs[0].stages) > 4 and get_executor("local", None, 2).started

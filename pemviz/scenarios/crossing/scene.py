@@ -163,13 +163,20 @@ class BatchedCrossing:
         self.x, self.v = np.zeros(n), np.full(n, params.ego_speed_mps)
         self.braking = np.zeros(n, bool)
         self.tracks = tracker.Tracks.empty((self.n_objects, self.n))
+        self._seen: tuple[int, tuple[np.ndarray, np.ndarray, camera.CameraView, np.ndarray]] | None = None
+        """The step and its :meth:`_view` (asked by ``objects`` and then by ``step``; the state moves only in
+        ``step``)."""
 
     def _view(self) -> tuple[np.ndarray, np.ndarray, camera.CameraView, np.ndarray]:
         """The pedestrians seen from every rollout's camera: (loc_x [M, n], loc_z [M, n], view, their x [M])."""
+        if self._seen is not None and self._seen[0] == self.t:
+            return self._seen[1]
         x_p, y_p, _, rot = self.p.pedestrians(self.t)
         loc_z = x_p[:, None] - (self.x + self.p.camera_offset_m)
         loc_x = np.broadcast_to(y_p[:, None], loc_z.shape)
-        return loc_x, loc_z, camera.view(PEDESTRIAN, loc_x, loc_z, rot[:, None], CAMERA_HEIGHT_M), x_p
+        seen = loc_x, loc_z, camera.view(PEDESTRIAN, loc_x, loc_z, rot[:, None], CAMERA_HEIGHT_M), x_p
+        self._seen = (self.t, seen)
+        return seen
 
     def _gaps(self, x_p: np.ndarray, y_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(longitudinal, lateral) gaps [M, n] between the ego's box and each pedestrian's (m)."""
