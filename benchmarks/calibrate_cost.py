@@ -269,8 +269,11 @@ def calibrate_tilt(repeat: int) -> None:
     in CPU seconds (the machine's load cancels: every part is the same kind of work): plain cut-in rollouts (an
     ``mc`` run of 20,000), then a default cut-in tilt run with its solve and its draws timed inside
     (:meth:`pemviz.scenarios.cut_in.tilt.CutInTilt.solve`, ``draw``; the rest is its weights and estimate). A tilted
-    rollout costs (draw + rest) / n over a plain one's CPU seconds; the solve, its CPU seconds in the model's seconds
-    of plain cut-in rollouts (:func:`pemviz.engine.cost.stage_cost`)."""
+    rollout costs (draw + rest) in the model's seconds of plain cut-in rollouts over the model's seconds of as many
+    plain rollouts held whole (as the tilt's batch is); the solve, its CPU seconds in the model's seconds of plain
+    cut-in rollouts (:func:`pemviz.engine.cost.stage_cost`), priced as the engine draws them: streamed (the
+    cut-in streams above 4,000 rollouts), at :attr:`pemviz.engine.cost.CostConstants.streamed_share` of a held
+    batch's. Both constants are then in the held rollouts' seconds the model prices the tilt's batch at."""
     import functools
 
     from pemviz.scenarios.cut_in import tilt as cut_in_tilt
@@ -292,8 +295,13 @@ def calibrate_tilt(repeat: int) -> None:
     cut_in_tilt.CutInTilt.draw = timed("draw", cut_in_tilt.CutInTilt.draw)
     plain_cfg = ExperimentConfig.of(scenario="cut-in", method="mc", n_per_stage=20_000)
     tilt_cfg = ExperimentConfig.of(scenario="cut-in", method="tilt", n_per_stage=7_280)
-    n_steps = problem_for(plain_cfg).n_steps or cost.N_STEPS
-    plain_model = cost.stage_cost(plain_cfg, "final", 20_000, n_steps, model="plain").simulate_s
+    problem = problem_for(plain_cfg)
+    n_steps = problem.n_steps or cost.N_STEPS
+    # the plain rollouts as the engine draws them: streamed above the scene's own threshold (4,000 five-car rollouts)
+    above = engine.stream_above(plain_cfg, problem.n_objects)
+    plain_model = cost.stage_cost(plain_cfg, "final", 20_000, n_steps, model="plain", stream_above=above).simulate_s
+    # the tilt's batch is held whole: its rollouts are priced as held plain ones (no streamed share)
+    held = cost.stage_cost(plain_cfg, "final", 7_280, n_steps, model="plain", stream_above=7_280).simulate_s
     rollouts, solves = [], []
     for _ in range(repeat):
         _, plain_cpu, _ = measure(plain_cfg, panel=False)
@@ -301,9 +309,9 @@ def calibrate_tilt(repeat: int) -> None:
         parts.clear()
         _, tilt_cpu, _ = measure(tilt_cfg, panel=False)
         solve, draw = parts.get("solve", 0.0), parts.get("draw", 0.0)
-        per_plain = plain_cpu / 20_000
-        rollouts.append((tilt_cpu - solve) / 7_280 / per_plain)
-        solves.append(solve * plain_model / plain_cpu)
+        speed = plain_cpu / plain_model  # CPU seconds per model second, as the plain rollouts read it
+        rollouts.append((tilt_cpu - solve) / speed / held)
+        solves.append(solve / speed)
         print(
             f"  CPU s: 20,000 plain cut-in rollouts {plain_cpu:.2f} (model {plain_model:.2f}); a default tilt run "
             f"{tilt_cpu:.2f}: solve {solve:.2f}, draw {draw:.2f}, weights and the rest {tilt_cpu - solve - draw:.2f}; "
@@ -387,9 +395,11 @@ PROBE_RUNS = {
     "braking": ["run", "--no-record"],
     "crossing": ["run", "--scenario", "crossing", "--no-record", "--plain-fallback", "0", "--retry-factor", "0"],
     "cut-in": ["run", "--scenario", "cut-in", "--no-record"],
+    "cut-in-mc": ["run", "--scenario", "cut-in", "--method", "mc", "--n", "40000", "--workers", "1", "--no-record"],
 }
 """Scene -> the run whose CPU seconds over the model's its pilot is set against (``--probe``): its default's planned
-stages."""
+stages; ``cut-in-mc``: the cut-in's plain rollouts streamed block by block in one process, as plain Monte Carlo of a
+million draws them (its tilt's constants are measured against them, ``--tilt``: the two readings should agree)."""
 
 
 def calibrate_probe(scenes: list[str], repeat: int) -> None:

@@ -289,7 +289,7 @@ def run_cost(cfg: ExperimentConfig, n_steps: int | None = None, slowdown: float 
 
     steps, look, stated, problem = _horizon(cfg) if n_steps is None else (n_steps, 0.0, None, None)
     speed, factor, load = (1.0, float(slowdown), None) if slowdown is not None else _recent_load(cfg, problem)
-    plan, above = run_plan(cfg), stream_above(cfg)
+    plan, above = run_plan(cfg), stream_above(cfg, getattr(problem, "n_objects", 1))  # where the engine streams
     idle = cost.run_cost(cfg, plan, steps, above, look_ahead_s=look, problem=stated, speed=speed, load=load)
     scaled = dataclasses.replace(idle, seconds=idle.seconds * factor, then_seconds=idle.then_seconds * factor)
     return dataclasses.replace(scaled, slowdown=factor)

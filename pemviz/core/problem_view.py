@@ -65,7 +65,9 @@ class ProblemView:
         look_ahead_s: seconds per rollout the problem's look-ahead adds to a stage, about; 0: none.
         object_labels: what each object m is called (:meth:`object_label`); empty: ``object m``.
         odd_names: the scenario parameters drawn per rollout over an ODD; empty: none.
-        committor: whether splitting can rank particles by a learned committor (``--ams-score committor``)."""
+        committor: whether splitting can rank particles by a learned committor (``--ams-score committor``).
+        n_objects: M, the objects the detector sees each step (the engine streams a stage above
+            :func:`pemviz.engine.experiment.stream_above` of it)."""
 
     name: str
     description: str
@@ -79,6 +81,7 @@ class ProblemView:
     object_labels: tuple[str, ...] = ()
     odd_names: tuple[str, ...] = ()
     committor: bool = False
+    n_objects: int = 1
 
     def object_label(self, m: int) -> str:
         """What object ``m`` (0-based) is called: the problem's label for it, else ``object m``."""

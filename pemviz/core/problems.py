@@ -167,6 +167,7 @@ class Problem:
             tuple(self.object_labels),
             tuple(self.odd.names) if self.odd is not None else (),
             self.tilt is not None,
+            self.n_objects,
         )
 
     def signal_arrays(self, batch: RolloutBatch) -> dict[str, np.ndarray]:

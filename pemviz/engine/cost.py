@@ -70,8 +70,8 @@ class CostConstants:
         streamed_share: a rollout's seconds in a batch streamed chunk by chunk (above ``stream_above``) over its
             seconds in a batch held whole (whose arrays outgrow the caches).
         ams_rollouts: rollout-equivalents AMS simulates per particle (its continuations), about.
-        tilt_rollouts: the seconds of a rollout of ``method = "tilt"`` in plain rollouts' of its scene (its draw, its
-            look-aheads and its weights), about.
+        tilt_rollouts: the seconds of a rollout of ``method = "tilt"`` in plain rollouts' of its scene held whole
+            (its draw, its look-aheads and its weights; the tilt's batch is held whole), about.
         tilt_solve_s: the seconds of the tilt's solve, once a run (on its first stage), about.
         probe_share: a pilot of the reference scene's plain rollouts' CPU seconds over the model's where its run takes
             the model's (:func:`pilot_seconds`; another scene may declare its own ``probe`` part).
@@ -122,17 +122,17 @@ COST = CostConstants(
     torch_import_s=0.7,
     streamed_share=0.75,
     ams_rollouts=5,
-    tilt_rollouts=2.7,
-    tilt_solve_s=2.5,
+    tilt_rollouts=1.94,
+    tilt_solve_s=1.34,
     probe_share=0.49,
     pool_share=1.13,
     measured="2026-11-28, benchmarks/calibrate_cost.py --fit --repeat 1 (wall seconds), 2 cores, load average 0.5; "
-    "tilt_rollouts and tilt_solve_s from per-rollout CPU seconds against a scene's plain rollouts in the same "
-    "process (2026-11-29, benchmarks/calibrate_cost.py --tilt: a tilted rollout 2.5-3.0 plain ones, its weights "
-    "0.3-0.4 of them; a fresh process's solve 2.4-2.6 model seconds); proposal_step_s, proposal_rollout_step_s, "
-    "pretrain_stop_share and torch_import_s from CPU seconds per part of the reference scene's and a two-pedestrian "
-    "scene's default runs "
-    "against the model's in one process, on 2 loaded cores (2026-11-29, benchmarks/calibrate_cost.py --parts: "
+    "tilt_rollouts and tilt_solve_s from CPU seconds against the model's of a scene's plain rollouts streamed as "
+    "the engine draws them, in the same process (2026-11-30, benchmarks/calibrate_cost.py --tilt, load average 9-10: "
+    "a tilted rollout 1.87-2.11 plain ones held whole, a fresh process's solve 1.25-1.68 model seconds); "
+    "proposal_step_s, proposal_rollout_step_s, pretrain_stop_share and torch_import_s from CPU seconds per part of "
+    "the reference scene's and a two-pedestrian scene's default runs against the model's in one process, on 2 "
+    "loaded cores (2026-11-29, benchmarks/calibrate_cost.py --parts: "
     "the reference scene's proposal steps 1.8-2.1 times, its pretraining fit 0.4-0.6 times, the rest's 1.0); "
     "streamed_share from the CPU seconds of the two-pedestrian scene's plain rollouts, 40,000 streamed against "
     "10,000 held whole (0.64-0.82, 4 readings); probe_share 0.37-0.51, 3 readings (2026-11-30, calibrate_cost.py "
@@ -194,8 +194,9 @@ def stage_cost(
         stage: the stage's number, for a CE stage's rows (:func:`ce_rows`); None: the mean over the K stages.
         model: the stage's cost model (:data:`pemviz.methods.COST_MODELS`); None: ``cfg.method``'s.
         stream_above: rollouts above which the stage is streamed chunk by chunk, its rollouts at
-            :attr:`CostConstants.streamed_share` of a whole batch's (:data:`pemviz.engine.experiment.STREAM_ABOVE`, a
-            rollout of one object).
+            :attr:`CostConstants.streamed_share` of a whole batch's (:func:`pemviz.engine.experiment.stream_above`:
+            :data:`pemviz.engine.experiment.STREAM_ABOVE` over the objects a rollout perceives; the default: a rollout
+            of one object).
         speed: how many times the model's seconds the run's work takes here now: the pool starts where ``speed``
             times the model's seconds pay for it (:func:`pemviz.engine.resources.pool_workers`, as it starts on a
             block's measured seconds); the seconds returned are the model's.
@@ -210,8 +211,8 @@ def stage_cost(
     per_step = (c.proposal_step_s if proposal else c.pem_step_s) * parts.get("step", 1.0)
     per_rollout = c.rollout_step_s.get(cfg.sim, max(c.rollout_step_s.values())) + proposal * c.proposal_rollout_step_s
     per_rollout *= SCENARIO_COST_FACTORS.get(cfg.scenario, 1.0)  # what the scenario declares (1: none)
-    per_rollout *= c.streamed_share if n > stream_above else 1.0
     tilt = model == "look-ahead"
+    per_rollout *= c.streamed_share if n > stream_above and not tilt else 1.0  # the tilt draws its batch whole
     rollouts = n * (c.ams_rollouts if kind == AMS_STAGE else c.tilt_rollouts if tilt else 1.0)
     blocks = max(1, math.ceil(n / POOL_BLOCK))  # a large batch is simulated block by block, each its steps
     simulate = n_steps * (per_step * blocks + per_rollout * rollouts)
@@ -280,11 +281,12 @@ def plan_costs(
     c: CostConstants = COST,
     speed: float = 1.0,
     load: LoadReading | None = None,
+    stream_above: int = 20_000,
 ) -> dict[int, StageCost]:
-    """Stage number -> :func:`stage_cost` of each stage of ``plan`` (``speed``, ``load``: as there)."""
-    return {
-        s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, speed=speed, load=load) for s in plan.stages
-    }
+    """Stage number -> :func:`stage_cost` of each stage of ``plan`` (``speed``, ``load``, ``stream_above``: as
+    there)."""
+    kw: dict[str, Any] = {"speed": speed, "load": load, "stream_above": stream_above}
+    return {s.stage: stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, **kw) for s in plan.stages}
 
 
 def then_adds(cfg: ExperimentConfig, simulations: int) -> tuple[int, str]:
@@ -361,16 +363,18 @@ def follow_on_seconds(
     c: CostConstants = COST,
     speed: float = 1.0,
     load: LoadReading | None = None,
+    stream_above: int = 20_000,
 ) -> float:
     """The model's seconds of all of ``follow``: the retry's stages (:func:`stage_cost`, each rollout's look-ahead
     ``look_ahead_s`` added) and ``plain_most`` plain rollouts (``stage_cost`` of a ``plain`` final batch; ``speed``,
-    ``load``: as there)."""
+    ``load``, ``stream_above``: as there)."""
+    kw: dict[str, Any] = {"speed": speed, "load": load, "stream_above": stream_above}
     again = 0.0
     for s in () if follow.retry is None else follow.retry.stages:
-        cost = stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, speed=speed, load=load)
+        cost = stage_cost(cfg, s.kind, s.n_rollouts, n_steps, c, s.stage, **kw)
         again += cost.seconds + s.n_rollouts * look_ahead_s
     most = follow.plain_most
-    plain = stage_cost(cfg, "final", most, n_steps, c, model="plain", speed=speed, load=load).seconds if most else 0.0
+    plain = stage_cost(cfg, "final", most, n_steps, c, model="plain", **kw).seconds if most else 0.0
     return again + plain
 
 
@@ -504,16 +508,17 @@ def run_cost(
     it (:func:`follow_on` on ``problem``, :func:`follow_on_seconds`; ``problem`` None: whatever the scene), in the
     model's seconds (``speed``, ``load``: as :func:`stage_cost` takes them).
 
-    A stage above ``stream_above`` rollouts (:data:`pemviz.engine.experiment.STREAM_ABOVE`) is simulated in chunks, so
-    it does not count in full towards memory. The memory is the run's memory check's model
+    A stage above ``stream_above`` rollouts (:func:`pemviz.engine.experiment.stream_above` of the problem's objects)
+    is simulated in chunks: its rollouts are priced streamed (:func:`stage_cost`), and it does not count in full
+    towards memory. The memory is the run's memory check's model
     (:func:`pemviz.engine.resources.run_memory`, :data:`pemviz.engine.resources.BYTES_PER_ROLLOUT_STEP`) without the
     process's own :data:`pemviz.engine.resources.BASE_BYTES`: one model of a step's bytes for both."""
-    seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c, speed, load).values())
+    seconds = sum(cost.seconds for cost in plan_costs(cfg, plan, n_steps, c, speed, load, stream_above).values())
     seconds += look_ahead_s * sum(s.n_rollouts for s in plan.stages)
     batch = run_memory(plan, n_steps, cfg.adaptive.quantile_level, stream_above=stream_above) - BASE_BYTES
     follow = follow_on(cfg, plan, problem)
     if follow is None:
         return RunCost(int(cfg.n_simulations), int(batch), float(seconds), cfg.method_record.run_adds)
-    then_s = follow_on_seconds(cfg, follow, n_steps, look_ahead_s, c, speed, load)
+    then_s = follow_on_seconds(cfg, follow, n_steps, look_ahead_s, c, speed, load, stream_above)
     sims, adds = int(cfg.n_simulations), cfg.method_record.run_adds
     return RunCost(sims, int(batch), float(seconds), adds, follow.simulations, then_s, follow.words)

@@ -368,6 +368,11 @@ def problem_for(config: Any) -> Any:
 _CUT_IN_COST_FACTOR = 6.7
 """A cut-in rollout step costs 6.7 braking ones (``benchmarks/calibrate_cost.py``)."""
 
+_CUT_IN_COST_PARTS = {"probe": 2.52}
+"""A cut-in pilot's CPU seconds over the model's, where its tilt's and its streamed plain rollouts' take the model's
+(``benchmarks/calibrate_cost.py --probe cut-in cut-in-mc``: 2.75 and 2.80 at load average 7-9; the shipped 3.84 in
+the tilt's units before they were measured against streamed plain rollouts)."""
+
 _CROSSING_COST_FACTOR = 4.0
 """A crossing rollout step costs 4 braking ones (``benchmarks/time_estimates.py`` checks it)."""
 
@@ -388,7 +393,7 @@ def _cut_in(name: str, rarity: str, defaults: str, **more: Any) -> Scenario:
         defaults=f"pemviz.scenarios.cut_in.scenario:{defaults}",
         drawing="pemviz.scenarios.cut_in.drawing:CutInDrawing",
         cost_factor=_CUT_IN_COST_FACTOR,
-        cost_parts={"probe": 3.84},
+        cost_parts=_CUT_IN_COST_PARTS,
         random_params=("cut_in_gap_m",),
         odd="pemviz.scenarios.cut_in.odd:cut_in_odd_problem",
         n_objects=5,

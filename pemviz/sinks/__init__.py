@@ -8,7 +8,7 @@ import math
 import re
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, get_args
+from typing import TYPE_CHECKING, Any, get_args
 
 from pemviz.core.plan import RunPlan
 from pemviz.engine import events as ev
@@ -129,7 +129,7 @@ class StageClock(Sink):
         self.sampled_t: float | None = None
         self.plan: RunPlan | None = None
         self._config: ExperimentConfig | None = None
-        self._n_steps, self._look_ahead_s = N_STEPS, 0.0
+        self._n_steps, self._look_ahead_s, self._stream_above = N_STEPS, 0.0, 20_000
         self.predicted: dict[int, StageCost] = {}
         self.current: ev.StageStarted | None = None
         self.done: list[ev.StageResult] = []
@@ -145,6 +145,9 @@ class StageClock(Sink):
         self.sampled_t, self.current, self.done = None, None, []
         self.plan = event.plan
         self._config, self._n_steps = event.config, event.problem.n_steps or N_STEPS
+        from pemviz.engine.experiment import stream_above  # the run's engine is loaded: where it streams a stage
+
+        self._stream_above = stream_above(event.config, event.problem.n_objects)
         if self._slowdown is None:  # as the panel's cost line reads them
             self.speed, self.load, self.reading = start_reading(
                 event.config, self.pilot, self._n_steps, since=self.load_since
@@ -230,12 +233,13 @@ class StageClock(Sink):
         if self._config is None:
             return StageCost(math.nan, math.nan)
         phase = "plan" if stage is None else self.phase(stage)
-        c, cfg, speed, load = self.constants, self._config, self.speed, self.reading
+        c, cfg = self.constants, self._config
+        kw: dict[str, Any] = {"speed": self.speed, "load": self.reading, "stream_above": self._stream_above}
         if phase == "plain":
-            return stage_cost(cfg, "final", n_rollouts, self._n_steps, c, model="plain", speed=speed, load=load)
+            return stage_cost(cfg, "final", n_rollouts, self._n_steps, c, model="plain", **kw)
         if phase == "retry" and stage is not None:
             stage -= self._last + 1
-        cost = stage_cost(cfg, kind, n_rollouts, self._n_steps, c, stage, speed=speed, load=load)
+        cost = stage_cost(cfg, kind, n_rollouts, self._n_steps, c, stage, **kw)
         if self._look_ahead_s > 0.0:  # the problem's look-ahead: the estimator weighs the rollouts before they are out
             cost = StageCost(cost.simulate_s + n_rollouts * self._look_ahead_s, cost.after_s)
         return cost

@@ -192,3 +192,22 @@ def test_where_nothing_may_follow_a_loaded_machine_s_range_ends_at_the_load_s_dr
             assert line.endswith(f", run {said} as the machine's load varies)")
         else:
             assert sink.clock.run_most_s() == left and "up to" not in line
+
+
+def test_the_clock_prices_a_stage_streamed_where_the_engine_streams_it_on_the_problem_s_objects():
+    """10,000 plain cut-in rollouts: held whole for a problem of one object, streamed (``COST.streamed_share`` of a
+    held batch's per rollout) for the cut-in's five cars, whose stages stream above 20,000 / 5 = 4,000 rollouts
+    (:func:`pemviz.engine.experiment.stream_above`)."""
+    from pemviz.core.plan import RunPlan
+
+    plan = RunPlan.of([(1, "final", 10_000)])
+    said = {}
+    for objects in (1, 5):
+        clock = StageClock(lambda: 0.0, COST, lambda: 1.0)
+        view = dataclasses.replace(BRAKING, n_steps=100, n_objects=objects)
+        clock(run_started(view=view, plan=plan, scenario="cut-in", method="mc", n_per_stage=10_000))
+        said[objects] = clock.run_left_s()
+    cfg = ExperimentConfig.of(scenario="cut-in", method="mc", n_per_stage=10_000)
+    assert said[1] == pytest.approx(stage_cost(cfg, "final", 10_000).seconds, rel=1e-12)
+    assert said[5] == pytest.approx(stage_cost(cfg, "final", 10_000, stream_above=4_000).seconds, rel=1e-12)
+    assert said[5] < 0.8 * said[1]  # the per-rollout part, three quarters of it
