@@ -49,6 +49,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -76,6 +77,10 @@ class Replica:
     ess: float = math.nan
     """The replica's own ESS, 1 / its relative variance from its genealogy (:func:`pemviz.estimators.ams.ams_estimate`;
     nan in files written before it was kept)."""
+    cpu_s: float = math.nan
+    """The replica's CPU seconds in its process (``time.process_time``; nan in files written before it was kept)."""
+    wall_s: float = math.nan
+    """Its wall seconds (nan in files written before it was kept)."""
 
 
 def replica(
@@ -83,10 +88,12 @@ def replica(
 ) -> tuple[Replica, Splitting]:
     """Run replica r of ``seed`` (N particles, k killed, ranked by the ``ams_score`` named ``score``) to its end, as
     ``--method ams --ams-replicas R`` runs it (:func:`pemviz.estimators.ams.run_ams`)."""
+    cpu, wall = time.process_time(), time.perf_counter()
     sp = run_ams(problem, n, killed, seed, max_iterations, score, replica=r)
     e = sp.estimate()
     p = math.exp(e.log_mu_hat) if e.log_mu_hat > -math.inf else 0.0
-    return Replica(seed, r, n, p, sp.n_simulations, e.n_failures, e.verdict, e.ess), sp
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+    return Replica(seed, r, n, p, sp.n_simulations, e.n_failures, e.verdict, e.ess, round(cpu, 2), round(wall, 2)), sp
 
 
 def own_variances(run: list[Replica]) -> np.ndarray | None:
@@ -213,6 +220,17 @@ def table(runs: list[list[Replica]], p_true: float, show: bool = True) -> dict[s
         f"{row['single within']}/{each.size}; reliable outside x2 {row['single reliable out']}; relative variance "
         f"{v:.3f}; cost {per:,.0f}; its cost over plain MC's at any error, cost v p / (1 - p): {row['work ratio']:.3f}"
     )
+    cpu = np.array([x.cpu_s for run in runs for x in run])
+    wall = np.array([x.wall_s for run in runs for x in run])
+    timed = ~np.isnan(cpu)
+    row["nan"] = int(np.count_nonzero(np.isnan([x.p_hat for run in runs for x in run])))
+    if timed.any():
+        row["cpu_s"], row["wall_s"] = float(np.median(cpu[timed])), float(np.median(wall[timed]))
+        print(
+            f"  time ({int(timed.sum())} replicas timed): CPU s a replica median {row['cpu_s']:.1f} (range "
+            f"{cpu[timed].min():.1f}-{cpu[timed].max():.1f}), wall s median {row['wall_s']:.1f}; a run of "
+            f"{len(runs[0])}: CPU about {len(runs[0]) * row['cpu_s']:.0f} s; nan estimates {row['nan']}"
+        )
     return row
 
 
