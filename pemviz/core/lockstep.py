@@ -13,7 +13,7 @@ import numpy as np
 from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.detectors import Detector, draw_step, reads_state
 from pemviz.core.exact import row_sum
-from pemviz.core.features import FeatureSimulator, FeaturesFn, feature_replay, reports_features
+from pemviz.core.features import FeaturesFn, FeatureSimulator, feature_replay, reports_features
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
 from pemviz.core.rollouts import (
     BatchedObjectsSimulator,

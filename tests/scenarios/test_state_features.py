@@ -1,7 +1,7 @@
 """The state features a scene reports (pemviz.core.features): the crossing's, through the library's tracker, replayed
-from a batch's events; a single-rollout simulator's, through pemviz.scenarios.simulate and state_replay; and check_scenario's features check, passing on the crossing
-(tests/scenarios/test_crossing_scene.py) and failing, in one line naming the feature, rollout and step, on scenes whose
-features are not finite or depend on the chunk size."""
+from a batch's events; a single-rollout simulator's, through pemviz.scenarios.simulate and state_replay; and
+check_scenario's features check, passing on the crossing (tests/scenarios/test_crossing_scene.py) and failing, in one
+line naming the feature, rollout and step, on scenes whose features are not finite or depend on the chunk size."""
 
 from __future__ import annotations
 
