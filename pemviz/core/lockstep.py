@@ -13,7 +13,7 @@ import numpy as np
 from pemviz.core.detector_noise import noise_names_of
 from pemviz.core.detectors import Detector, StepDraw, draw_step, reads_state
 from pemviz.core.exact import row_sum
-from pemviz.core.features import reports_features
+from pemviz.core.features import FeaturesFn, FeatureSimulator, feature_replay, reports_features
 from pemviz.core.rng import JUMPABLE, RQMC_BLOCK, advance, bit_generator_at
 from pemviz.core.rollouts import (
     BatchedObjectsSimulator,
@@ -56,6 +56,31 @@ class Lockstep:
             return
         for i, scene in enumerate(self._scenes):
             scene.step(detected[i], None if noise is None else noise[i])
+
+
+class FeaturedLockstep(Lockstep):
+    """A :class:`Lockstep` of simulators that report the state their controller acts on: each one's
+    ``state_features() -> (ego float64 [F], objects float64 [M, G])``, named ``feature_names`` and
+    ``object_feature_names`` (default none), stacked as a :class:`pemviz.core.features.FeatureSimulator`'s."""
+
+    def __init__(self, sims: Sequence[Simulator]) -> None:
+        super().__init__(sims)
+        self.feature_names = tuple(getattr(self.sims[0], "feature_names", ()))
+        self.object_feature_names = tuple(getattr(self.sims[0], "object_feature_names", ()))
+
+    def state_features(self) -> tuple[np.ndarray, np.ndarray]:
+        n, m, f, g = len(self.sims), self.n_objects, len(self.feature_names), len(self.object_feature_names)
+        ego, objects = np.empty((n, f)), np.empty((n, m, g))
+        for i, s in enumerate(self.sims):
+            ego[i], objects[i] = cast(FeatureSimulator, s).state_features()  # one rollout's [F], [M, G]
+        return ego, objects
+
+
+def lockstep(make_simulator: Callable[[], Simulator], n: int) -> Lockstep:
+    """``n`` fresh simulators of ``make_simulator`` stepped together: a :class:`FeaturedLockstep` where they report
+    state features (:func:`pemviz.core.features.reports_features`), else a :class:`Lockstep`."""
+    sims = [make_simulator() for _ in range(n)]
+    return FeaturedLockstep(sims) if reports_features(sims[0]) else Lockstep(sims)
 
 
 def run_batched(
@@ -359,7 +384,7 @@ def simulate(
             ``uniforms``."""
     if n < 1:
         raise ValueError(f"simulate: n must be >= 1, got {n}")
-    sim = Lockstep([make_simulator() for _ in range(n)])
+    sim = lockstep(make_simulator, n)
     k = draws_per_rollout(sim, target)
     if uniforms is not None:
         uniforms = np.asarray(uniforms, dtype=np.float64)
@@ -401,7 +426,15 @@ def branch(
         :class:`RolloutBatch` [K, T].
     Raises:
         ValueError: ``parent`` / ``at`` out of range."""
-    return branch_rollouts(lambda k: Lockstep([make_simulator() for _ in range(k)]), parents, parent, at, target, rng)
+    return branch_rollouts(functools.partial(lockstep, make_simulator), parents, parent, at, target, rng)
+
+
+def state_replay(make_simulator: Callable[[], Simulator]) -> FeaturesFn:
+    """The :attr:`pemviz.core.problems.Problem.features` of a scene run by :func:`simulate`: the state features of a
+    batch's rollouts, ``make_simulator()``'s ``state_features()`` (ego float64 [F], objects float64 [M, G]) read at
+    each step of the rollouts' events replayed (:func:`pemviz.core.features.replay_features`); None where the
+    simulator reports none."""
+    return feature_replay(functools.partial(lockstep, make_simulator))
 
 
 def check_branch_args(parents: RolloutBatch, parent: np.ndarray, at: np.ndarray) -> None:

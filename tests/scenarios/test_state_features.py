@@ -1,7 +1,7 @@
 """The state features a scene reports (pemviz.core.features): the crossing's, through the library's tracker, replayed
-from a batch's events; and check_scenario's features check, passing on the crossing
-(tests/scenarios/test_crossing_scene.py) and failing, in one line naming the feature, rollout and step, on scenes whose
-features are not finite or depend on the chunk size."""
+from a batch's events; a single-rollout simulator's, through pemviz.scenarios.simulate and state_replay; and
+check_scenario's features check, passing on the crossing (tests/scenarios/test_crossing_scene.py) and failing, in one
+line naming the feature, rollout and step, on scenes whose features are not finite or depend on the chunk size."""
 
 from __future__ import annotations
 
@@ -9,10 +9,13 @@ import dataclasses
 
 import numpy as np
 import pytest
+from pemviz.core.detectors import ConstantDetector
 from pemviz.core.features import check_features, feature_replay, replay_features
+from pemviz.scenarios import simulate, state_replay
 from pemviz.scenarios.crossing.problem import crossing_problem
 from pemviz.scenarios.crossing.scene import FEATURE_NAMES, OBJECT_NAMES, BatchedCrossing, CrossingParams
 from pemviz.scenarios.registry import Scenario
+from pemviz.scenarios.toy import ToyBraking
 from pemviz.stack import tracker
 from pemviz.testing import ConformanceError, check_scenario
 
@@ -92,3 +95,51 @@ def test_check_scenario_names_the_broken_feature(sim, says):
     assert message.startswith(says) and "\n" not in message
     if sim is ChunkDependent:
         assert "replayed in chunks of 21 rollouts" in message and message.endswith("own events)")
+
+
+class MissCounter:
+    """A single-rollout simulator (pemviz.scenarios.simulate) whose controller remembers the steps since the last
+    detection: its state feature ``since`` (ego, F = 1; no object feature)."""
+
+    observation_names, feature_names, object_feature_names = ("gap_m",), ("since",), ()
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self):
+        self.gap, self.since = 20.0, 0
+
+    def observation(self):
+        return np.array([self.gap])
+
+    def state_features(self):  # ego [F], objects [M = 1, 0]
+        return np.array([float(self.since)]), np.zeros((1, 0))
+
+    def step(self, detected):
+        self.since = 0 if detected else self.since + 1
+        self.gap -= 0.1
+
+
+class NoThirdMiss:
+    """A sampler that reads the state: a fair coin, but certain to detect after two misses in a row."""
+
+    reads_state = True
+
+    def detect_logit(self, rows):  # rows [R, 1 + 1]: the gap, then ``since``
+        return np.where(rows[:, 1] >= 2.0, 50.0, 0.0)
+
+
+def test_a_single_rollout_simulator_reports_its_state_to_the_sampler_and_to_the_problem():
+    target = ConstantDetector(0.5)
+    batch = simulate(MissCounter, 64, NoThirdMiss(), target, np.random.default_rng(5), 30)
+    misses = ~batch.detected[:, :, 0]
+    three = misses[:, 2:] & misses[:, 1:-1] & misses[:, :-2]
+    assert not three.any() and (misses[:, 1:] & misses[:, :-1]).any()  # the sampler read `since` at every step
+    features = state_replay(MissCounter)(batch, None)
+    since = np.zeros((64, 30))  # by hand: misses in a row before each step
+    for t in range(1, 30):
+        since[:, t] = np.where(misses[:, t - 1], since[:, t - 1] + 1.0, 0.0)
+    np.testing.assert_array_equal(features.feature("since"), since)
+    assert features.objects.shape == (64, 30, 1, 0) and features.feature_names == ("since",)
+    assert check_features(state_replay(MissCounter), batch, 7) is None
+    assert state_replay(lambda: ToyBraking())(batch, None) is None  # a simulator that reports none
