@@ -141,7 +141,9 @@ RUNGS: tuple[Rung, ...] = (
             CROSSING_MC.format("brake_ttc_s=1.5", "200000 (seed 1), 500000 (seeds 2-7)"),
         ),
         "plain Monte Carlo of 200,000 rollouts: 27 failures, 1.35e-4 [8.9e-5, 1.96e-4]; the default brake_ttc_s=1.3 "
-        "gives 2.98e-4",
+        "gives 2.98e-4; splitting checked against it as a second estimator (--method ams --ams-score lookahead --n "
+        "400 --ams-killed 40 --ams-replicas 8, seeds 1-20): median relative error 0.139, 20/20 within x2, 20/20 "
+        "intervals holding p, at 0.54 of plain Monte Carlo's cost for that error (0.2 asked)",
     ),
     Rung(
         "crossing-1e-5",
