@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import importlib.util
 import io
 import json
 import math
@@ -67,16 +68,24 @@ from pemviz.scenarios.toy.problem import toy_problem
 from pemviz.scenarios.toy.simulator import toy_log_failure_probability
 from pemviz.studies.validation import all_fields, ams_fields
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "research"))  # the zero-variance sampler q*
-from zero_variance import (  # noqa: E402
-    ShiftedPEM,
-    ToyValue,
-    ZeroVarianceDetector,
-    draw_fixed,
-    latched_value,
-    relative_variance,
-    rollouts_for,
-)
+
+def _research_module(name: str) -> Any:
+    """``research/<name>.py`` loaded by its path (research/ is not a package nor a dependency), kept in sys.modules
+    under ``name`` so that its objects pickle to the sweep's worker processes."""
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / "research" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+_q_star = _research_module("zero_variance")  # the zero-variance sampler q*
+ShiftedPEM, ToyValue, ZeroVarianceDetector = _q_star.ShiftedPEM, _q_star.ToyValue, _q_star.ZeroVarianceDetector
+draw_fixed, latched_value = _q_star.draw_fixed, _q_star.latched_value
+relative_variance, rollouts_for = _q_star.relative_variance, _q_star.rollouts_for
 
 Q_STAR = "q*"
 """The label of the exact zero-variance sampler (not a config: built from the problem's exact V)."""
