@@ -2,7 +2,7 @@
 
 The braking scene's only randomness is the detector, so the exact committor of a state, P(crash | state), is an
 enumeration of every detection sequence after it (:func:`pemviz.scenarios.braking.truth.braking_exact` from that
-state). The tilt's committor is a dynamic program on a (gap, speed) grid (:mod:`pemviz.scenarios.braking.tilt`).
+state). The tilt's committor is a dynamic program on a (gap, speed) grid (``research/braking_tilt.py``).
 This script prints
 
 1. the grid committor's solve (steps, seconds) and its value at the branching start against the exact answer;
@@ -19,16 +19,38 @@ This script prints
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from pemviz.core.detectors import PEMDetector
 from pemviz.pem import load_pem
 from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
-from pemviz.scenarios.braking.tilt import BrakingTilt, BrakingTiltDetector, draw_tilted, solve_committor
 from pemviz.scenarios.braking.truth import BrakingStart, braking_exact, branching_start, exact_bound
 from pemviz.scenarios.braking.truth_known import known_log_failure_probability
 from scipy.special import logsumexp
+
+_spec = importlib.util.spec_from_file_location(
+    "braking_tilt", Path(__file__).resolve().parents[1] / "research" / "braking_tilt.py"
+)
+assert _spec is not None and _spec.loader is not None
+_tilt = sys.modules["braking_tilt"] = importlib.util.module_from_spec(_spec)  # research/ is not a package
+_spec.loader.exec_module(_tilt)
+BrakingTilt, BrakingTiltDetector, draw_tilted = _tilt.BrakingTilt, _tilt.BrakingTiltDetector, _tilt.draw_tilted
+solve_committor = _tilt.solve_committor
+
+
+def with_braking_tilt(problem, cfg):
+    """``problem`` with the braking tilt attached where ``cfg`` runs ``method = "tilt"`` on braking (pemviz run has
+    none there: ``research/braking_tilt.py``), else ``problem`` itself."""
+    if cfg.method != "tilt" or cfg.scenario != "braking":
+        return problem
+    from pemviz.pem import load_pem
+
+    return _tilt.tilted_problem(problem, load_pem(cfg.value("pem")))
+
 
 LN10 = np.log(10.0)
 

@@ -168,7 +168,10 @@ def scenario_runs(scenario: str, seeds: range, flags: tuple[str, ...] = (), mc: 
     for seed in seeds:
         cfg = default_config(scenario, seed, flags)
         if problem is None:
-            problem = problem_for(cfg)
+            sys.path.insert(0, str(Path(__file__).resolve().parent))
+            from braking_committor import with_braking_tilt  # braking's tilt: research/braking_tilt.py
+
+            problem = with_braking_tilt(problem_for(cfg), cfg)
             if mc:
                 truth, what = mc_reference(cfg, problem, mc)
             elif problem.exact_log_p is not None:

@@ -70,7 +70,10 @@ def one(job: dict) -> dict:
         cfg = config(**spec)
     except ConfigError as exc:
         return {**job, "refused": str(exc)}
-    problem = problem_for(cfg)
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from braking_committor import with_braking_tilt  # braking's tilt is research's (research/braking_tilt.py)
+
+    problem = with_braking_tilt(problem_for(cfg), cfg)
     truth = problem.exact_log_p if problem.exact_log_p is not None else problem.reference.log_p
     t0 = time.perf_counter()
     with torch_threads(1, blas=1):

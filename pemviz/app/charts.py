@@ -41,31 +41,23 @@ def marginal_plots(gui: viser.GuiApi) -> dict[str, viser.GuiUplotHandle]:
     """The two empty charts of the sampler's q(detect) over visited states: probability and log-odds of a miss, hidden
     until a run has a view to draw (:func:`fill_marginal_plots`)."""
     x = np.linspace(0.0, 13.0, 2)
-    none = np.full(2, np.nan)
     x_scale = up.Scale(time=False, auto=False, range=(0.0, 13.0))
     return {
-        PROB: add_chart(
+        key: add_chart(
             gui,
-            data=(x, none),
+            data=(x, np.full(2, np.nan)),
             series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(BLACK))),
-            title="mean q(detect) vs the PEM",
-            scales={"x": x_scale, "y": up.Scale(auto=False, range=(0.0, 1.04))},
-            axes=axes("gap d (m), 0.5 m bins", "mean q(detect)"),
+            title=title,
+            scales={"x": x_scale, "y": up.Scale(auto=False, range=y_range)},
+            axes=axes("gap d (m), 0.5 m bins", y_label),
             legend=LEGEND,
-            height=230,
+            height=height,
             visible=False,
-        ),
-        LOG_ODDS: add_chart(
-            gui,
-            data=(x, none),
-            series=(up.Series(label="gap (m)"), up.Series(label="PEM", stroke=hex_colour(BLACK))),
-            title="median log q(miss)/q(detect) (nats)",
-            scales={"x": x_scale, "y": up.Scale(auto=False, range=(-6.0, 2.0))},
-            axes=axes("gap d (m), 0.5 m bins", "log-odds (nats)"),
-            legend=LEGEND,
-            height=210,
-            visible=False,
-        ),
+        )
+        for key, title, y_range, y_label, height in (
+            (PROB, "mean q(detect) vs the PEM", (0.0, 1.04), "mean q(detect)", 230),
+            (LOG_ODDS, "median log q(miss)/q(detect) (nats)", (-6.0, 2.0), "log-odds (nats)", 210),
+        )
     }
 
 
@@ -127,14 +119,12 @@ def marginal_note(record: PanelRun | None) -> str:
         why = "no run yet"
     elif _view_stages(record):
         return ""
-    elif any(r.kind == "ce" for r in record.stages):
+    elif any(r.kind == "ce" for r in record.stages) or (
+        record.view is not None and record.view.thresholds is None and record.view.objects_xy is None
+    ):
+        drew = "its stages drew from a proposal, but " if any(r.kind == "ce" for r in record.stages) else ""
         why = (
-            f"{html.escape(record.short_label)}: its stages drew from a proposal, but its scene gives no axis to "
-            "bin q(detect) by (its drawing's proposal_axis, or a detection window on a scene of one object a step)"
-        )
-    elif record.view is not None and record.view.thresholds is None and record.view.objects_xy is None:
-        why = (
-            f"{html.escape(record.short_label)}: its scene gives no axis to bin q(detect) by (its drawing's "
+            f"{html.escape(record.short_label)}: {drew}its scene gives no axis to bin q(detect) by (its drawing's "
             "proposal_axis, or a detection window on a scene of one object a step)"
         )
     else:

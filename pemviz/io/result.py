@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 from xml.etree import ElementTree as ET
 
 from pemviz.core.files import atomic_write
+from pemviz.io.files import write_text_atomic
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
@@ -284,12 +285,7 @@ def write_result_json(path: str | os.PathLike[str], doc: dict[str, Any], *, over
 
     Raises:
         OSError: the file could not be written (nothing is left); OutputExists: ``path`` exists, no ``overwrite``."""
-    text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
-
-    def write(tmp: str) -> None:
-        Path(tmp).write_text(text)
-
-    return atomic_write(path, write, overwrite=overwrite)
+    return write_text_atomic(path, json.dumps(doc, indent=1, allow_nan=False) + "\n", overwrite=overwrite)
 
 
 def junit_xml(doc: dict[str, Any], console: str = "") -> bytes:

@@ -12,7 +12,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pemviz.core.files import atomic_write
 from pemviz.core.severity import share_text
 from pemviz.sinks import colours as C
 from pemviz.sinks.colours import hex_colour
@@ -550,15 +549,8 @@ def write_report(path: str | os.PathLike[str], doc: dict[str, Any], *, overwrite
 
     Raises:
         FileExistsError: a file there and not ``overwrite``; OSError: it cannot be written."""
-    path = Path(path)
+    from pemviz.io.files import write_text_atomic
+
     page, text = report_html(doc), report_markdown(doc)
-
-    def write_page(tmp: str) -> None:
-        Path(tmp).write_text(page, encoding="utf-8")
-
-    def write_twin(tmp: str) -> None:
-        Path(tmp).write_text(text, encoding="utf-8")
-
-    written = atomic_write(path, write_page, overwrite=overwrite)
-    twin = atomic_write(markdown_twin(path), write_twin, overwrite=overwrite)
-    return Path(written), Path(twin)
+    written = write_text_atomic(path, page, overwrite=overwrite)
+    return written, write_text_atomic(markdown_twin(Path(path)), text, overwrite=overwrite)

@@ -145,9 +145,9 @@ def test_every_preset_and_method_round_trips(tmp_path, capsys, run_args):
 
 def test_a_tilted_run_round_trips_and_its_sidecar_names_the_tilt_without_a_weight_bound(tmp_path, capsys):
     """The tilt's rollouts are drawn by the scenario's proposal, not the target: the sidecar says so and declares no
-    bound on the weights (a bound of 1 made every re-estimate warn that log_q was wrong); every braking rollout of the
-    tilt fails, so the mean weight is p itself, below 1, as unbounded weights aimed at the failures give."""
-    run, est, sidecar = run_and_estimate(capsys, tmp_path, "--method", "tilt", "--n", "300")
+    bound on the weights (a bound of 1 made every re-estimate warn that log_q was wrong): the toy's tilt, aimed at
+    the failures, gives a mean weight below 1, as unbounded weights aimed at the failures give."""
+    run, est, sidecar = run_and_estimate(capsys, tmp_path, "--scenario", "toy", "--method", "tilt", "--n", "300")
     assert_round_trip(run, est, sidecar, estimated_log_mu(tmp_path / "estimate.json"))
     assert [(s["max_weight"], [c["sampler"] for c in s["components"]]) for s in sidecar["stages"]] == [
         (None, ["the scenario's tilted proposal"])

@@ -5,7 +5,6 @@ on its batched twin or on highway-env vehicles) and its safety formula :func:`br
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Iterator
 
 import numpy as np
@@ -107,11 +106,6 @@ def braking_problem(pem: GapModel, params: BrakingParams | None = None, sim: str
             for x in scale.levels
         }
         exact = {x: v for x, v in known.items() if v is not None}
-    tilt = None
-    if hasattr(pem, "logit_at_gap") and sim == "batched":
-        from pemviz.scenarios.braking.tilt import BrakingTilt
-
-        tilt = functools.partial(BrakingTilt, p, pem.logit_at_gap, PEMDetector(pem))
     look_ahead = None
     if hasattr(pem, "logit_at_gap") and p.crash_gap_m < never_detected_min_gap_m(p):
         look_ahead = braking_look_ahead(p, pem.logit_at_gap)
@@ -137,7 +131,6 @@ def braking_problem(pem: GapModel, params: BrakingParams | None = None, sim: str
         drawing=BrakingDrawing(p),
         n_steps=p.n_steps,
         dt_s=p.dt_s,
-        tilt=tilt,
         description=(
             f"automated braking behind a lead car {p.gap0_m:.1f} m ahead, the PEM as the camera's detector, "
             f"{p.n_steps} steps of {p.dt_s:g} s{', latched brake' if p.latched_brake else ''}; failure: "

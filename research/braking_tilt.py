@@ -1,6 +1,9 @@
-"""The braking scenario's tilted proposal (``method = "tilt"``): each detection of the lead drawn in proportion to its
-probability under the PEM times an approximate committor V (the probability of a crash after it), mixed defensively
-with the PEM, every weight p / q exact.
+"""The braking scenario's tilted proposal (``method = "tilt"`` on a problem from :func:`tilted_problem`): each
+detection of the lead drawn in proportion to its probability under the PEM times an approximate committor V (the
+probability of a crash after it), mixed defensively with the PEM, every weight p / q exact. Research that pemviz does
+not ship (its braking default is the cross-entropy sampler): a comparator of docs/validation.md ("How far from the
+limit", the estimators' matrix), used by ``benchmarks/braking_committor.py`` and ``benchmarks/honest_numbers.py``,
+tested by ``research/tests/test_braking_tilt.py``.
 
 V solves the backward equation V_t(s) = sum_a p(a | s) V_{t+1}(s'_a), V = 1 below the crash gap, V_T = 0 (Kollman,
 Baggerly, Cox & Picard 1999, Ann. Appl. Probab. 9(2)); :func:`solve_committor` solves it on a (gap, speed) grid per
@@ -16,13 +19,13 @@ Units: metres, m/s, seconds; log-probabilities in nats."""
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import log_expit
-
-from pemviz.core.detectors import Detector
+from pemviz.core.detectors import Detector, PEMDetector
 from pemviz.core.lockstep import DEFAULT_CHUNK_SIZE, simulate_rollouts
 from pemviz.core.problems import Problem, StateScore
 from pemviz.core.rollouts import RolloutBatch
@@ -30,6 +33,7 @@ from pemviz.scenarios.braking.batched import BatchedBraking
 from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
 from pemviz.scenarios.braking.truth import branching_start
 from pemviz.scenarios.braking.truth_known import pem_fingerprint
+from scipy.special import log_expit
 
 LogitFn = Callable[[np.ndarray], np.ndarray]
 
@@ -336,3 +340,16 @@ class BrakingCommittorScore(StateScore):
         for t in range(self.committor.first_step, obs.shape[1]):
             out[:, t] = -self.committor.log_value(t, obs[:, t, 0], obs[:, t, 1], obs[:, t, 3] > 0.5)
         return out
+
+
+def tilted_problem(problem: Problem, pem, params: BrakingParams | None = None) -> Problem:
+    """``problem`` (the braking problem of ``pem`` and ``params`` on its batched twin, e.g.
+    ``pemviz.scenarios.problems.problem_for(config)``) with this tilted proposal as its ``tilt``, so that
+    ``method = "tilt"`` and ``ams_score = "committor"`` run on it (``Experiment(config, problem=...)``).
+
+    Raises:
+        ValueError: a problem not on the batched twin (the tilt reads its controller state: ``--sim batched``)."""
+    if problem.stream is None:
+        raise ValueError("the braking tilt runs on the batched twin only (sim = 'batched')")
+    tilt = functools.partial(BrakingTilt, params or BrakingParams(), pem.logit_at_gap, PEMDetector(pem))
+    return dataclasses.replace(problem, tilt=tilt)

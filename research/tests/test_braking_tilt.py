@@ -1,4 +1,4 @@
-"""The braking scene's tilted proposal (:mod:`pemviz.scenarios.braking.tilt`) and the exact committor of a state
+"""The braking scene's tilted proposal (``research/braking_tilt.py``) and the exact committor of a state
 (:func:`pemviz.scenarios.braking.truth.braking_exact` from a given state).
 
 - The exact committor of a state 10-12 steps before the end, by enumeration, equals a plain recursion over the
@@ -23,12 +23,21 @@ from pemviz.config import ExperimentConfig
 from pemviz.core.detectors import PEMDetector
 from pemviz.engine.experiment import Experiment
 from pemviz.pem import load_pem
-from pemviz.scenarios.braking import tilt as tilt_module
 from pemviz.scenarios.braking.simulator import BrakingParams, braking_step, lead_speeds
-from pemviz.scenarios.braking.tilt import LOG_V_FLOOR, TILT_EPS, BrakingTilt, BrakingTiltDetector, draw_tilted
 from pemviz.scenarios.braking.truth import BrakingStart, braking_exact, branching_start, exact_bound
 from pemviz.scenarios.problems import build_problem
 from scipy.special import log_expit, logsumexp
+
+from conftest import REPO, load_script
+
+tilt_module = load_script(REPO / "research" / "braking_tilt.py")
+LOG_V_FLOOR, TILT_EPS, BrakingTilt = tilt_module.LOG_V_FLOOR, tilt_module.TILT_EPS, tilt_module.BrakingTilt
+BrakingTiltDetector, draw_tilted = tilt_module.BrakingTiltDetector, tilt_module.draw_tilted
+
+
+def _tilted_main():
+    """The braking problem ``main`` with this tilt attached (:func:`tilted_problem`)."""
+    return tilt_module.tilted_problem(build_problem("main"), load_pem())
 
 
 @pytest.fixture(scope="module")
@@ -141,7 +150,7 @@ def test_the_same_seed_gives_the_same_tilted_rollouts_for_any_chunk(pem, committ
 
 def test_a_second_run_reuses_the_solve_and_gives_the_same_estimate():
     tilt_module._SOLVED.clear()
-    problem = build_problem("main")
+    problem = _tilted_main()
     cfg = dataclasses.replace(ExperimentConfig.of(method="tilt", seed=4), n_per_stage=400)
     first = Experiment(cfg, problem=problem).run().final
     again = Experiment(cfg, problem=problem).run().final
@@ -156,7 +165,7 @@ def test_the_committor_scores_splitting_on_braking_and_its_solve_counts():
     from pemviz.estimators.ams import run_ams
 
     tilt_module._SOLVED.clear()
-    problem = build_problem("main")
+    problem = _tilted_main()
     solved = run_ams(problem, 100, 10, seed=1, score="committor")
     reused = run_ams(problem, 100, 10, seed=1, score="committor")
     assert solved.estimate().log_mu_hat == reused.estimate().log_mu_hat
@@ -171,14 +180,17 @@ def test_the_committor_scores_splitting_on_braking_and_its_solve_counts():
     )
 
 
-def test_the_tilt_on_highway_env_vehicles_is_refused_in_one_line(capsys):
-    """The tilt reads the batched twin's controller state: on the highway-env simulator it is refused, saying where it
-    runs."""
+def test_the_tilt_on_highway_env_vehicles_is_refused_and_pemviz_run_has_none_on_braking(capsys):
+    """The tilt reads the batched twin's controller state: on the highway-env simulator it is refused; ``pemviz run``
+    offers no tilt on braking (it moved here), saying so in one line."""
     from pemviz.cli import main
+    from pemviz.scenarios.braking.problem import braking_problem
 
-    assert main(["run", "--method", "tilt", "--sim", "highway-env", "--no-record"]) != 0
+    with pytest.raises(ValueError, match="batched twin only"):
+        tilt_module.tilted_problem(braking_problem(load_pem(), sim="highway-env"), load_pem())
+    assert main(["run", "--method", "tilt", "--no-record"]) != 0
     err = capsys.readouterr().err.strip()
-    assert err == (
-        "pemviz run: error: method tilt: the braking problem has no tilted proposal of its own on this "
-        "simulator (a scenario's may run on its batched twin only: --sim batched); use adaptive or mc"
+    assert (
+        err
+        == "pemviz run: error: method tilt: the braking problem has no tilted proposal of its own; use adaptive or mc"
     )
