@@ -17,8 +17,9 @@ the PEM's logit plus a linear function of the row and its features, the errors d
 (``--plain-fallback 0``: the proposal's own answer), ``state-only-400`` (the same at N = 400 a stage, the default's
 retry's N), and the proposal's variants, each alone: ``network-only`` (``--state-model network``: the paper's
 network over the row and its features), ``spline-only`` (``--state-model spline``: the PEM's logit plus an additive
-function of the row and its features, hats at their quantiles), ``fit-errors-only`` (``--state-fit-errors``: the errors' location and
-log-scale shifts fitted too), ``network-fit-errors-only`` (both) and ``network-fit-errors-only-400`` (both, N = 400).
+function of the row and its features, hats at their quantiles), ``fit-errors-only`` (``--state-fit-errors``: the
+errors' location and log-scale shifts fitted too), ``network-fit-errors-only`` (both) and
+``network-fit-errors-only-400`` (both, N = 400).
 
 Usage::
 

@@ -122,8 +122,9 @@ class StateCrossEntropy(CrossEntropy):
 
     def _new_proposal(self, batch: RolloutBatch) -> Proposal:
         """A :class:`FeatureProposal` (``state_model = "network"``) or a :class:`~pemviz.estimators.state_glm.StateGLM`
-        (``"glm"``, linear; ``"spline"``, additive) over every column of the rows with their state features: the first (the gap) scaled by the
-        problem's ``h_scale``, the others by their largest magnitude in the pretraining rollouts."""
+        (``"glm"``, linear; ``"spline"``, additive) over every column of the rows with their state features: the first
+        (the gap) scaled by the problem's ``h_scale``, the others by their largest magnitude in the pretraining
+        rollouts."""
         rows, _ = batch.events()
         scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])]
         shape = (tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
