@@ -16,8 +16,10 @@ Monte Carlo), ``state`` (``--method state``: the same stages and fallback with t
 the PEM's logit plus a linear function of the row and its features, the errors drawn from the PEM), ``state-only``
 (``--plain-fallback 0``: the proposal's own answer), ``state-only-400`` (the same at N = 400 a stage, the default's
 retry's N), and the proposal's variants, each alone: ``network-only`` (``--state-model network``: the paper's
-network over the row and its features), ``fit-errors-only`` (``--state-fit-errors``: the errors' location and
-log-scale shifts fitted too), ``network-fit-errors-only`` (both) and ``network-fit-errors-only-400`` (both, N = 400).
+network over the row and its features), ``spline-only`` (``--state-model spline``: the PEM's logit plus an additive
+function of the row and its features, hats at their quantiles), ``fit-errors-only`` (``--state-fit-errors``: the
+errors' location and log-scale shifts fitted too), ``network-fit-errors-only`` (both) and
+``network-fit-errors-only-400`` (both, N = 400).
 
 Usage::
 
@@ -47,6 +49,7 @@ SAMPLERS: dict[str, tuple[str, ...]] = {
     "state-only": (*STATE, "--plain-fallback", "0"),
     "state-only-400": (*STATE, "--plain-fallback", "0", "--n", "400"),
     "network-only": (*STATE, "--state-model", "network", "--plain-fallback", "0"),
+    "spline-only": (*STATE, "--state-model", "spline", "--plain-fallback", "0"),
     "fit-errors-only": (*STATE, "--state-fit-errors", "--plain-fallback", "0"),
     "network-fit-errors-only": (*STATE, "--state-model", "network", "--state-fit-errors", "--plain-fallback", "0"),
     "network-fit-errors-only-400": (

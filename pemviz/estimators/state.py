@@ -122,13 +122,14 @@ class StateCrossEntropy(CrossEntropy):
 
     def _new_proposal(self, batch: RolloutBatch) -> Proposal:
         """A :class:`FeatureProposal` (``state_model = "network"``) or a :class:`~pemviz.estimators.state_glm.StateGLM`
-        (``"glm"``) over every column of the rows with their state features: the first (the gap) scaled by the
-        problem's ``h_scale``, the others by their largest magnitude in the pretraining rollouts."""
+        (``"glm"``, linear; ``"spline"``, additive) over every column of the rows with their state features: the first
+        (the gap) scaled by the problem's ``h_scale``, the others by their largest magnitude in the pretraining
+        rollouts."""
         rows, _ = batch.events()
         scales = [self.problem.h_scale] + [float(np.max(np.abs(rows[:, :, j]))) or 1.0 for j in range(1, rows.shape[2])]
         shape = (tuple(range(rows.shape[2])), tuple(scales), tuple(rows[0, 0]))
-        if self.own.state_model == "glm":
-            from pemviz.estimators.state_glm import StateGLM
+        if self.own.state_model in ("glm", "spline"):
+            from pemviz.estimators.state_glm import SPLINE_KNOTS, StateGLM
 
-            return StateGLM(*shape, self._first)
+            return StateGLM(*shape, self._first, SPLINE_KNOTS if self.own.state_model == "spline" else 0)
         return FeatureProposal(*shape)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pemviz.methods.adaptive import CrossEntropySettings
 from pemviz.methods.rows import setting
 
-STATE_MODELS = ("network", "glm")
+STATE_MODELS = ("network", "glm", "spline")
 """The state proposal's model of q(detect) (:attr:`StateSettings.state_model`)."""
 
 
@@ -26,7 +26,8 @@ class StateSettings(CrossEntropySettings):
     state_share: the defensive mixture over whole rollouts (Hesterberg 1995; Owen & Zhou 2000): each weight at most
         1 / ``state_share``.
     state_model: ``network`` is :class:`pemviz.core.sampling.FeatureProposal`, ``glm``
-        :class:`pemviz.estimators.state_glm.StateGLM`; the error shifts, where fitted, are linear either way.
+        :class:`pemviz.estimators.state_glm.StateGLM` (linear), ``spline`` the same with each column expanded into
+        hats at its quantiles (additive); the error shifts, where fitted, are linear either way.
     state_fit_errors: the shifts are :class:`pemviz.core.torch_fits.NoiseShift`. The defaults (``glm``, the PEM's
         errors) are the variant measured closest to the answer on the crossing (the Validation page)."""
 
@@ -52,6 +53,7 @@ class StateSettings(CrossEntropySettings):
         choice_help=(
             ("network", "the paper's network over the row and its features"),
             ("glm", "the PEM's own logit plus a linear function of the row and its features"),
+            ("spline", "the PEM's own logit plus an additive function (hats at each feature's quantiles) of them"),
         ),
     )
     state_fit_errors: bool = setting(

@@ -104,12 +104,60 @@ def test_the_existing_methods_draw_and_weigh_the_same_rollouts_as_before_the_fea
     assert fingerprint(**settings) == before
 
 
-def test_the_state_method_is_unbiased_on_the_toy_from_a_poor_start():
+@pytest.mark.parametrize("model", ["network", "spline"])
+def test_the_state_method_is_unbiased_on_the_toy_from_a_poor_start(model):
     # check_estimator's runs: 2 stages of 2,000 rollouts from a proposal pretrained on the PEM (p = 0.9 of detecting:
-    # far from the failures' all-miss law), 8 seeds against the exact 1e-3. The network model here; the default glm
-    # is the same check in tests/scenarios/test_conformance.py (test_every_method_passes_the_kit[state])
-    report = check_estimator("state", settings={"state_model": "network"})
+    # far from the failures' all-miss law), 8 seeds against the exact 1e-3. The network and the additive model here;
+    # the default glm is the same check in tests/scenarios/test_conformance.py (test_every_method_passes_the_kit[state])
+    report = check_estimator("state", settings={"state_model": model})
     assert report.passed == ("interface", "unbiased", "verdicts", "rollout-file", "recording")
+
+
+def test_the_hats_are_the_piecewise_linear_b_splines_by_hand():
+    from pemviz.estimators.state_glm import hat_basis, quantile_knots
+
+    x = np.array([-1.0, 0.0, 0.5, 1.0, 2.0, 2.5, 3.0, 5.0])
+    # knots 0, 1, 3: hat 1 rises 0 -> 1 over [0, 1] and falls to 0 over [1, 3]; hat 2 rises over [1, 3], then stays 1
+    expected = [[0, 0], [0, 0], [0.5, 0], [1, 0], [0.5, 0.5], [0.25, 0.75], [0, 1], [0, 1]]
+    np.testing.assert_array_equal(hat_basis(x, np.array([0.0, 1.0, 3.0])), np.array(expected))
+    # the quantiles of 0, 0, 0, 0, 1, 2 at levels 0, 1/2, 1 are 0, 0, 2: two distinct knots; a constant column none
+    np.testing.assert_array_equal(quantile_knots(np.array([0.0, 0, 0, 0, 1, 2]), 3), [0.0, 2.0])
+    assert quantile_knots(np.full(5, 7.0), 8) is None
+    with pytest.raises(ValueError, match="at least two increasing"):
+        hat_basis(x, np.array([1.0, 1.0]))
+
+
+def test_the_additive_glm_fits_a_window_and_a_rows_value_is_the_same_whatever_rows_it_is_asked_with():
+    from pemviz.estimators.state_glm import StateGLM
+
+    class FlatPem:  # logit p(detect) = 2 wherever (rows [N, 1])
+        def detect_logit(self, rows):
+            return np.full(len(rows), 2.0)
+
+    rng = np.random.default_rng(3)
+    t = rng.integers(0, 80, 4000).astype(np.float64)
+    rows = np.column_stack([rng.uniform(5.0, 30.0, 4000), t])
+    window = (t >= 30) & (t < 45)  # the elites miss half the time inside the window, as the PEM (0.12) outside it
+    counts = np.column_stack([np.where(window, 0.5, 0.12), np.where(window, 0.5, 0.88)])
+    spline = StateGLM((0, 1), (30.0, 80.0), (22.0, 0.0), FirstColumns(FlatPem(), 1), knots=8)
+    linear = StateGLM((0, 1), (30.0, 80.0), (22.0, 0.0), FirstColumns(FlatPem(), 1))
+    for model in (spline, linear):
+        model.fit_counts(rows, counts)
+    grid = np.column_stack([np.full(80, 20.0), np.arange(80.0)])
+    miss = {id(m): 1.0 / (1.0 + np.exp(m.detect_logit(grid))) for m in (spline, linear)}
+    # the hats raise q(miss) inside the window (steps 30-44: its peak there, above 0.3 on average) and leave it
+    # near the PEM's 0.12 away from it; a function linear in t cannot: it stays flat at the elites' mean, 0.19
+    assert 30 <= np.argmax(miss[id(spline)]) < 45 and miss[id(spline)][30:45].mean() > 0.3
+    assert miss[id(spline)][:20].max() < 0.18 and miss[id(spline)][60:].max() < 0.16
+    assert np.ptp(miss[id(linear)]) < 0.02 and miss[id(linear)].max() < 0.2
+    # the linear part by hand: its hats at the knots times w, plus b (exact arithmetic on a grid: ~1e-7 of float64's)
+    by_hand = spline.terms(grid) @ spline.coef[:-1] + spline.coef[-1]
+    np.testing.assert_allclose(spline.linear(grid), by_hand, rtol=1e-6, atol=1e-7)
+    # a row's value whatever rows it is asked with, bit for bit
+    alone = np.concatenate([spline.detect_logit(grid[i : i + 1]) for i in range(80)])
+    np.testing.assert_array_equal(spline.detect_logit(np.concatenate([rows[:500], grid]))[500:], alone)
+    frozen = copy.deepcopy(spline)
+    np.testing.assert_array_equal(frozen.detect_logit(grid), spline.detect_logit(grid))
 
 
 def test_the_glm_is_the_pem_until_fitted_and_its_fit_moves_it_toward_the_elites_misses():
