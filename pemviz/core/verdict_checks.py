@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from pemviz.core.estimate import KHAT_UNRELIABLE, MIN_ESS_RELIABLE, MIN_FAILURES, khat_threshold
+from pemviz.core.estimate import KHAT_UNRELIABLE, MIN_ESS_RELIABLE, MIN_FAILURES, OUT_OF_BATCH_SHARE, khat_threshold
 
 SAMPLINGS = ("importance", "plain", "splitting")
 """How an estimate's rollouts were drawn: importance sampling (weights p / q), plain Monte Carlo (the PEM itself,
@@ -46,8 +46,16 @@ class Check:
         return f"{self.found}: {self.rule}, " + ("passed" if self.passed else f"failed ({self.fails_to})")
 
 
-def verdict_checks(n: int, n_failures: int, ess: float | None, khat: float | None, sampling: str) -> list[Check]:
-    """The failures, ESS and k-hat checks of an estimate (module docstring), from its figures alone.
+def verdict_checks(
+    n: int,
+    n_failures: int,
+    ess: float | None,
+    khat: float | None,
+    sampling: str,
+    out_of_batch: float | None = None,
+) -> list[Check]:
+    """The failures, ESS and k-hat checks of an estimate (module docstring), from its figures alone, and where given
+    the out-of-batch check (:meth:`pemviz.core.estimate.Estimate.out_of_batch`).
 
     Args:
         n: rollouts used (>= 1).
@@ -55,8 +63,10 @@ def verdict_checks(n: int, n_failures: int, ess: float | None, khat: float | Non
         ess: effective sample size of the failure weights (None or nan: not a finite number).
         khat: Pareto k-hat of the weights' tail (None or nan: not fitted).
         sampling: one of :data:`SAMPLINGS`.
+        out_of_batch: the largest share of the estimate one failure of an earlier stage would carry under the final
+            proposal (:attr:`pemviz.core.estimate.Estimate.out_of_batch_share`); None or nan: not computed.
     Returns:
-        Three checks: failures, effective sample size, Pareto k-hat.
+        Three checks: failures, effective sample size, Pareto k-hat; a fourth, out-of-batch failures, where given.
     Raises:
         ValueError: an unknown ``sampling``."""
     if sampling not in SAMPLINGS:
@@ -70,7 +80,13 @@ def verdict_checks(n: int, n_failures: int, ess: float | None, khat: float | Non
         n_failures >= MIN_FAILURES,
         "doubtful" if n_failures else "unreliable: no failure",
     )
-    return [failures, _ess_check(n_failures, ess_f, sampling), _khat_check(n, n_failures, ess_f, khat_f, sampling)]
+    checks = [failures, _ess_check(n_failures, ess_f, sampling), _khat_check(n, n_failures, ess_f, khat_f, sampling)]
+    if out_of_batch is not None and not math.isnan(out_of_batch) and sampling == "importance":
+        rule = f"at most {OUT_OF_BATCH_SHARE:g} of the estimate by one failure of an earlier stage under the final "
+        rule += "proposal"
+        found = f"largest share {out_of_batch:.2g}"
+        checks.append(Check("out-of-batch failures", found, rule, out_of_batch <= OUT_OF_BATCH_SHARE, "doubtful"))
+    return checks
 
 
 def _ess_check(n_failures: int, ess: float, sampling: str) -> Check:
