@@ -56,14 +56,20 @@ KHAT_UNRELIABLE = 0.7
 few weights decide the estimate, and no number of further rollouts of this size fixes it quickly."""
 
 
-OUT_OF_BATCH_SHARE = 0.05
-"""The largest share of the final batch's estimate, w_K(x) / (N mu_hat), that one failure drawn by an earlier stage
-may carry under the final proposal q_K (:meth:`Estimate.out_of_batch`). w_K(x) / mu_hat is about the ratio of the
-zero-variance proposal p(x | fail) to q_K at x, so a larger share says q_K rarely draws where that ratio is large, and
-the mass it misses there is a bias no weight of its own batch can show (cf. Chatterjee & Diaconis, "The sample size
-required in importance sampling", Ann. Appl. Probab. 28(2), 2018: what q_K needs grows with that ratio). Measured
-(docs/validation.md, "A check the weights cannot make"): at most 0.0XX over the default braking run's 200 seeds (a
-near-optimal proposal: ~1 / N), 0.06-540 on the acc-follow scene's wrong ``reliable`` runs."""
+OUT_OF_BATCH_SHARE = 0.04
+"""The share of the final batch's estimate, w_K(x) / (N mu_hat), that :data:`OUT_OF_BATCH_FAILURES` failures drawn by
+earlier stages must each exceed under the final proposal q_K for a ``reliable`` estimate to become ``doubtful``
+(:meth:`Estimate.out_of_batch`). w_K(x) / mu_hat is about the ratio of the zero-variance proposal p(x | fail) to q_K
+at x, so such failures say that q_K rarely draws a region where that ratio is large, and the mass it misses there is
+a bias no weight of its own batch can show (what a proposal needs grows with that ratio: Chatterjee & Diaconis,
+"The sample size required in importance sampling", Ann. Appl. Probab. 28(2), 2018). Measured (docs/validation.md,
+"A check the weights cannot make"): the braking run's near-optimal proposal (shares about 1 / N) has a second largest
+share of at most 0.025 in 200 seeds; the acc-follow scene's wrong ``reliable`` runs 0.048-247."""
+
+OUT_OF_BATCH_FAILURES = 2
+"""How many failures of earlier stages must each exceed :data:`OUT_OF_BATCH_SHARE`: one alone can be a single unlikely
+path (the braking run, seed 100: one failure at 2.6e5 of the estimate, the next at 0.018, and an estimate 1.004 times
+the exact answer), two say a region."""
 
 
 @dataclass(frozen=True)
@@ -101,8 +107,8 @@ class Estimate:
     evidence: BettingEvidence | None = field(default=None, compare=False, repr=False)
     markov_logs: tuple[float, ...] = ()
     out_of_batch_share: float = field(default=math.nan, compare=False)
-    """The largest share of mu_hat one failure of an earlier stage would carry under the final proposal
-    (:meth:`out_of_batch`; nan: not computed)."""
+    """The :data:`OUT_OF_BATCH_FAILURES`-th largest share of mu_hat a failure of an earlier stage would carry under the
+    final proposal (:meth:`out_of_batch`; nan: not computed)."""
 
     @property
     def interval_backed(self) -> bool:
@@ -214,19 +220,21 @@ class Estimate:
         )
         return dataclasses.replace(self, verdict="unreliable", reason=reason)
 
-    def out_of_batch(self, log_w_max: float | None, n_final: int) -> Estimate:
-        """This estimate, or, when it is ``reliable`` and a failure drawn by an earlier stage would carry more than
-        :data:`OUT_OF_BATCH_SHARE` of it in a final batch of ``n_final`` rollouts by itself (``log_w_max``: the
-        largest log p / q_K of those failures under the final proposal, nats; None: none held), the same numbers with
-        the verdict ``doubtful``: the final proposal misses a region that carries part of p."""
-        if log_w_max is None or self.verdict != "reliable" or not self.log_mu_hat > -math.inf or n_final < 1:
+    def out_of_batch(self, log_w: np.ndarray | None, n_final: int) -> Estimate:
+        """This estimate with :attr:`out_of_batch_share` set: the :data:`OUT_OF_BATCH_FAILURES`-th largest share
+        w_K(x) / (``n_final`` mu_hat) of the failures drawn by earlier stages (``log_w``: their log p / q_K under the
+        final proposal, float64 [R], nats; None: none held, unchanged); ``doubtful`` where that share exceeds
+        :data:`OUT_OF_BATCH_SHARE` and the verdict was ``reliable``: the final proposal misses a region that carries
+        part of p."""
+        if log_w is None or log_w.size < OUT_OF_BATCH_FAILURES or not self.log_mu_hat > -math.inf or n_final < 1:
             return self
-        share = math.exp(min(log_w_max - self.log_mu_hat - math.log(n_final), 700.0))
-        if not share > OUT_OF_BATCH_SHARE:
+        log_kth = float(np.sort(log_w)[-OUT_OF_BATCH_FAILURES])
+        share = math.exp(min(log_kth - self.log_mu_hat - math.log(n_final), 700.0))
+        if not (share > OUT_OF_BATCH_SHARE and self.verdict == "reliable"):
             return dataclasses.replace(self, out_of_batch_share=share)
         reason = (
-            f"a failure an earlier stage drew would carry {share:.2g} of the final batch's estimate alone (more than "
-            f"{OUT_OF_BATCH_SHARE:g}): the final proposal rarely draws where p/q is large"
+            f"{OUT_OF_BATCH_FAILURES} failures earlier stages drew would each carry {share:.2g} or more of the final "
+            f"batch's estimate (more than {OUT_OF_BATCH_SHARE:g}): the final proposal rarely draws where p/q is large"
         )
         return dataclasses.replace(self, verdict="doubtful", reason=reason, out_of_batch_share=share)
 

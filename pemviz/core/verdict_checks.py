@@ -10,7 +10,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from pemviz.core.estimate import KHAT_UNRELIABLE, MIN_ESS_RELIABLE, MIN_FAILURES, OUT_OF_BATCH_SHARE, khat_threshold
+from pemviz.core.estimate import (
+    KHAT_UNRELIABLE,
+    MIN_ESS_RELIABLE,
+    MIN_FAILURES,
+    OUT_OF_BATCH_FAILURES,
+    OUT_OF_BATCH_SHARE,
+    khat_threshold,
+)
 
 SAMPLINGS = ("importance", "plain", "splitting")
 """How an estimate's rollouts were drawn: importance sampling (weights p / q), plain Monte Carlo (the PEM itself,
@@ -63,8 +70,8 @@ def verdict_checks(
         ess: effective sample size of the failure weights (None or nan: not a finite number).
         khat: Pareto k-hat of the weights' tail (None or nan: not fitted).
         sampling: one of :data:`SAMPLINGS`.
-        out_of_batch: the largest share of the estimate one failure of an earlier stage would carry under the final
-            proposal (:attr:`pemviz.core.estimate.Estimate.out_of_batch_share`); None or nan: not computed.
+        out_of_batch: :attr:`pemviz.core.estimate.Estimate.out_of_batch_share`, the share of the estimate that the
+            failures of earlier stages would carry under the final proposal; None or nan: not computed.
     Returns:
         Three checks: failures, effective sample size, Pareto k-hat; a fourth, out-of-batch failures, where given.
     Raises:
@@ -82,9 +89,11 @@ def verdict_checks(
     )
     checks = [failures, _ess_check(n_failures, ess_f, sampling), _khat_check(n, n_failures, ess_f, khat_f, sampling)]
     if out_of_batch is not None and not math.isnan(out_of_batch) and sampling == "importance":
-        rule = f"at most {OUT_OF_BATCH_SHARE:g} of the estimate by one failure of an earlier stage under the final "
-        rule += "proposal"
-        found = f"largest share {out_of_batch:.2g}"
+        rule = (
+            f"at most {OUT_OF_BATCH_SHARE:g}: fewer than {OUT_OF_BATCH_FAILURES} failures of earlier stages above it "
+            "under the final proposal"
+        )
+        found = f"share {out_of_batch:.2g} (failure {OUT_OF_BATCH_FAILURES} by share)"
         checks.append(Check("out-of-batch failures", found, rule, out_of_batch <= OUT_OF_BATCH_SHARE, "doubtful"))
     return checks
 

@@ -321,14 +321,13 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         more (weighting the stages of adaptive importance sampling: Portier & Delyon, "Asymptotic optimality of
         adaptive importance sampling", NeurIPS 2018).
 
-        Its verdict is at most :attr:`verdict_cap`, and ``doubtful`` where a failure of the pool weighed under the
-        final proposal would carry more than :data:`~pemviz.core.estimate.OUT_OF_BATCH_SHARE` of the estimate alone
+        Its verdict is at most :attr:`verdict_cap`, and ``doubtful`` where failures of the pool weighed under the
+        final proposal would each carry more than :data:`~pemviz.core.estimate.OUT_OF_BATCH_SHARE` of the estimate
         (:meth:`~pemviz.core.estimate.Estimate.out_of_batch`, :meth:`out_of_batch_log_weights`)."""
         est, used = self._result()
         est = est.at_most(self.verdict_cap)
         log_w = self.out_of_batch_log_weights(self.ce.n_final) if est.verdict == "reliable" else None
-        log_w_max = None if log_w is None or not log_w.size else float(log_w.max())
-        return est.out_of_batch(log_w_max, self.final_rollouts()), used
+        return est.out_of_batch(log_w, self.final_rollouts()), used
 
     @property
     def verdict_cap(self) -> tuple[str, str] | None:

@@ -81,8 +81,8 @@ def test_the_out_of_batch_check_is_a_fourth_line_only_where_computed_and_fails_a
     assert len(verdict_checks(1800, 1402, 476.8, 0.21, "importance", math.nan)) == 3
     ok = verdict_checks(1800, 1402, 476.8, 0.21, "importance", 0.012)[3]
     assert ok.passed and ok.text() == (
-        "largest share 0.012: at most 0.05 of the estimate by one failure of an earlier stage under the final "
-        "proposal, passed"
+        "share 0.012 (failure 2 by share): at most 0.04: fewer than 2 failures of earlier stages above it under the "
+        "final proposal, passed"
     )
-    bad = verdict_checks(1800, 1402, 476.8, 0.21, "importance", 0.062)[3]
+    bad = verdict_checks(1800, 1402, 476.8, 0.21, "importance", 0.048)[3]
     assert bad.passed is False and bad.text().endswith("failed (doubtful)")

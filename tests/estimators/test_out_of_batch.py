@@ -11,7 +11,7 @@ import pytest
 from pemviz.config import ExperimentConfig
 from pemviz.core import estimate as estimate_module
 from pemviz.core.detectors import logit
-from pemviz.core.estimate import OUT_OF_BATCH_SHARE, estimate
+from pemviz.core.estimate import OUT_OF_BATCH_FAILURES, OUT_OF_BATCH_SHARE, estimate
 from pemviz.engine.experiment import Experiment
 from pemviz.estimators import cross_entropy as ce
 from pemviz.scenarios.problems import build_problem
@@ -27,18 +27,22 @@ def _reliable():
     return e
 
 
-def test_a_failure_that_would_carry_more_than_the_share_makes_a_reliable_estimate_doubtful():
+def test_two_failures_that_would_each_carry_more_than_the_share_make_a_reliable_estimate_doubtful():
     e = _reliable()
     n = 1000
-    # share = w / (N mu_hat): 0.04 is kept, 0.06 makes it doubtful
-    kept = e.out_of_batch(math.log(0.04 * n) + e.log_mu_hat, n)
-    assert kept == e and kept.verdict == "reliable" and math.isclose(kept.out_of_batch_share, 0.04)
-    flagged = e.out_of_batch(math.log(0.06 * n) + e.log_mu_hat, n)
-    assert flagged.verdict == "doubtful" and "0.06 of the final batch's estimate" in flagged.reason
+
+    def at(*shares):  # log w_K of failures carrying these shares of N mu_hat
+        return np.log(np.array(shares) * n) + e.log_mu_hat
+
+    kept = e.out_of_batch(at(0.001, 0.05, 0.03), n)  # one above 0.04, the next below it
+    assert kept == e and kept.verdict == "reliable" and math.isclose(kept.out_of_batch_share, 0.03)
+    assert e.out_of_batch(at(1e5, 0.01), n).verdict == "reliable"  # one alone, however large: a single path
+    flagged = e.out_of_batch(at(0.06, 0.001, 0.05), n)
+    assert flagged.verdict == "doubtful" and "each carry 0.05 or more of the final batch's estimate" in flagged.reason
     assert flagged.log_mu_hat == e.log_mu_hat and flagged.log_ci == e.log_ci  # the numbers stay, only the verdict
-    assert OUT_OF_BATCH_SHARE == 0.05
-    assert e.out_of_batch(None, n) is e  # no failure held apart: nothing to check
-    assert flagged.out_of_batch(0.0, n) is flagged  # a verdict already below reliable keeps its reason
+    assert (OUT_OF_BATCH_SHARE, OUT_OF_BATCH_FAILURES) == (0.04, 2)
+    assert e.out_of_batch(None, n) is e and e.out_of_batch(at(5.0), n) is e  # fewer than two held: nothing to check
+    assert flagged.out_of_batch(at(9.0, 9.0), n).reason == flagged.reason  # a verdict below reliable keeps its reason
 
 
 def _capped_final(monkeypatch, cap):
@@ -66,9 +70,9 @@ def test_a_final_batch_that_misses_the_likely_failures_is_not_reliable(monkeypat
     pb, unchecked = _capped_final(monkeypatch, 0.5)
     assert unchecked.verdict == "reliable" and not unchecked.covers(pb.exact_log_p)
     assert unchecked.log_mu_hat < pb.exact_log_p - math.log(1.5)
-    monkeypatch.setattr(estimate_module, "OUT_OF_BATCH_SHARE", 0.05)
+    monkeypatch.setattr(estimate_module, "OUT_OF_BATCH_SHARE", 0.04)
     pb, checked = _capped_final(monkeypatch, 0.5)
-    assert checked.verdict == "doubtful" and "an earlier stage drew" in checked.reason
+    assert checked.verdict == "doubtful" and "failures earlier stages drew would each carry" in checked.reason
     assert checked.log_mu_hat == unchecked.log_mu_hat  # the same rollouts and numbers: only the verdict moves
 
 
