@@ -15,7 +15,7 @@ from pemviz.core.estimate import (
     MIN_ESS_RELIABLE,
     MIN_FAILURES,
     OUT_OF_BATCH_FAILURES,
-    OUT_OF_BATCH_SHARE,
+    OUT_OF_BATCH_RATIO,
     khat_threshold,
 )
 
@@ -70,8 +70,8 @@ def verdict_checks(
         ess: effective sample size of the failure weights (None or nan: not a finite number).
         khat: Pareto k-hat of the weights' tail (None or nan: not fitted).
         sampling: one of :data:`SAMPLINGS`.
-        out_of_batch: :attr:`pemviz.core.estimate.Estimate.out_of_batch_share`, the share of the estimate that the
-            failures of earlier stages would carry under the final proposal; None or nan: not computed.
+        out_of_batch: :attr:`pemviz.core.estimate.Estimate.out_of_batch_ratio`, the weight of the failures of
+            earlier stages under the final proposal over the estimate; None or nan: not computed.
     Returns:
         Three checks: failures, effective sample size, Pareto k-hat; a fourth, out-of-batch failures, where given.
     Raises:
@@ -90,11 +90,11 @@ def verdict_checks(
     checks = [failures, _ess_check(n_failures, ess_f, sampling), _khat_check(n, n_failures, ess_f, khat_f, sampling)]
     if out_of_batch is not None and not math.isnan(out_of_batch) and sampling == "importance":
         rule = (
-            f"at most {OUT_OF_BATCH_SHARE:g}: fewer than {OUT_OF_BATCH_FAILURES} failures of earlier stages above it "
-            "under the final proposal"
+            f"at most {OUT_OF_BATCH_RATIO:g}: fewer than {OUT_OF_BATCH_FAILURES} failures of earlier stages weigh more "
+            "than that many times the estimate under the final proposal"
         )
-        found = f"share {out_of_batch:.2g} (failure {OUT_OF_BATCH_FAILURES} by share)"
-        checks.append(Check("out-of-batch failures", found, rule, out_of_batch <= OUT_OF_BATCH_SHARE, "doubtful"))
+        found = f"w / mu_hat {out_of_batch:.3g} (failure {OUT_OF_BATCH_FAILURES} by weight)"
+        checks.append(Check("out-of-batch failures", found, rule, out_of_batch <= OUT_OF_BATCH_RATIO, "doubtful"))
     return checks
 
 

@@ -322,12 +322,12 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         adaptive importance sampling", NeurIPS 2018).
 
         Its verdict is at most :attr:`verdict_cap`, and ``doubtful`` where failures of the pool weighed under the
-        final proposal would each carry more than :data:`~pemviz.core.estimate.OUT_OF_BATCH_SHARE` of the estimate
+        final proposal would each weigh more than :data:`~pemviz.core.estimate.OUT_OF_BATCH_RATIO` times the estimate
         (:meth:`~pemviz.core.estimate.Estimate.out_of_batch`, :meth:`out_of_batch_log_weights`)."""
         est, used = self._result()
         est = est.at_most(self.verdict_cap)
         log_w = self.out_of_batch_log_weights(self.ce.n_final) if est.verdict == "reliable" else None
-        return est.out_of_batch(log_w, self.final_rollouts()), used
+        return est.out_of_batch(log_w), used
 
     @property
     def verdict_cap(self) -> tuple[str, str] | None:

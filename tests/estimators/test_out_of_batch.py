@@ -11,7 +11,7 @@ import pytest
 from pemviz.config import ExperimentConfig
 from pemviz.core import estimate as estimate_module
 from pemviz.core.detectors import logit
-from pemviz.core.estimate import OUT_OF_BATCH_FAILURES, OUT_OF_BATCH_SHARE, estimate
+from pemviz.core.estimate import OUT_OF_BATCH_FAILURES, OUT_OF_BATCH_RATIO, estimate
 from pemviz.engine.experiment import Experiment
 from pemviz.estimators import cross_entropy as ce
 from pemviz.scenarios.problems import build_problem
@@ -27,22 +27,21 @@ def _reliable():
     return e
 
 
-def test_two_failures_that_would_each_carry_more_than_the_share_make_a_reliable_estimate_doubtful():
+def test_two_failures_that_would_each_weigh_more_than_the_ratio_make_a_reliable_estimate_doubtful():
     e = _reliable()
-    n = 1000
 
-    def at(*shares):  # log w_K of failures carrying these shares of N mu_hat
-        return np.log(np.array(shares) * n) + e.log_mu_hat
+    def at(*ratios):  # log w_K of failures weighing these multiples of mu_hat
+        return np.log(np.array(ratios)) + e.log_mu_hat
 
-    kept = e.out_of_batch(at(0.001, 0.05, 0.03), n)  # one above 0.04, the next below it
-    assert kept == e and kept.verdict == "reliable" and math.isclose(kept.out_of_batch_share, 0.03)
-    assert e.out_of_batch(at(1e5, 0.01), n).verdict == "reliable"  # one alone, however large: a single path
-    flagged = e.out_of_batch(at(0.06, 0.001, 0.05), n)
-    assert flagged.verdict == "doubtful" and "each carry 0.05 or more of the final batch's estimate" in flagged.reason
+    kept = e.out_of_batch(at(1.0, 50.0, 30.0))  # one above 40, the next below it
+    assert kept == e and kept.verdict == "reliable" and math.isclose(kept.out_of_batch_ratio, 30.0)
+    assert e.out_of_batch(at(1e8, 10.0)).verdict == "reliable"  # one alone, however heavy: a single path
+    flagged = e.out_of_batch(at(60.0, 1.0, 50.0))
+    assert flagged.verdict == "doubtful" and "would each weigh 50 times mu_hat or more" in flagged.reason
     assert flagged.log_mu_hat == e.log_mu_hat and flagged.log_ci == e.log_ci  # the numbers stay, only the verdict
-    assert (OUT_OF_BATCH_SHARE, OUT_OF_BATCH_FAILURES) == (0.04, 2)
-    assert e.out_of_batch(None, n) is e and e.out_of_batch(at(5.0), n) is e  # fewer than two held: nothing to check
-    assert flagged.out_of_batch(at(9.0, 9.0), n).reason == flagged.reason  # a verdict below reliable keeps its reason
+    assert (OUT_OF_BATCH_RATIO, OUT_OF_BATCH_FAILURES) == (40.0, 2)
+    assert e.out_of_batch(None) is e and e.out_of_batch(at(5e3)) is e  # fewer than two held: nothing to check
+    assert flagged.out_of_batch(at(9e3, 9e3)).reason == flagged.reason  # a verdict below reliable keeps its reason
 
 
 def _capped_final(monkeypatch, cap):
@@ -66,13 +65,13 @@ def _capped_final(monkeypatch, cap):
 def test_a_final_batch_that_misses_the_likely_failures_is_not_reliable(monkeypatch):
     # without the check its weights pass every test (k-hat ~0.2, ESS ~500) while its interval misses the exact
     # answer: about half of p is in failures it never draws
-    monkeypatch.setattr(estimate_module, "OUT_OF_BATCH_SHARE", math.inf)
+    monkeypatch.setattr(estimate_module, "OUT_OF_BATCH_RATIO", math.inf)
     pb, unchecked = _capped_final(monkeypatch, 0.5)
     assert unchecked.verdict == "reliable" and not unchecked.covers(pb.exact_log_p)
     assert unchecked.log_mu_hat < pb.exact_log_p - math.log(1.5)
-    monkeypatch.setattr(estimate_module, "OUT_OF_BATCH_SHARE", 0.04)
+    monkeypatch.setattr(estimate_module, "OUT_OF_BATCH_RATIO", 40.0)
     pb, checked = _capped_final(monkeypatch, 0.5)
-    assert checked.verdict == "doubtful" and "failures earlier stages drew would each carry" in checked.reason
+    assert checked.verdict == "doubtful" and "failures earlier stages drew would each weigh" in checked.reason
     assert checked.log_mu_hat == unchecked.log_mu_hat  # the same rollouts and numbers: only the verdict moves
 
 
@@ -82,3 +81,4 @@ def test_the_default_braking_run_passes_the_check_with_its_estimate_unchanged(se
     e = Experiment(ExperimentConfig.of(seed=seed, plain_fallback=0), problem=pb).run().final.estimate
     assert e.verdict == "reliable" and e.covers(pb.exact_log_p)
     assert f"{e.mu_hat:.4e}" == "2.0319e-15"
+    assert 1.0 < e.out_of_batch_ratio < 40.0  # checked, and passed
