@@ -56,23 +56,6 @@ KHAT_UNRELIABLE = 0.7
 few weights decide the estimate, and no number of further rollouts of this size fixes it quickly."""
 
 
-OUT_OF_BATCH_RATIO = 40.0
-"""How many times mu_hat the weight p(x) / q_K(x) under the final proposal q_K of each of :data:`OUT_OF_BATCH_FAILURES`
-failures drawn by earlier stages must exceed for a ``reliable`` estimate to become ``doubtful``
-(:meth:`Estimate.out_of_batch`). p(x) / (q_K(x) mu_hat) estimates the ratio of the zero-variance proposal
-p(x | fail) to q_K at x: about 1 where q_K is near-optimal; a large one says q_K rarely draws a region the earlier
-proposals drew, and the mass it misses there is a bias no weight of its own batch can show (what a proposal needs
-grows with that ratio: Chatterjee & Diaconis, "The sample size required in importance sampling", Ann. Appl. Probab.
-28(2), 2018). Measured at N = 1000 final rollouts (docs/validation.md, "A check the weights cannot make"): the
-braking run's second largest ratio is at most 28.5 in 200 seeds; the acc-follow scene's wrong ``reliable`` runs
-47.6-2.5e5."""
-
-OUT_OF_BATCH_FAILURES = 2
-"""How many failures of earlier stages must each exceed :data:`OUT_OF_BATCH_RATIO`: one alone can be a single unlikely
-path (the braking run, seed 100: one failure at 2.6e8 times mu_hat, the next at 18, and an estimate 1.004 times the
-exact answer), two say a region."""
-
-
 @dataclass(frozen=True)
 class Estimate:
     """Importance-sampling estimate of the failure probability, its uncertainty and a verdict.
@@ -107,9 +90,6 @@ class Estimate:
     plain_mc: bool = False
     evidence: BettingEvidence | None = field(default=None, compare=False, repr=False)
     markov_logs: tuple[float, ...] = ()
-    out_of_batch_ratio: float = field(default=math.nan, compare=False)
-    """The :data:`OUT_OF_BATCH_FAILURES`-th largest weight p / q_K of a failure of an earlier stage under the final
-    proposal, over mu_hat (:meth:`out_of_batch`; nan: not computed)."""
 
     @property
     def interval_backed(self) -> bool:
@@ -220,23 +200,6 @@ class Estimate:
             "it misses most of them"
         )
         return dataclasses.replace(self, verdict="unreliable", reason=reason)
-
-    def out_of_batch(self, log_w: np.ndarray | None) -> Estimate:
-        """This estimate with :attr:`out_of_batch_ratio` set: the :data:`OUT_OF_BATCH_FAILURES`-th largest
-        w_K(x) / mu_hat of the failures drawn by earlier stages (``log_w``: their log p / q_K under the final
-        proposal, float64 [R], nats; None or fewer than :data:`OUT_OF_BATCH_FAILURES`: unchanged); ``doubtful`` where
-        it exceeds :data:`OUT_OF_BATCH_RATIO` and the verdict was ``reliable``: the final proposal misses a region that
-        carries part of p."""
-        if log_w is None or log_w.size < OUT_OF_BATCH_FAILURES or not self.log_mu_hat > -math.inf:
-            return self
-        ratio = math.exp(min(float(np.sort(log_w)[-OUT_OF_BATCH_FAILURES]) - self.log_mu_hat, 700.0))
-        if not (ratio > OUT_OF_BATCH_RATIO and self.verdict == "reliable"):
-            return dataclasses.replace(self, out_of_batch_ratio=ratio)
-        reason = (
-            f"{OUT_OF_BATCH_FAILURES} failures earlier stages drew would each weigh {ratio:.3g} times mu_hat or more "
-            f"under the final proposal (more than {OUT_OF_BATCH_RATIO:g}): it rarely draws where p/q is large"
-        )
-        return dataclasses.replace(self, verdict="doubtful", reason=reason, out_of_batch_ratio=ratio)
 
     def at_most(self, cap: tuple[str, str] | None) -> Estimate:
         """This estimate with its verdict no better than ``cap`` = (verdict, reason): what the sampler knows and the

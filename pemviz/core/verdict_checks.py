@@ -10,14 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from pemviz.core.estimate import (
-    KHAT_UNRELIABLE,
-    MIN_ESS_RELIABLE,
-    MIN_FAILURES,
-    OUT_OF_BATCH_FAILURES,
-    OUT_OF_BATCH_RATIO,
-    khat_threshold,
-)
+from pemviz.core.estimate import KHAT_UNRELIABLE, MIN_ESS_RELIABLE, MIN_FAILURES, khat_threshold
 
 SAMPLINGS = ("importance", "plain", "splitting")
 """How an estimate's rollouts were drawn: importance sampling (weights p / q), plain Monte Carlo (the PEM itself,
@@ -53,16 +46,8 @@ class Check:
         return f"{self.found}: {self.rule}, " + ("passed" if self.passed else f"failed ({self.fails_to})")
 
 
-def verdict_checks(
-    n: int,
-    n_failures: int,
-    ess: float | None,
-    khat: float | None,
-    sampling: str,
-    out_of_batch: float | None = None,
-) -> list[Check]:
-    """The failures, ESS and k-hat checks of an estimate (module docstring), from its figures alone, and where given
-    the out-of-batch check (:meth:`pemviz.core.estimate.Estimate.out_of_batch`).
+def verdict_checks(n: int, n_failures: int, ess: float | None, khat: float | None, sampling: str) -> list[Check]:
+    """The failures, ESS and k-hat checks of an estimate (module docstring), from its figures alone.
 
     Args:
         n: rollouts used (>= 1).
@@ -70,10 +55,8 @@ def verdict_checks(
         ess: effective sample size of the failure weights (None or nan: not a finite number).
         khat: Pareto k-hat of the weights' tail (None or nan: not fitted).
         sampling: one of :data:`SAMPLINGS`.
-        out_of_batch: :attr:`pemviz.core.estimate.Estimate.out_of_batch_ratio`, the weight of the failures of
-            earlier stages under the final proposal over the estimate; None or nan: not computed.
     Returns:
-        Three checks: failures, effective sample size, Pareto k-hat; a fourth, out-of-batch failures, where given.
+        Three checks: failures, effective sample size, Pareto k-hat.
     Raises:
         ValueError: an unknown ``sampling``."""
     if sampling not in SAMPLINGS:
@@ -87,15 +70,7 @@ def verdict_checks(
         n_failures >= MIN_FAILURES,
         "doubtful" if n_failures else "unreliable: no failure",
     )
-    checks = [failures, _ess_check(n_failures, ess_f, sampling), _khat_check(n, n_failures, ess_f, khat_f, sampling)]
-    if out_of_batch is not None and not math.isnan(out_of_batch) and sampling == "importance":
-        rule = (
-            f"at most {OUT_OF_BATCH_RATIO:g}: fewer than {OUT_OF_BATCH_FAILURES} failures of earlier stages weigh more "
-            "than that many times the estimate under the final proposal"
-        )
-        found = f"w / mu_hat {out_of_batch:.3g} (failure {OUT_OF_BATCH_FAILURES} by weight)"
-        checks.append(Check("out-of-batch failures", found, rule, out_of_batch <= OUT_OF_BATCH_RATIO, "doubtful"))
-    return checks
+    return [failures, _ess_check(n_failures, ess_f, sampling), _khat_check(n, n_failures, ess_f, khat_f, sampling)]
 
 
 def _ess_check(n_failures: int, ess: float, sampling: str) -> Check:

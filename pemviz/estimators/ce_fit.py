@@ -291,11 +291,6 @@ def fit_elite_steps(
     return fit_proposal(proposal, uniq, counts, *options.args, options.tolerance, per=per, dtype=options.dtype)
 
 
-EVENTS_MOST = 2_000_000
-"""The most object events :class:`EliteSteps` holds apart for :attr:`EliteSteps.events` (about 100 MB at 6 features):
-a larger failure pool makes no out-of-batch check (:meth:`pemviz.core.estimate.Estimate.out_of_batch`)."""
-
-
 class EliteSteps:
     """The fitted steps of a stage's elites, gathered rollout by rollout as chunks arrive: proposal inputs, actions
     and log-weights of the steps inside the step mask only, so that a stage of any N holds at most
@@ -309,7 +304,7 @@ class EliteSteps:
         rng: draws the thinning.
         thin_above: steps held before a thinning (default 20 x ``max_rows``).
         keep_observations: also hold each step's observation, so that :meth:`reweight` can compute new weights
-            (until a thinning), and each rollout's events apart, thinned or not (:attr:`events`)."""
+            (until a thinning)."""
 
     def __init__(
         self,
@@ -326,12 +321,6 @@ class EliteSteps:
         self.observations: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
         """With ``keep_observations``, per part: the events' object rows [S, G], whether each counts in its
         rollout's weight, bool [S], and their measurement errors [S, D] (None: none)."""
-        self.events: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] | None = (
-            [] if keep_observations else None
-        )
-        """With ``keep_observations``, per part and whatever the thinning: each event's rollout [S], object row
-        [S, G], action [S], whether it counts in its rollout's weight [S] and measurement error [S, D] (None: none);
-        None once more than :data:`EVENTS_MOST` are held (or without ``keep_observations``)."""
         self.counts, self.hits = np.zeros(grid.size), np.zeros(grid.size)
         self.n_rollouts, self.n_steps, self.held, self.thinned = 0, 0, 0, False
         self.log_w_max = -np.inf
@@ -356,15 +345,11 @@ class EliteSteps:
         rows, detected = batch.events()
         order = np.broadcast_to(np.asarray(index)[:, None], mask.shape)[mask]
         self.parts.append((order, features[mask], detected[mask], np.broadcast_to(log_w[:, None], mask.shape)[mask]))
-        if self.keep_observations or self.events is not None:
+        if self.keep_observations:
             noise = None if batch.noise is None else batch.noise.reshape(batch.n, -1, batch.noise.shape[-1])[mask]
-            counted = np.ones(int(mask.sum()), bool) if weighted is None else weighted[mask]
-            if self.keep_observations:
-                self.observations.append((rows[mask], counted, noise))
-            if self.events is not None:
-                self.events.append((order, rows[mask], detected[mask], counted, noise))
-                if self.n_steps + order.size > EVENTS_MOST:
-                    self.events = None
+            self.observations.append(
+                (rows[mask], np.ones(int(mask.sum()), bool) if weighted is None else weighted[mask], noise)
+            )
         self.n_rollouts += index.size
         self.n_steps += int(mask.sum())
         self.held += int(mask.sum())

@@ -26,32 +26,8 @@ from pemviz.estimators.base import StagePlan, masked_log_weight, mixture_log_wei
 
 if TYPE_CHECKING:
     from pemviz.config import ExperimentConfig
-    from pemviz.core.detectors import StageSamplers
     from pemviz.core.problems import Problem
     from pemviz.core.sampling import Proposal
-    from pemviz.estimators.ce_fit import EliteSteps
-    from pemviz.estimators.ce_odd import ParameterFit
-
-
-def rollout_log_prob(
-    detector: Detector,
-    target: Detector,
-    obs: np.ndarray,
-    actions: np.ndarray,
-    counts: np.ndarray,
-    noise: np.ndarray | None,
-    rollout: np.ndarray,
-    n: int,
-) -> np.ndarray:
-    """log q(x) of ``n`` rollouts under ``detector`` over their events: object rows ``obs`` [S, G], actions bool [S],
-    whether each counts in its rollout's weight bool [S], measurement errors [S, D] (None: none; their density is the
-    detector's own where it models them, else ``target``'s) and each event's rollout ``rollout`` int [S] in 0..n-1;
-    float64 [n] (nats)."""
-    step = np.where(counts, action_log_prob(detector.detect_logit(obs), actions), 0.0)
-    if noise is not None:  # and its density of the detected objects' errors
-        errors = cast(NoisyDetector, detector if noise_names_of(detector) else target)
-        step = step + np.where(counts & actions, errors.noise_log_prob(obs, noise), 0.0)
-    return np.bincount(rollout, weights=step, minlength=n)
 
 
 class MixtureWeights:
@@ -69,10 +45,6 @@ class MixtureWeights:
     _pool_start: int | None
     _stage_samplers: dict[int, tuple[tuple[int, Detector], ...]]
     _pool_log_q: dict[object, np.ndarray]
-    _failure_steps: EliteSteps | None
-    _samplers: StageSamplers | None
-    _parameters: ParameterFit
-    sampler: Detector | None
     _stacked: tuple[np.ndarray, np.ndarray] | None = None
     """The last batch's ``log_q_parts`` [N, K, T] (:meth:`_with_parts`) and the array it is a view of, [N, 1 + K, T]:
     its log p in slot 0, so that :meth:`_mixture_log_weight` sums all K + 1 in one pass."""
@@ -84,8 +56,6 @@ class MixtureWeights:
         ) -> tuple[tuple[int, Detector], ...]: ...
 
         def _smoothing(self, gamma: float) -> float: ...
-
-        def _mixture(self, n: int) -> tuple[tuple[int, Detector], ...]: ...
 
     def _mixture_log_weight(self, batch: RolloutBatch, mask: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """log p(x) - log sum_k c_k q_k(x) over the steps of ``mask`` (bool [N, T]; with ``rows``, int [R], of those
@@ -246,8 +216,12 @@ class MixtureWeights:
             todo = np.isnan(known[ids])
             if todo.any():
                 steps = todo[inverse]
-                events = (obs[steps], actions[steps], counts[steps], None if noise is None else noise[steps])
-                known[ids[todo]] = rollout_log_prob(detector, pb.target, *events, inverse[steps], ids.size)[todo]
+                step = np.where(counts[steps], action_log_prob(detector.detect_logit(obs[steps]), actions[steps]), 0.0)
+                if noise is not None:  # and its density of the detected objects' errors
+                    errors = cast(NoisyDetector, detector if noise_names_of(detector) else pb.target)
+                    hit = counts[steps] & actions[steps]
+                    step = step + np.where(hit, errors.noise_log_prob(obs[steps], noise[steps]), 0.0)
+                known[ids[todo]] = np.bincount(inverse[steps], weights=step, minlength=ids.size)[todo]
             return known[ids]
 
         log_p = log_prob("target", pb.target)
@@ -258,27 +232,3 @@ class MixtureWeights:
         shares = np.array([n for _, _, n, _ in parts], dtype=np.float64)
         log_w = mixture_log_weight(log_p, log_q, shares / shares.sum())
         return (self._smoothing(0.0) * log_w)[inverse]
-
-    def out_of_batch_log_weights(self, n: int) -> np.ndarray | None:
-        """log p(x) / q_K(x) [R] (nats) of each of the R failures of the failure pool (the CE stages' failures since
-        the failure level, drawn by earlier proposals) under the final batch's mixture of ``n`` rollouts, q_K; None
-        where the pool holds no events apart (``fit_weights = "sampler"``, a pool past
-        :data:`~pemviz.estimators.ce_fit.EVENTS_MOST`) or the samplers also draw an ODD's parameters."""
-        pool, target, samplers = self._failure_steps, self.problem.target, self._samplers
-        if pool is None or not pool.events or self._parameters.proposal is not None or self.sampler is None:
-            return None
-        order, obs, actions, counts = (np.concatenate([part[i] for part in pool.events]) for i in range(4))
-        held = [part[4] for part in pool.events]
-        noise = None if held[0] is None else np.concatenate(cast("list[np.ndarray]", held))
-        ids, inverse = np.unique(order, return_inverse=True)
-        events = (obs, actions, counts, noise, inverse, ids.size)
-        log_p = rollout_log_prob(target, target, *events)
-        mixture, log_q = self._mixture(n) or ((n, self.sampler),), []
-        for _, d in mixture:
-            if samplers is not None:
-                samplers.forget()  # asked about the pool's rows, not the last stage's
-            log_q.append(log_p if d is target else rollout_log_prob(d, target, *events))
-        if samplers is not None:
-            samplers.forget()
-        shares = np.array([k for k, _ in mixture], dtype=np.float64) / n
-        return mixture_log_weight(log_p, np.stack(log_q), shares)

@@ -319,15 +319,9 @@ class CrossEntropy(OwnsSettings, MixtureWeights):
         (j = 1..K) counts lambda_j = j n_j / sum_i i n_i, with ``quadratic`` (the default) j^2 n_j / sum_i i^2 n_i:
         fixed as soon as the pool starts too, so still unbiased, and later proposals, fitted to more failures, count
         more (weighting the stages of adaptive importance sampling: Portier & Delyon, "Asymptotic optimality of
-        adaptive importance sampling", NeurIPS 2018).
-
-        Its verdict is at most :attr:`verdict_cap`, and ``doubtful`` where failures of the pool weighed under the
-        final proposal would each weigh more than :data:`~pemviz.core.estimate.OUT_OF_BATCH_RATIO` times the estimate
-        (:meth:`~pemviz.core.estimate.Estimate.out_of_batch`, :meth:`out_of_batch_log_weights`)."""
+        adaptive importance sampling", NeurIPS 2018)."""
         est, used = self._result()
-        est = est.at_most(self.verdict_cap)
-        log_w = self.out_of_batch_log_weights(self.ce.n_final) if est.verdict == "reliable" else None
-        return est.out_of_batch(log_w), used
+        return est.at_most(self.verdict_cap), used
 
     @property
     def verdict_cap(self) -> tuple[str, str] | None:

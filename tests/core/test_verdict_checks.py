@@ -74,15 +74,3 @@ def test_the_checks_decide_the_verdict(n, frac, ess_frac, khat, plain):
     assert worst_of(checks) == verdict, (reason, [c.text() for c in checks])
     for c in checks:
         assert ("failed" in c.text()) == (c.passed is False), c.text()
-
-
-def test_the_out_of_batch_check_is_a_fourth_line_only_where_computed_and_fails_above_its_ratio():
-    assert len(verdict_checks(1800, 1402, 476.8, 0.21, "importance")) == 3
-    assert len(verdict_checks(1800, 1402, 476.8, 0.21, "importance", math.nan)) == 3
-    ok = verdict_checks(1800, 1402, 476.8, 0.21, "importance", 12.0)[3]
-    assert ok.passed and ok.text() == (
-        "w / mu_hat 12 (failure 2 by weight): at most 40: fewer than 2 failures of earlier stages weigh more than "
-        "that many times the estimate under the final proposal, passed"
-    )
-    bad = verdict_checks(1800, 1402, 476.8, 0.21, "importance", 47.6)[3]
-    assert bad.passed is False and bad.text().endswith("failed (doubtful)")
