@@ -153,7 +153,7 @@ class Problem:
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
-            ("window", self.window, "a number of the first observation column's unit (math.inf, the default: everywhere)"),
+            ("window", self.window, "a number in the first observation column's unit (math.inf, the default: all)"),
             ("decided_below", self.decided_below, "a number (-math.inf, the default: nowhere)"),
             ("h_scale", self.h_scale, "a finite number > 0, about the first observation column's largest value"),
         ):

@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from pemviz import stl
 from pemviz.core.detectors import PEMDetector
 from pemviz.core.problems import Problem
