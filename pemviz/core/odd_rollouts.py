@@ -38,11 +38,22 @@ MakeWith = Callable[[int, np.ndarray], Any]
 
 class WithParameters:
     """A batched simulator whose observations end with its rollouts' parameters (constant columns named after them);
-    everything else is the simulator's own."""
+    everything else is the simulator's own.
+
+    Raises:
+        ValueError: a parameter's name is already one of the simulator's observation columns (the map and the
+            rollout file would read the simulator's column for the parameter)."""
 
     def __init__(self, sim: Any, values: np.ndarray, names: tuple[str, ...]) -> None:
+        own = tuple(sim.observation_names)
+        if clash := [name for name in names if name in own]:
+            raise ValueError(
+                f"over an ODD, the drawn parameter {clash[0]!r} is added to the observations as a column of that "
+                f"name, but the simulator already reports a column {clash[0]!r} ({', '.join(own)}): rename one of "
+                "them (e.g. the observation to 'speed_now_mps')"
+            )
         self.sim, self.values = sim, np.asarray(values, dtype=np.float64)
-        self.observation_names = (*tuple(sim.observation_names), *names)
+        self.observation_names = (*own, *names)
 
     def __getattr__(self, name: str) -> Any:  # objects, object_names, n_objects, snapshot, restore, ...
         if name in ("sim", "values"):

@@ -10,6 +10,7 @@ scenarios' problems are in :mod:`pemviz.scenarios.problems`."""
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -108,7 +109,11 @@ class Problem:
         odd: the operating design domain its rollouts draw their parameters from (:class:`pemviz.core.odd.ODD`), or
             None.
         features: the state features of a batch's rollouts (:data:`pemviz.core.features.FeaturesFn`); None: taken
-            from ``simulate`` where :func:`rollout_functions` made it, else none."""
+            from ``simulate`` where :func:`rollout_functions` made it, else none.
+
+    Raises:
+        ValueError: ``window`` or ``decided_below`` not a number (NaN included), or ``h_scale`` not a finite number
+            > 0."""
 
     name: str
     simulate: SimulateFn
@@ -147,6 +152,14 @@ class Problem:
     features: FeaturesFn | None = None
 
     def __post_init__(self) -> None:
+        for name, value, allowed in (
+            ("window", self.window, "a number in the first observation column's unit (math.inf, the default: all)"),
+            ("decided_below", self.decided_below, "a number (-math.inf, the default: nowhere)"),
+            ("h_scale", self.h_scale, "a finite number > 0, about the first observation column's largest value"),
+        ):
+            number = isinstance(value, numbers.Real) and not math.isnan(value)
+            if not number or (name == "h_scale" and not (math.isfinite(value) and value > 0.0)):
+                raise ValueError(f"Problem {self.name!r}: {name} must be {allowed}; got {value!r}")
         if self.features is None:  # a problem on rollout_functions: its simulator's replay
             object.__setattr__(self, "features", getattr(self.simulate, "state_features", None))
 

@@ -355,14 +355,14 @@ median reading prices the run (a loaded machine's readings spread)."""
 def _timed_plain(problem: Problem, sizes: Iterable[int], clock: Any) -> list[tuple[int, float]]:
     """``(n, seconds)`` of each batch of plain rollouts of ``problem`` timed by ``clock`` (``time.perf_counter`` or
     ``time.thread_time``), of ``sizes`` in turn, each drawn from its target on a stream of its own (seed 0: the run's
-    streams are untouched) with BLAS on one thread; the batches after one whose rate says a batch would take more than
-    :data:`PROBE_BUDGET_S` seconds are not drawn."""
+    streams are untouched) with BLAS on one thread; the batches after one whose reading says a batch would take more
+    than :data:`PROBE_BUDGET_S` seconds (:func:`_affine_seconds`) are not drawn."""
     from threadpoolctl import threadpool_limits
 
     timed: list[tuple[int, float]] = []
     with threadpool_limits(1, user_api="blas"):
         for size in sizes:
-            if timed and timed[-1][1] / timed[-1][0] * size > PROBE_BUDGET_S:
+            if timed and _affine_seconds(timed, size) > PROBE_BUDGET_S:
                 break
             t0 = clock()
             problem.simulate(size, problem.target, problem.target, np.random.default_rng(0))
@@ -375,12 +375,27 @@ def plain_probe(problem: Problem, config: ExperimentConfig, estimate: Estimate) 
     timed (:func:`_timed_plain`: a stream of their own, seed 0), where the run's advice will size plain Monte Carlo (its
     verdict is not ``reliable`` and its method is not ``mc``, whose own speed is measured); else None. A run's own
     seconds a simulation hold what its method adds (fits, look-aheads, replayed prefixes): up to 10 times a plain
-    rollout's. A pilot of :data:`PROBE_PILOT` rollouts comes first: where the probe would take more than
-    :data:`PROBE_BUDGET_S` seconds at its rate, the pilot's rate is the answer."""
+    rollout's. Batches of :data:`PROBE_PILOT` and twice that come first (the first also warms the simulator up): where
+    the line through their readings (:func:`_affine_seconds`) says the probe would take more than
+    :data:`PROBE_BUDGET_S` seconds, the second's rate is the answer; a scene whose steps cost about as much for 50
+    rollouts as for 100 (a fixed cost per step, e.g. the library stack's tracker and PEMs) goes on to the probe."""
     if estimate.verdict == "reliable" or config.method_record.plain:
         return None
-    n, seconds = _timed_plain(problem, (PROBE_PILOT, PLAIN_PROBE), time.perf_counter)[-1]
+    n, seconds = _timed_plain(problem, (PROBE_PILOT, 2 * PROBE_PILOT, PLAIN_PROBE), time.perf_counter)[-1]
     return seconds / n
+
+
+def _affine_seconds(timed: list[tuple[int, float]], size: int) -> float:
+    """Seconds a batch of ``size`` plain rollouts would take, from the last two ``(n, seconds)`` readings of
+    ``timed``: the line through them (a fixed cost per batch plus a cost per rollout), or in proportion to the last
+    reading alone where there is one, the two are of one size, or the line falls or starts below 0 (noise)."""
+    n1, s1 = timed[-1]
+    if len(timed) >= 2 and timed[-2][0] != n1:
+        n0, s0 = timed[-2]
+        slope = (s1 - s0) / (n1 - n0)
+        if slope > 0.0 and s1 - slope * n1 >= 0.0:
+            return s1 + slope * (size - n1)
+    return s1 / n1 * size
 
 
 def scene_pilot(problem: Problem) -> list[tuple[int, float]]:

@@ -154,7 +154,8 @@ def test_the_engine_probes_a_plain_rollout_only_where_the_advice_needs_it():
 
 def test_the_probe_of_a_slow_simulator_stops_at_its_pilot():
     """A simulator whose rollouts cost 2 ms each (a per-rollout simulator, as highway-env's is) is timed on the pilot
-    alone: 1,000 of them would take 2 s, past the probe's budget of 1 s; a fast one is timed on the whole probe."""
+    and twice the pilot alone: 1,000 of them would take 2 s, past the probe's budget of 1 s; a fast one is timed on
+    the whole probe."""
     import time as clock
 
     from pemviz.engine import experiment
@@ -171,11 +172,36 @@ def test_the_probe_of_a_slow_simulator_stops_at_its_pilot():
     s = experiment.plain_probe(
         dataclasses.replace(problem, simulate=slow), ExperimentConfig.of(method="adaptive"), made(math.log(1e-3))
     )
-    assert asked == [experiment.PROBE_PILOT] and 0.002 <= s < 0.05
+    assert asked == [experiment.PROBE_PILOT, 2 * experiment.PROBE_PILOT] and 0.002 <= s < 0.05
     counted = dataclasses.replace(problem, simulate=lambda n, *a, **k: asked.append(n) or simulate(n, *a, **k))
     asked.clear()
     experiment.plain_probe(counted, ExperimentConfig.of(method="adaptive"), made(math.log(1e-3)))
-    assert asked == [experiment.PROBE_PILOT, experiment.PLAIN_PROBE]
+    assert asked == [experiment.PROBE_PILOT, 2 * experiment.PROBE_PILOT, experiment.PLAIN_PROBE]
+
+
+def test_the_probe_of_a_scene_with_a_fixed_cost_per_batch_reaches_its_1000_rollouts():
+    """A scene whose batch costs 0.15 s whatever its size plus 0.05 ms a rollout (a stack scene's steps: tracker and
+    PEM calls per batched step) takes 0.2 s for 1,000 rollouts, 0.2 ms each. Its 50 rollouts alone (3 ms each)
+    say 1,000 would take 3 s, past the budget: the probe used to stop there and the advice priced plain Monte Carlo
+    15 times too high (a user's left turn on the stack: ~2 ms a rollout said, 0.2 ms measured)."""
+    import time as clock
+
+    from pemviz.engine import experiment
+    from pemviz.scenarios.problems import build_problem
+
+    problem = build_problem("toy")
+    asked, simulate = [], problem.simulate
+
+    def fixed_cost(n, *args, **kwargs):
+        asked.append(n)
+        clock.sleep(0.15 + 5e-5 * n)
+        return simulate(n, *args, **kwargs)
+
+    s = experiment.plain_probe(
+        dataclasses.replace(problem, simulate=fixed_cost), ExperimentConfig.of(method="adaptive"), made(math.log(1e-3))
+    )
+    assert asked == [experiment.PROBE_PILOT, 2 * experiment.PROBE_PILOT, experiment.PLAIN_PROBE]
+    assert 0.0002 <= s < 0.0006  # 0.2 s / 1,000 (+ the toy's own cost and a loaded machine's delays)
 
 
 def test_a_max_time_that_plain_monte_carlo_does_not_fit_says_so_and_what_is_left():
