@@ -52,7 +52,7 @@ def test_weights_by_hand_and_unbiased() -> None:
 
 
 def test_cross_entropy_with_em_finds_the_failure() -> None:
-    args = SimpleNamespace(n=1000, n_final=2000, stages=6, rho=0.1, alpha=0.1, l2=1e-2, em=3)
+    args = SimpleNamespace(n=1000, n_final=2000, stages=6, rho=0.1, alpha=0.1, l2=1e-2, em=3, init_window=1)
     r = study.run(study.AllMissed(), 2, 0, args)
     lo, hi = np.exp(r["e"].log_ci)
     assert lo <= P_EXACT <= hi, (lo, hi)
