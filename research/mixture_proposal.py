@@ -10,10 +10,11 @@ gaps; its robustness is the least gap minus 2 m.
 
 The proposal: a defensive share ``alpha`` of the PEM itself (Hesterberg 1995) and C components, each
 ``logit q_c(detect) = logit p_PEM + beta_c . phi(t, since, gap, seen_gap)`` with ``phi`` the hats (piecewise-linear
-B-splines) of the step at ``--t-knots`` knots evenly over the run, one-hot ``since`` (0, 1, 2, 3 or more) and the
-gap and the gap last seen, each centred at the start gap, 5 m a unit. Each rollout is drawn from one
-component, ``n_c = round(share_c N)`` rollouts each (stratified), and weighted by the balance heuristic
-``p(x) / sum_c share_c q_c(x)`` (Owen & Zhou 2000, JASA 95), all in float64 log space (``log_expit(+-logit)``); its
+B-splines) of the step at 11 knots evenly over the run (``AccFollow.t_knots``), one-hot ``since`` (0, 1, 2, 3
+or more) and the gap and the gap last seen, each centred at the start gap, 5 m a unit. Each rollout is drawn from
+one component, ``n_c = round(share_c N)`` rollouts each (stratified), and weighted by the balance heuristic
+``p(x) / sum_c share_c q_c(x)`` (Owen & Zhou 2000, JASA 95; the shares, not the rounded counts over N: a
+difference below 1 / N a component, not corrected here), all in float64 log space (``log_expit(+-logit)``); its
 likelihood ratio stops at the step the rollout fails (a stopping time: the weight stays unbiased).
 
 Cross-entropy (Rubinstein & Kroese 2004) with EM over the elites (Kurtz & Song 2013, Structural Safety 42; Geyer,
@@ -23,12 +24,13 @@ elite's responsibility of component c by the component's rollout log-likelihood,
 q_j(x)`` over the non-defensive components; the M step refits each component's ``beta_c`` by the elites' weighted
 log-likelihood of their detections times their responsibility (a weighted logistic regression with the PEM's logit
 as offset, L2 penalty ``--l2``, Newton) and its share by the weighted responsibilities. The components start
-scene-neutrally: a k-means (fixed seed) of the first stage's elites' per-step miss indicators. The stages stop when
+scene-neutrally: a k-means (fixed seed) of the first stage's elites' per-step miss indicators (``--init-window W``:
+their miss counts in windows of W steps). The stages stop when
 the threshold reaches 0 (that stage's failures fitted last); then ``--n-final`` rollouts of the last proposal give
 the estimate through :func:`pemviz.core.estimate.estimate` (what ``pemviz run`` prints: interval, ESS, k-hat,
 verdict).
 
-Commands whose figures were recorded (a run is about 1-3 s here)::
+Commands whose figures were recorded (a run is about 1-4 s here)::
 
     nice -n 10 python research/mixture_proposal.py --components 1 2 3 --seeds 20
     nice -n 10 python research/mixture_proposal.py --components 2 3 --seeds 20 --init-window 10
