@@ -119,7 +119,7 @@ class ExperimentConfig:
         (the paper); ``array-rqmc``, each fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts stepped as one
         array, ranked by detect logit and given the points of a shifted golden-ratio lattice
         (:func:`pemviz.core.detectors.step_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008):
-        unbiased, mostly less variance (not for chains of a memory controller that tie on the ranking key); plain
+        unbiased, less variance, on a scene that opts in (:attr:`pemviz.core.problems.Problem.array_rqmc`); plain
         Monte Carlo's own rollouts are drawn i.i.d. either way (its Clopper-Pearson interval counts independent
         trials).
     scenario: what is simulated, one of :data:`SCENARIOS`.

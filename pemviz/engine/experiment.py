@@ -238,7 +238,7 @@ class Experiment:
         pb, cfg = self.problem, self.config
         target = pb.target if plan.target is None else plan.target
         parts = plan.parts  # (rollouts, detector) in the order drawn
-        if cfg.uniforms == "array-rqmc" and cfg.method_record.array_rqmc:  # ExperimentConfig.uniforms
+        if cfg.uniforms == "array-rqmc" and cfg.method_record.array_rqmc and pb.array_rqmc:  # the scene opts in
             # the target's own rollouts are drawn i.i.d.: a mixture's target share (it bounds the weights, and its
             # rollouts almost never fail) and plain Monte Carlo (a final batch from the target), whose Clopper-Pearson
             # interval counts independent trials: chains of a memory controller that tie on the ranking key keep their
