@@ -113,7 +113,7 @@ class Problem:
         array_rqmc: the importance-sampling batches of a run with ``uniforms = "array-rqmc"`` may couple its
             rollouts (:func:`pemviz.core.detectors.step_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research
             56(4), 2008): True only where the ranking by the sampler's logit and the object row sees what the
-            controller acts on, measured (braking, the toy); False (the default): i.i.d. uniforms, as a controller
+            controller acts on, measured (e.g. the braking scene); False (the default): i.i.d. uniforms, as a controller
             with a memory the rows do not show (a brake that counts detections) needs for its intervals to hold.
 
     Raises:
