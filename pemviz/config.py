@@ -119,7 +119,9 @@ class ExperimentConfig:
         (the paper); ``array-rqmc``, each fixed block of :data:`pemviz.core.rng.RQMC_BLOCK` rollouts stepped as one
         array, ranked by detect logit and given the points of a shifted golden-ratio lattice
         (:func:`pemviz.core.detectors.step_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research 56(4), 2008):
-        unbiased, less variance, and an interval computed as if the rollouts were independent is conservative.
+        unbiased, less variance, on a scene that opts in (:attr:`pemviz.core.problems.Problem.array_rqmc`); plain
+        Monte Carlo's own rollouts are drawn i.i.d. either way (its Clopper-Pearson interval counts independent
+        trials).
     scenario: what is simulated, one of :data:`SCENARIOS`.
     scenario_params: ``(name, value)`` pairs of the scenario's parameters (``--param NAME=VALUE``), checked by
         :mod:`pemviz.scenarios.parameters` (units in the names: ``_m``, ``_mps``, ``_s``); ``()``: its defaults.

@@ -110,6 +110,11 @@ class Problem:
             None.
         features: the state features of a batch's rollouts (:data:`pemviz.core.features.FeaturesFn`); None: taken
             from ``simulate`` where :func:`rollout_functions` made it, else none.
+        array_rqmc: the importance-sampling batches of a run with ``uniforms = "array-rqmc"`` may couple its
+            rollouts (:func:`pemviz.core.detectors.step_uniforms`; L'Ecuyer, Lecot & Tuffin, Operations Research
+            56(4), 2008): True only where the ranking by the sampler's logit and the object row sees what the
+            controller acts on, measured (e.g. the braking scene); False (the default): i.i.d. uniforms, as a controller
+            with a memory the rows do not show (a brake that counts detections) needs for its intervals to hold.
 
     Raises:
         ValueError: ``window`` or ``decided_below`` not a number (NaN included), or ``h_scale`` not a finite number
@@ -150,6 +155,7 @@ class Problem:
     object_labels: tuple[str, ...] = ()
     odd: Any = None
     features: FeaturesFn | None = None
+    array_rqmc: bool = False
 
     def __post_init__(self) -> None:
         for name, value, allowed in (

@@ -238,10 +238,13 @@ class Experiment:
         pb, cfg = self.problem, self.config
         target = pb.target if plan.target is None else plan.target
         parts = plan.parts  # (rollouts, detector) in the order drawn
-        if cfg.uniforms == "array-rqmc" and cfg.method_record.array_rqmc:  # ExperimentConfig.uniforms
-            # a mixture's target share is drawn i.i.d.: it bounds the weights, and its rollouts (the target's own)
-            # almost never fail, so coupling them would reduce no estimate's variance
-            parts = [(k, d if plan.mixture and d is pb.target else ArrayRQMC(d)) for k, d in parts]
+        if cfg.uniforms == "array-rqmc" and cfg.method_record.array_rqmc and pb.array_rqmc:  # the scene opts in
+            # the target's own rollouts are drawn i.i.d.: a mixture's target share (it bounds the weights, and its
+            # rollouts almost never fail) and plain Monte Carlo (a final batch from the target), whose Clopper-Pearson
+            # interval counts independent trials: chains of a memory controller that tie on the ranking key keep their
+            # lattice points and miss together, so coupled plain rollouts over-disperse the failure count
+            iid = plan.mixture or plan.kind == "final"
+            parts = [(k, d if iid and d is pb.target else ArrayRQMC(d)) for k, d in parts]
         if plan.draw is None and plan.n > stream_above(cfg, pb.n_objects) and pb.stream is not None:
             self._streamed(estimator, plan, parts, target)
         else:  # one batch, on the configured executor (worker processes, this process or Ray tasks)

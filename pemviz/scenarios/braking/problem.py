@@ -129,6 +129,7 @@ def braking_problem(pem: GapModel, params: BrakingParams | None = None, sim: str
         exact_log_p=known_log_failure_probability(pem.logit_at_gap, p) if hasattr(pem, "logit_at_gap") else None,
         thresholds=Thresholds(p.crash_gap_m, p.braking_distance_m, "m", "crash gap", "braking distance"),
         drawing=BrakingDrawing(p),
+        array_rqmc=True,  # its intervals hold coupled: 199 of 200 seeds (Validation page)
         n_steps=p.n_steps,
         dt_s=p.dt_s,
         description=(

@@ -61,6 +61,7 @@ def toy_problem(params: ToyParams | None = None, name: str | None = None) -> Pro
         branch=branch,
         tilt=tilt,
         features=feature_replay(lambda n: BatchedToy(p, n)),
+        array_rqmc=True,  # its state is the row: ranked by it, the coupling keeps the estimate's mean
         description=(
             f"toy braking: {p.total} steps from the obstacle, braking possible within {p.braking}, failure "
             f"closer than {p.safe}; detection probability {p_label}"
