@@ -115,14 +115,22 @@ class Tab:
 
         viser's browser client sends input updates through one 50 ms throttle shared by every input and
         button (only the last message of a window goes out): a script typing into several fields at once
-        must let each value arrive, as a person's typing speed does.
+        must let each value arrive, as a person's typing speed does. A value the server overwrites while it arrives
+        (a preset chosen just before, applied late on a loaded machine) is typed again, up to three times.
         """
-        box = self.field(label)
-        box.fill(value)
-        box.press("Tab")
-        if wait:
+        for attempt in range(3):
+            box = self.field(label)
+            box.fill(value)
+            box.press("Tab")
+            if not wait:
+                return
             handle = self.inputs()[label]
-            wait_until(lambda: handle.value == value, what=f"{label} = {value!r} to reach the server")
+            try:
+                wait_until(lambda h=handle: h.value == value, what=f"{label} = {value!r} to reach the server")
+                return
+            except AssertionError:
+                if attempt == 2:
+                    raise
 
     def inputs(self) -> dict:
         """Label -> the session's handle of each text field and dropdown of the form."""
