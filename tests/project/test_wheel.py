@@ -76,9 +76,10 @@ def test_pemviz_run_from_the_installed_wheel_in_an_empty_folder(wheel: Path, tmp
         env=env,
         capture_output=True,
         text=True,
-        check=True,
         timeout=120,
     )
+    installed = sorted(p.name for p in Path(own).iterdir())
+    assert where.returncode == 0, f"{where.stderr[-2000:]}\n{own} holds: {installed}"  # what failed, if it does
     module_file, assets = where.stdout.split()
     assert Path(module_file).is_relative_to(venv), module_file  # the wheel's pemviz, not the checkout
     assert Path(assets).is_relative_to(venv) and (Path(assets) / "pem_ml-nn.pt").is_file()
