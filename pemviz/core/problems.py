@@ -117,8 +117,8 @@ class Problem:
             with a memory the rows do not show (a brake that counts detections) needs for its intervals to hold.
 
     Raises:
-        ValueError: ``window`` or ``decided_below`` not a number (NaN included), or ``h_scale`` not a finite number
-            > 0."""
+        ValueError: ``window`` or ``decided_below`` not a number (NaN included), ``h_scale`` not a finite number
+            > 0, or ``array_rqmc`` not a bool."""
 
     name: str
     simulate: SimulateFn
@@ -166,6 +166,8 @@ class Problem:
             number = isinstance(value, numbers.Real) and not math.isnan(value)
             if not number or (name == "h_scale" and not (math.isfinite(value) and value > 0.0)):
                 raise ValueError(f"Problem {self.name!r}: {name} must be {allowed}; got {value!r}")
+        if not isinstance(self.array_rqmc, bool):  # a truthy text or 1 would couple a scene that never said so
+            raise ValueError(f"Problem {self.name!r}: array_rqmc must be True or False; got {self.array_rqmc!r}")
         if self.features is None:  # a problem on rollout_functions: its simulator's replay
             object.__setattr__(self, "features", getattr(self.simulate, "state_features", None))
 

@@ -55,6 +55,12 @@ def test_problem_refuses_a_field_that_is_not_a_number(field, value):
         _problem(**{field: value})
 
 
+@pytest.mark.parametrize("value", ["yes", 1, None])
+def test_problem_refuses_an_array_rqmc_that_is_not_a_bool(value):
+    with pytest.raises(ValueError, match=rf"Problem 'one-car': array_rqmc must be True or False; got {value!r}"):
+        _problem(array_rqmc=value)
+
+
 def test_problem_takes_numbers_and_the_defaults():
     assert _problem().window == math.inf
     problem = _problem(window=np.float64(25.0), h_scale=30, decided_below=1)
